@@ -1,0 +1,393 @@
+"""An FMU loaded into the process, and its instances.
+
+`Fmu` owns the extracted archive and the shared library; `FmuInstance` wraps one
+fmi2Component and exposes the FMI 2.0 calls with numpy arrays. Hot-path calls
+(states, derivatives, event indicators) reuse preallocated C buffers.
+"""
+from __future__ import annotations
+
+import collections
+import re
+import itertools
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from ..errors import FmuBuilderError
+from .archive import FmuArchive
+from .binding import STATUS_NAMES, ffi, libc, load_library
+from .model import ModelInfo, Variable
+
+_instance_counter = itertools.count(1)
+
+
+class FmuCallError(FmuBuilderError):
+    """An fmi2 function returned fmi2Discard, fmi2Error or fmi2Fatal."""
+
+    def __init__(self, function: str, status: int, messages: Sequence[str] = ()):
+        self.function = function
+        self.status = status
+        detail = f": {messages[-1]}" if messages else ""
+        super().__init__(f"{function} returned {STATUS_NAMES[status]}{detail}")
+
+
+@dataclass(frozen=True)
+class EventInfo:
+    new_discrete_states_needed: bool
+    terminate_simulation: bool
+    nominals_of_continuous_states_changed: bool
+    values_of_continuous_states_changed: bool
+    next_event_time_defined: bool
+    next_event_time: float
+
+    @property
+    def next_event_time_or_inf(self) -> float:
+        return self.next_event_time if self.next_event_time_defined else float("inf")
+
+
+class Fmu:
+    """An FMI 2.0 Model-Exchange FMU, extracted and loaded. Use as a context manager
+    or call close(); instances must be freed before."""
+
+    def __init__(self, path: str | Path):
+        self.archive = FmuArchive(path)
+        self.info: ModelInfo = self.archive.info
+        try:
+            self.lib = load_library(self.archive.library_path)
+        except Exception:
+            self.archive.close()
+            raise
+
+    @property
+    def path(self) -> Path:
+        return self.archive.path
+
+    def instantiate(self, name: str | None = None, *, logging: bool = False) -> "FmuInstance":
+        return FmuInstance(self, name or f"{self.info.model_identifier}_{next(_instance_counter)}", logging=logging)
+
+    def close(self) -> None:
+        # The library stays mapped as long as cffi objects reference it; removing the
+        # extracted files is safe on Linux even while it is mapped.
+        self.archive.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class FmuInstance:
+    """One fmi2Component in Model-Exchange mode."""
+
+    def __init__(self, fmu: Fmu, name: str, *, logging: bool = False):
+        self.fmu = fmu
+        self.info = fmu.info
+        self.name = name
+        self._lib = fmu.lib
+        self.messages: collections.deque[str] = collections.deque(maxlen=20)
+        self._print_log = logging
+        self._logger = ffi.callback("fmi2CallbackLogger", self._on_log)
+        self._callbacks = ffi.new("fmi2CallbackFunctions*")
+        self._callbacks.logger = self._logger
+        self._callbacks.allocateMemory = ffi.addressof(libc, "calloc")
+        self._callbacks.freeMemory = ffi.addressof(libc, "free")
+        self._keep = [ffi.new("char[]", s.encode()) for s in (name, self.info.guid, fmu.archive.resources_uri)]
+        self.component = self._lib.fmi2Instantiate(
+            self._keep[0], self._lib.fmi2ModelExchange, self._keep[1], self._keep[2],
+            self._callbacks, 0, 1 if logging else 0)
+        if self.component == ffi.NULL:
+            detail = f": {self.messages[-1]}" if self.messages else ""
+            raise FmuBuilderError(f"fmi2Instantiate failed for {self.info.model_name}{detail}")
+        n, nz = self.info.n_states, self.info.n_event_indicators
+        self._x = ffi.new("double[]", max(n, 1))
+        self._dx = ffi.new("double[]", max(n, 1))
+        self._z = ffi.new("double[]", max(nz, 1))
+        self._x_view = np.frombuffer(ffi.buffer(self._x), dtype=np.float64)[:n]
+        self._dx_view = np.frombuffer(ffi.buffer(self._dx), dtype=np.float64)[:n]
+        self._z_view = np.frombuffer(ffi.buffer(self._z), dtype=np.float64)[:nz]
+        self._event_info = ffi.new("fmi2EventInfo*")
+        self._flags = ffi.new("fmi2Boolean[2]")
+        self._freed = False
+
+    # -- logging and status ------------------------------------------------------------
+    def _on_log(self, env, instance_name, status, category, message, first_argument):
+        text = format_log_message(message, first_argument)
+        self.messages.append(text)
+        if self._print_log:
+            cat = ffi.string(category).decode(errors="replace") if category != ffi.NULL else ""
+            print(f"[{STATUS_NAMES[status] if 0 <= status < 6 else status}] [{cat}] {text}")
+
+    def _check(self, status: int, function: str) -> int:
+        if status > 1:  # fmi2Discard or worse
+            raise FmuCallError(function, status, tuple(self.messages))
+        return status
+
+    # -- life cycle ----------------------------------------------------------------------
+    def setup_experiment(self, start_time: float = 0.0, stop_time: float | None = None,
+                         tolerance: float | None = None) -> None:
+        self._check(self._lib.fmi2SetupExperiment(
+            self.component, tolerance is not None, tolerance or 0.0, start_time,
+            stop_time is not None, stop_time if stop_time is not None else 0.0), "fmi2SetupExperiment")
+
+    def enter_initialization_mode(self) -> None:
+        self._check(self._lib.fmi2EnterInitializationMode(self.component), "fmi2EnterInitializationMode")
+
+    def exit_initialization_mode(self) -> None:
+        self._check(self._lib.fmi2ExitInitializationMode(self.component), "fmi2ExitInitializationMode")
+
+    def terminate(self) -> None:
+        self._check(self._lib.fmi2Terminate(self.component), "fmi2Terminate")
+
+    def reset(self) -> None:
+        self._check(self._lib.fmi2Reset(self.component), "fmi2Reset")
+
+    def free(self) -> None:
+        if not self._freed:
+            self._freed = True
+            self._lib.fmi2FreeInstance(self.component)
+            self.component = ffi.NULL
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.free()
+
+    # -- variables -----------------------------------------------------------------------
+    def get_real(self, vrs: Sequence[int]) -> np.ndarray:
+        n = len(vrs)
+        out = ffi.new("double[]", n)
+        self._check(self._lib.fmi2GetReal(self.component, ffi.new("fmi2ValueReference[]", list(vrs)), n, out), "fmi2GetReal")
+        return np.frombuffer(ffi.buffer(out), dtype=np.float64).copy()
+
+    def set_real(self, vrs: Sequence[int], values: Iterable[float]) -> None:
+        values = [float(v) for v in values]
+        self._check(self._lib.fmi2SetReal(self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(values),
+                                          ffi.new("double[]", values)), "fmi2SetReal")
+
+    def get_integer(self, vrs: Sequence[int]) -> list[int]:
+        out = ffi.new("int[]", len(vrs))
+        self._check(self._lib.fmi2GetInteger(self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(vrs), out), "fmi2GetInteger")
+        return list(out)
+
+    def set_integer(self, vrs: Sequence[int], values: Iterable[int]) -> None:
+        values = [int(v) for v in values]
+        self._check(self._lib.fmi2SetInteger(self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(values),
+                                             ffi.new("int[]", values)), "fmi2SetInteger")
+
+    def get_boolean(self, vrs: Sequence[int]) -> list[bool]:
+        out = ffi.new("int[]", len(vrs))
+        self._check(self._lib.fmi2GetBoolean(self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(vrs), out), "fmi2GetBoolean")
+        return [bool(v) for v in out]
+
+    def set_boolean(self, vrs: Sequence[int], values: Iterable[bool]) -> None:
+        values = [1 if v else 0 for v in values]
+        self._check(self._lib.fmi2SetBoolean(self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(values),
+                                             ffi.new("int[]", values)), "fmi2SetBoolean")
+
+    def get_string(self, vrs: Sequence[int]) -> list[str]:
+        out = ffi.new("fmi2String[]", len(vrs))
+        self._check(self._lib.fmi2GetString(self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(vrs), out), "fmi2GetString")
+        return [ffi.string(s).decode() if s != ffi.NULL else "" for s in out]
+
+    def set_string(self, vrs: Sequence[int], values: Iterable[str]) -> None:
+        keep = [ffi.new("char[]", str(v).encode()) for v in values]
+        self._check(self._lib.fmi2SetString(self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(keep),
+                                            ffi.new("fmi2String[]", keep)), "fmi2SetString")
+
+    def get(self, names: Sequence[str]) -> list:
+        """Values of variables by name, each in its own Python type."""
+        return [self._getter(self.info.variable(n))([self.info.variable(n).value_reference])[0] for n in names]
+
+    def set(self, values: dict[str, object]) -> None:
+        """Set variables by name; strings from the command line are converted by type."""
+        for name, value in values.items():
+            var = self.info.variable(name)
+            setter = getattr(self, f"set_{var.api_type.lower()}")
+            setter([var.value_reference], [convert_value(var, value)])
+
+    def _getter(self, var: Variable):
+        return getattr(self, f"get_{var.api_type.lower()}")
+
+    def real_getter(self, vrs: Sequence[int]):
+        """A fast reader of a fixed set of Real variables: returns a function giving a new array."""
+        n = len(vrs)
+        c_vrs = ffi.new("fmi2ValueReference[]", list(vrs) or [0])
+        out = ffi.new("double[]", max(n, 1))
+        view = np.frombuffer(ffi.buffer(out), dtype=np.float64)[:n]
+        get_real, component, check = self._lib.fmi2GetReal, self.component, self._check
+
+        def read() -> np.ndarray:
+            if n:
+                status = get_real(component, c_vrs, n, out)
+                if status > 1:
+                    check(status, "fmi2GetReal")
+            return view.copy()
+        return read
+
+    # -- continuous-time interface ---------------------------------------------------------
+    def set_time(self, t: float) -> None:
+        status = self._lib.fmi2SetTime(self.component, t)
+        if status > 1:
+            self._check(status, "fmi2SetTime")
+
+    def get_continuous_states(self) -> np.ndarray:
+        status = self._lib.fmi2GetContinuousStates(self.component, self._x, self.info.n_states)
+        if status > 1:
+            self._check(status, "fmi2GetContinuousStates")
+        return self._x_view.copy()
+
+    def set_continuous_states(self, x) -> None:
+        n = self.info.n_states
+        self._x_view[:] = x
+        status = self._lib.fmi2SetContinuousStates(self.component, self._x, n)
+        if status > 1:
+            self._check(status, "fmi2SetContinuousStates")
+
+    def get_derivatives(self) -> np.ndarray:
+        status = self._lib.fmi2GetDerivatives(self.component, self._dx, self.info.n_states)
+        if status > 1:
+            self._check(status, "fmi2GetDerivatives")
+        return self._dx_view.copy()
+
+    def get_event_indicators(self) -> np.ndarray:
+        status = self._lib.fmi2GetEventIndicators(self.component, self._z, self.info.n_event_indicators)
+        if status > 1:
+            self._check(status, "fmi2GetEventIndicators")
+        return self._z_view.copy()
+
+    def get_nominals_of_continuous_states(self) -> np.ndarray:
+        out = ffi.new("double[]", max(self.info.n_states, 1))
+        self._check(self._lib.fmi2GetNominalsOfContinuousStates(self.component, out, self.info.n_states),
+                    "fmi2GetNominalsOfContinuousStates")
+        return np.frombuffer(ffi.buffer(out), dtype=np.float64)[: self.info.n_states].copy()
+
+    def completed_integrator_step(self, no_set_fmu_state_prior: bool = True) -> tuple[bool, bool]:
+        """Returns (enter_event_mode, terminate_simulation)."""
+        flags = self._flags
+        status = self._lib.fmi2CompletedIntegratorStep(self.component, no_set_fmu_state_prior, flags, flags + 1)
+        if status > 1:
+            self._check(status, "fmi2CompletedIntegratorStep")
+        return bool(flags[0]), bool(flags[1])
+
+    # -- event mode ------------------------------------------------------------------------
+    def enter_event_mode(self) -> None:
+        self._check(self._lib.fmi2EnterEventMode(self.component), "fmi2EnterEventMode")
+
+    def enter_continuous_time_mode(self) -> None:
+        self._check(self._lib.fmi2EnterContinuousTimeMode(self.component), "fmi2EnterContinuousTimeMode")
+
+    def new_discrete_states(self) -> EventInfo:
+        info = self._event_info
+        info.newDiscreteStatesNeeded = 1  # the importer's initial value, as the standard's pseudo-code
+        self._check(self._lib.fmi2NewDiscreteStates(self.component, info), "fmi2NewDiscreteStates")
+        return EventInfo(bool(info.newDiscreteStatesNeeded), bool(info.terminateSimulation),
+                         bool(info.nominalsOfContinuousStatesChanged), bool(info.valuesOfContinuousStatesChanged),
+                         bool(info.nextEventTimeDefined), float(info.nextEventTime))
+
+    def update_discrete_states(self) -> EventInfo:
+        """The event iteration: call fmi2NewDiscreteStates until no new discrete states are
+        needed, merging what each pass reports (a state change or a terminate request in any
+        pass counts)."""
+        values_changed = nominals_changed = False
+        while True:
+            info = self.new_discrete_states()
+            values_changed |= info.values_of_continuous_states_changed
+            nominals_changed |= info.nominals_of_continuous_states_changed
+            if info.terminate_simulation or not info.new_discrete_states_needed:
+                return EventInfo(False, info.terminate_simulation, nominals_changed, values_changed,
+                                 info.next_event_time_defined, info.next_event_time)
+
+    # -- FMU state -------------------------------------------------------------------------
+    def _require(self, capability: str, what: str) -> None:
+        if not getattr(self.info.capabilities, capability):
+            raise FmuBuilderError(f"{self.info.model_name} does not support {what} (modelDescription: {capability} is false)")
+
+    def get_fmu_state(self, state=None):
+        """Snapshot the instance; pass a previous snapshot to overwrite it in place."""
+        self._require("can_get_and_set_fmu_state", "getting/setting its state")
+        handle = ffi.new("fmi2FMUstate*", state if state is not None else ffi.NULL)
+        self._check(self._lib.fmi2GetFMUstate(self.component, handle), "fmi2GetFMUstate")
+        return handle[0]
+
+    def set_fmu_state(self, state) -> None:
+        self._check(self._lib.fmi2SetFMUstate(self.component, state), "fmi2SetFMUstate")
+
+    def free_fmu_state(self, state) -> None:
+        handle = ffi.new("fmi2FMUstate*", state)
+        self._check(self._lib.fmi2FreeFMUstate(self.component, handle), "fmi2FreeFMUstate")
+
+    def serialize_fmu_state(self, state) -> bytes:
+        self._require("can_serialize_fmu_state", "serializing its state")
+        size = ffi.new("size_t*")
+        self._check(self._lib.fmi2SerializedFMUstateSize(self.component, state, size), "fmi2SerializedFMUstateSize")
+        data = ffi.new("fmi2Byte[]", size[0])
+        self._check(self._lib.fmi2SerializeFMUstate(self.component, state, data, size[0]), "fmi2SerializeFMUstate")
+        return ffi.buffer(data)[:]
+
+    def deserialize_fmu_state(self, data: bytes):
+        self._require("can_serialize_fmu_state", "serializing its state")
+        handle = ffi.new("fmi2FMUstate*", ffi.NULL)
+        buf = ffi.new("fmi2Byte[]", data)
+        self._check(self._lib.fmi2DeSerializeFMUstate(self.component, buf, len(data), handle), "fmi2DeSerializeFMUstate")
+        return handle[0]
+
+    # -- directional derivatives -----------------------------------------------------------
+    def get_directional_derivative(self, unknowns: Sequence[int], knowns: Sequence[int], seed) -> np.ndarray:
+        """J[unknowns, knowns] @ seed, from the FMU's own derivative code."""
+        self._require("provides_directional_derivative", "directional derivatives")
+        out = ffi.new("double[]", len(unknowns))
+        self._check(self._lib.fmi2GetDirectionalDerivative(
+            self.component, ffi.new("fmi2ValueReference[]", list(unknowns)), len(unknowns),
+            ffi.new("fmi2ValueReference[]", list(knowns)), len(knowns),
+            ffi.new("double[]", [float(s) for s in seed]), out), "fmi2GetDirectionalDerivative")
+        return np.frombuffer(ffi.buffer(out), dtype=np.float64).copy()
+
+
+_CONVERSION = re.compile(rb"%[-+ #0]*[0-9*]*(?:\\.[0-9*]+)?(?:hh|h|ll|l|L|z|j|t)?([diouxXeEfFgGaAcspn%])")
+
+
+def format_log_message(message, first_argument) -> str:
+    """The logged text. Only a leading %s conversion is filled in (its argument is known to
+    be a string); other conversions stay as written, since their arguments cannot be read
+    safely through a fixed-signature callback."""
+    if message == ffi.NULL:
+        return ""
+    raw = ffi.string(message)
+    for match in _CONVERSION.finditer(raw):
+        if match.group(1) == b"%":
+            continue
+        if match.group(1) == b"s" and match.group(0) == b"%s" and first_argument != ffi.NULL:
+            raw = raw[:match.start()] + ffi.string(first_argument) + raw[match.end():]
+        break
+    return raw.decode(errors="replace")
+
+
+def convert_value(var: Variable, value):
+    """Convert a value (possibly a command-line string) to the variable's type."""
+    try:
+        if var.api_type == "Real":
+            return float(value)
+        if var.api_type == "Integer":
+            if isinstance(value, str):
+                as_float = float(value)
+                if as_float != int(as_float):
+                    raise ValueError
+                return int(as_float)
+            return int(value)
+        if var.api_type == "Boolean":
+            if isinstance(value, str):
+                lowered = value.strip().lower()
+                if lowered in ("true", "1"):
+                    return True
+                if lowered in ("false", "0"):
+                    return False
+                raise ValueError
+            return bool(value)
+        return str(value)
+    except (TypeError, ValueError):
+        raise FmuBuilderError(
+            f"cannot set {var.name} ({var.type}) to {value!r}; give a {var.type.lower()} value") from None
