@@ -39,6 +39,7 @@ def read_model_info(path: str | Path) -> ModelInfo:
         names = set(zf.namelist())
     if "modelDescription.xml" not in names:
         raise FmuBuilderError(f"{path} has no modelDescription.xml at its top level; it is not a valid FMU")
+    _check_version(path)
     md = _parse_model_description(path)
     _check_kind(path, md)
     binary = f"binaries/{binary_platform()}/{md.modelExchange.modelIdentifier}.so"
@@ -59,11 +60,21 @@ def _parse_model_description(path: Path):
         raise FmuBuilderError(f"{path}: cannot read modelDescription.xml ({first_line})") from None
 
 
-def _check_kind(path: Path, md) -> None:
-    version = md.fmiVersion or "unknown"
+def _check_version(path: Path) -> None:
+    """Check fmiVersion from the root element alone: other versions' XML may not parse as 2.0."""
+    import xml.etree.ElementTree as ET
+    try:
+        with zipfile.ZipFile(path) as zf, zf.open("modelDescription.xml") as xml:
+            _, root = next(ET.iterparse(xml, events=("start",)))
+    except (ET.ParseError, StopIteration) as exc:
+        raise FmuBuilderError(f"{path}: cannot read modelDescription.xml ({exc})") from None
+    version = root.get("fmiVersion", "unknown")
     if not version.startswith("2."):
         raise FmuBuilderError(
             f"{path} is an FMI {version} FMU; fmubuilder needs FMI 2.0 (re-export the model for FMI 2.0)")
+
+
+def _check_kind(path: Path, md) -> None:
     if md.modelExchange is None:
         raise FmuBuilderError(
             f"{path} supports Co-Simulation only; fmubuilder needs Model Exchange (re-export it with Model Exchange enabled)")

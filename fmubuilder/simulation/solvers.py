@@ -1,0 +1,320 @@
+"""One-step ODE solvers for x' = f(t, x), behind one small interface.
+
+A solver is restarted with `reset(f, t, x)` (at the start and after every event, since an
+event may change x or the right-hand side), advanced by `step(t_limit)` one accepted step
+at a time without passing `t_limit`, and asked for the state anywhere inside its last step
+by `interpolate(t)`. That is all the event-handling loop needs, so solvers stay free of FMI.
+
+`f(t, x)` returns dx as a numpy array; the solver copies it at once, so `f` may reuse one
+output buffer between calls (the FMU right-hand side does).
+
+Every solver evaluates f at the end of each step (the next step's first stage), so the
+derivative at both ends of the last step is always known.
+"""
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import numpy as np
+
+from ..errors import FmuBuilderError
+
+Rhs = Callable[[float, np.ndarray], np.ndarray]
+
+# A step that would leave less than this fraction of itself before t_limit is stretched to
+# t_limit instead, so rounding never produces a sliver step at an output or event time.
+_SNAP = 1e-6
+
+
+class Solver:
+    """Interface shared by all solvers (see the module docstring)."""
+
+    name = "solver"
+    adaptive = False
+    order = 0
+
+    def __init__(self):
+        self.t = self.t_prev = 0.0
+        self.x = self.x_prev = np.zeros(0)
+        self.dx = self.dx_prev = np.zeros(0)
+        self.n_steps = 0        # accepted steps
+        self.n_rejected = 0     # steps repeated with a smaller h (adaptive only)
+        self.n_rhs = 0          # evaluations of f
+        self._f: Rhs | None = None
+
+    def reset(self, f: Rhs, t: float, x) -> None:
+        """(Re)start at (t, x); forgets the previous step."""
+        self._f = f
+        self.t = self.t_prev = float(t)
+        self.x = np.array(x, dtype=float)
+        self.x_prev = self.x
+        self.dx = np.array(f(self.t, self.x), dtype=float)
+        self.dx_prev = self.dx
+        self.n_rhs += 1
+
+    def step(self, t_limit: float) -> float:
+        """Take one accepted step ending at or before t_limit; returns the new time."""
+        raise NotImplementedError
+
+    def interpolate(self, t: float) -> np.ndarray:
+        """The state at t in [t_prev, t] from the last step's dense output."""
+        raise NotImplementedError
+
+    def stats(self) -> dict[str, int]:
+        return {"steps": self.n_steps, "rejected_steps": self.n_rejected, "rhs_evaluations": self.n_rhs}
+
+    def _theta(self, t: float) -> tuple[float, float]:
+        h = self.t - self.t_prev
+        return (1.0 if h == 0.0 else (t - self.t_prev) / h), h
+
+
+class FixedStepSolver(Solver):
+    """Steps of a fixed size h, shortened only to land exactly on t_limit."""
+
+    def __init__(self, step_size: float):
+        super().__init__()
+        if not step_size > 0.0 or not math.isfinite(step_size):
+            raise FmuBuilderError(f"step size must be a positive number, got {step_size}")
+        self.h = float(step_size)
+
+    def step(self, t_limit: float) -> float:
+        t = self.t
+        h = t_limit - t
+        if h > self.h * (1.0 + _SNAP):
+            h = self.h
+            t_new = t + h
+        else:
+            t_new = t_limit
+        x_new = self._advance(t, self.x, self.dx, h)
+        self.t_prev, self.x_prev, self.dx_prev = t, self.x, self.dx
+        self.t, self.x = t_new, x_new
+        self.dx = np.array(self._f(t_new, x_new), dtype=float)
+        self.n_rhs += 1
+        self.n_steps += 1
+        return t_new
+
+    def _advance(self, t: float, x: np.ndarray, dx: np.ndarray, h: float) -> np.ndarray:
+        raise NotImplementedError
+
+
+class Euler(FixedStepSolver):
+    """Explicit (forward) Euler, order 1; linear interpolation inside a step."""
+
+    name = "euler"
+    order = 1
+
+    def _advance(self, t, x, dx, h):
+        return x + h * dx
+
+    def interpolate(self, t: float) -> np.ndarray:
+        theta, _ = self._theta(t)
+        return self.x_prev + theta * (self.x - self.x_prev)
+
+
+class RK4(FixedStepSolver):
+    """Classical 4-stage Runge-Kutta, order 4; cubic Hermite interpolation inside a step
+    (uses the derivative at both ends, so it is third-order accurate and free)."""
+
+    name = "rk4"
+    order = 4
+
+    def _advance(self, t, x, k1, h):
+        f = self._f
+        half = 0.5 * h
+        k2 = np.array(f(t + half, x + half * k1), dtype=float)
+        k3 = np.array(f(t + half, x + half * k2), dtype=float)
+        k4 = np.array(f(t + h, x + h * k3), dtype=float)
+        self.n_rhs += 3
+        return x + (h / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
+
+    def interpolate(self, t: float) -> np.ndarray:
+        return _hermite(self, t)
+
+
+def _hermite(solver: Solver, t: float) -> np.ndarray:
+    theta, h = solver._theta(t)
+    x0, x1, d0, d1 = solver.x_prev, solver.x, solver.dx_prev, solver.dx
+    t2 = theta * theta
+    t3 = t2 * theta
+    return ((2 * t3 - 3 * t2 + 1) * x0 + (t3 - 2 * t2 + theta) * h * d0
+            + (-2 * t3 + 3 * t2) * x1 + (t3 - t2) * h * d1)
+
+
+# Dormand-Prince 5(4): nodes, stage coefficients, 5th-order weights (the 7th stage is
+# evaluated at the new point, first-same-as-last), and the difference to the embedded
+# 4th-order weights, which estimates the local error.
+_C = np.array([0.0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1.0, 1.0])
+_A = [
+    np.array([1 / 5]),
+    np.array([3 / 40, 9 / 40]),
+    np.array([44 / 45, -56 / 15, 32 / 9]),
+    np.array([19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729]),
+    np.array([9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656]),
+]
+_B = np.array([35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84])
+_E = np.array([71 / 57600, 0.0, -71 / 16695, 71 / 1920, -17253 / 339200, 22 / 525, -1 / 40])
+# Continuous extension of order 4 (Shampine/Dormand-Prince): over a step of size h,
+# x(t0 + theta h) = x0 + h * sum_i k_i * (P[i] @ [theta, theta^2, theta^3, theta^4]).
+_P = np.array([
+    [1.0, -8048581381 / 2820520608, 8663915743 / 2820520608, -12715105075 / 11282082432],
+    [0.0, 0.0, 0.0, 0.0],
+    [0.0, 131558114200 / 32700410799, -68118460800 / 10900136933, 87487479700 / 32700410799],
+    [0.0, -1754552775 / 470086768, 14199869525 / 1410260304, -10690763975 / 1880347072],
+    [0.0, 127303824393 / 49829197408, -318862633887 / 49829197408, 701980252875 / 199316789632],
+    [0.0, -282668133 / 205662961, 2019193451 / 616988883, -1453857185 / 822651844],
+    [0.0, 40617522 / 29380423, -110615467 / 29380423, 69997945 / 29380423],
+])
+
+
+class DOPRI5(Solver):
+    """Adaptive explicit Runge-Kutta of order 5 with an embedded order-4 error estimate.
+
+    The local error estimate, scaled per component by atol + rtol * |x|, must have an RMS
+    norm <= 1 for a step to be accepted; the next step size follows the standard
+    controller h * clip(0.9 * err^(-1/5), 0.2, 10) (never growing right after a rejection).
+    """
+
+    name = "dopri5"
+    adaptive = True
+    order = 5
+
+    def __init__(self, rtol: float = 1e-6, atol: float = 1e-8, max_step: float = math.inf,
+                 first_step: float | None = None):
+        super().__init__()
+        for label, value in (("rtol", rtol), ("atol", atol)):
+            if not (value >= 0.0 and math.isfinite(value)):
+                raise FmuBuilderError(f"{label} must be a finite number >= 0, got {value}")
+        if rtol == 0.0 and atol == 0.0:
+            raise FmuBuilderError("rtol and atol cannot both be 0; give a positive tolerance, e.g. rtol=1e-6")
+        if not max_step > 0.0:
+            raise FmuBuilderError(f"max_step must be positive, got {max_step}")
+        self.rtol, self.atol, self.max_step = float(rtol), float(atol), float(max_step)
+        self.first_step = first_step
+        self.h = 0.0                    # proposed size of the next step
+        self._K = np.zeros((7, 0))      # stage derivatives of the last step
+        self._Q = None                  # K.T @ P of the last step (dense-output coefficients)
+
+    def reset(self, f: Rhs, t: float, x) -> None:
+        super().reset(f, t, x)
+        n = self.x.size
+        if self._K.shape[1] != n:
+            self._K = np.zeros((7, n))
+        self._K[0] = self.dx
+        self._Q = None
+        self.h = self.first_step or self._initial_step()
+
+    def _initial_step(self) -> float:
+        """Hairer's starting-step heuristic: one extra f evaluation."""
+        x, dx, t = self.x, self.dx, self.t
+        if x.size == 0:
+            return self.max_step
+        scale = self.atol + self.rtol * np.abs(x)
+        d0 = _rms(x / scale)
+        d1 = _rms(dx / scale)
+        h0 = 1e-6 if d0 < 1e-5 or d1 < 1e-5 else 0.01 * d0 / d1
+        h0 = min(h0, self.max_step)
+        dx1 = self._f(t + h0, x + h0 * dx)
+        self.n_rhs += 1
+        d2 = _rms((dx1 - dx) / scale) / h0
+        if max(d1, d2) <= 1e-15:
+            h1 = max(1e-6, h0 * 1e-3)
+        else:
+            h1 = (0.01 / max(d1, d2)) ** (1 / 5)
+        return min(100 * h0, h1, self.max_step)
+
+    def step(self, t_limit: float) -> float:
+        f, K, x, t = self._f, self._K, self.x, self.t
+        rtol, atol = self.rtol, self.atol
+        n = x.size
+        h_proposed = min(self.h, self.max_step)
+        rejected = False
+        while True:
+            h = h_proposed
+            remaining = t_limit - t
+            if h >= remaining * (1.0 - _SNAP):
+                h, t_new = remaining, t_limit
+            else:
+                t_new = t + h
+            for i in range(5):
+                K[i + 1] = f(t + _C[i + 1] * h, x + h * (_A[i] @ K[:i + 1]))
+            x_new = x + h * (_B @ K[:6])
+            K[6] = f(t_new, x_new)
+            self.n_rhs += 6
+            if n:
+                error = (h * (_E @ K)) / (atol + rtol * np.maximum(np.abs(x), np.abs(x_new)))
+                err = math.sqrt(float(error @ error) / n)
+            else:
+                err = 0.0
+            if err <= 1.0:
+                break
+            self.n_rejected += 1
+            rejected = True
+            h_proposed = h * max(0.2, 0.9 * err ** -0.2)
+            if h_proposed < 1e-14 * max(1.0, abs(t)):
+                raise FmuBuilderError(
+                    f"step size underflow at t={t:.12g} (error test fails for h={h_proposed:.3g}); "
+                    "the model may be stiff or discontinuous without an event indicator: "
+                    "loosen rtol/atol or use a fixed-step solver")
+        factor = 10.0 if err == 0.0 else min(10.0, max(0.2, 0.9 * err ** -0.2))
+        if rejected:
+            factor = min(1.0, factor)
+        h_next = h * factor
+        if t_new == t_limit and h < h_proposed:
+            # A step shortened to land on t_limit says nothing against the longer one.
+            h_next = max(h_next, h_proposed)
+        self.h = min(h_next, self.max_step)
+        self.t_prev, self.x_prev, self.dx_prev = t, x, K[0].copy()
+        self.t, self.x, self.dx = t_new, x_new, K[6].copy()
+        self._Q = K.T @ _P
+        K[0] = K[6]
+        self.n_steps += 1
+        return t_new
+
+    def interpolate(self, t: float) -> np.ndarray:
+        theta, h = self._theta(t)
+        if self._Q is None:     # no step since the last reset
+            return self.x.copy()
+        powers = np.array([theta, theta * theta, theta ** 3, theta ** 4])
+        return self.x_prev + h * (self._Q @ powers)
+
+
+def _rms(v: np.ndarray) -> float:
+    return math.sqrt(float(v @ v) / v.size)
+
+
+SOLVERS = {"euler": Euler, "rk4": RK4, "dopri5": DOPRI5}
+
+
+def make_solver(name: str, *, rtol: float = 1e-6, atol: float = 1e-8, step_size: float | None = None,
+                max_step: float = math.inf) -> Solver:
+    """A solver by (case-insensitive) name: 'euler', 'rk4' or 'dopri5'."""
+    key = str(name).lower()
+    if key not in SOLVERS:
+        raise FmuBuilderError(f"unknown solver '{name}'; choose one of {', '.join(SOLVERS)}")
+    if key == "dopri5":
+        return DOPRI5(rtol=rtol, atol=atol, max_step=max_step)
+    if step_size is None:
+        raise FmuBuilderError(f"solver '{key}' needs a step size; pass step_size")
+    return SOLVERS[key](step_size)
+
+
+def integrate(solver: Solver, f: Rhs, t_eval, x0) -> np.ndarray:
+    """Solve x' = f(t, x), x(t_eval[0]) = x0 and return x at every t_eval (rows).
+
+    A plain-ODE driver for tests and callers without events: outputs come from the
+    solver's dense output, so they do not shorten its steps.
+    """
+    t_eval = np.asarray(t_eval, dtype=float)
+    if t_eval.ndim != 1 or t_eval.size == 0 or np.any(np.diff(t_eval) < 0):
+        raise FmuBuilderError("t_eval must be a non-empty, non-decreasing 1-D array of times")
+    solver.reset(f, t_eval[0], x0)
+    out = np.empty((t_eval.size, solver.x.size))
+    out[0] = solver.x
+    i = 1
+    while i < t_eval.size:
+        t = solver.step(t_eval[-1])
+        while i < t_eval.size and t_eval[i] <= t:
+            out[i] = solver.x if t_eval[i] == t else solver.interpolate(t_eval[i])
+            i += 1
+    return out

@@ -1,0 +1,106 @@
+"""Bad input gets a one-line error naming the problem, a non-zero exit and no traceback."""
+import subprocess
+import sys
+
+import pytest
+
+from tests.fmi.broken_fmus import co_simulation_only, rewrite_fmu, set_fmi_version
+
+
+def run_cli(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "fmubuilder.cli", *map(str, args)],
+                          capture_output=True, text=True, cwd=cwd, timeout=300)
+
+
+def assert_one_line_error(proc, *fragments):
+    assert proc.returncode != 0
+    assert "Traceback" not in proc.stderr
+    lines = [line for line in proc.stderr.strip().splitlines() if line.strip()]
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("error: ")
+    for fragment in fragments:
+        assert fragment in lines[0], lines[0]
+
+
+@pytest.fixture
+def broken(tmp_path, bouncing_ball_fmu):
+    def make(name, **kwargs):
+        return rewrite_fmu(bouncing_ball_fmu, tmp_path / name, **kwargs)
+    return make
+
+
+@pytest.mark.parametrize("command", ["inspect", "simulate"])
+def test_not_a_zip(tmp_path, command):
+    path = tmp_path / "model.fmu"
+    path.write_text("this is not an FMU")
+    assert_one_line_error(run_cli(command, path), "not a zip archive")
+
+
+def test_missing_file(tmp_path):
+    assert_one_line_error(run_cli("inspect", tmp_path / "nothing.fmu"), "no such file")
+
+
+def test_no_model_description(broken):
+    assert_one_line_error(run_cli("inspect", broken("x.fmu", drop=("modelDescription.xml",))), "no modelDescription.xml")
+
+
+@pytest.mark.parametrize("version", ["1.0", "3.0"])
+def test_wrong_fmi_version(broken, version):
+    path = broken(f"v{version}.fmu", xml=set_fmi_version(version))
+    assert_one_line_error(run_cli("inspect", path), f"FMI {version}", "FMI 2.0")
+
+
+def test_co_simulation_only(broken):
+    assert_one_line_error(run_cli("inspect", broken("cs.fmu", xml=co_simulation_only)), "Co-Simulation only", "Model Exchange")
+
+
+def test_no_linux64_binary(broken):
+    assert_one_line_error(run_cli("inspect", broken("nobin.fmu", drop=("binaries/linux64",))), "no linux64 binary")
+
+
+def test_corrupt_model_description(broken):
+    path = broken("corrupt.fmu", xml=lambda text: text[: len(text) // 2])
+    assert_one_line_error(run_cli("inspect", path), "cannot read modelDescription.xml")
+
+
+def test_unknown_variable(bouncing_ball_fmu):
+    proc = run_cli("simulate", bouncing_ball_fmu, "--variables", "h,heigth")
+    assert_one_line_error(proc, "unknown variable 'heigth'")
+
+
+def test_unknown_start_name(bouncing_ball_fmu):
+    assert_one_line_error(run_cli("simulate", bouncing_ball_fmu, "--start", "gg=3"), "unknown variable 'gg'")
+
+
+@pytest.mark.parametrize("item", ["h", "h=", "=3"])
+def test_malformed_start(bouncing_ball_fmu, item):
+    assert_one_line_error(run_cli("simulate", bouncing_ball_fmu, "--start", item), "malformed --start")
+
+
+def test_start_value_of_wrong_type(bouncing_ball_fmu):
+    assert_one_line_error(run_cli("simulate", bouncing_ball_fmu, "--start", "h=high"), "cannot set h")
+
+
+def test_stop_before_start(bouncing_ball_fmu):
+    assert_one_line_error(run_cli("simulate", bouncing_ball_fmu, "--start-time", "2", "--stop-time", "1"), "stop time")
+
+
+def test_output_not_clobbered(tmp_path, bouncing_ball_fmu):
+    out = tmp_path / "result.csv"
+    out.write_text("precious")
+    assert_one_line_error(run_cli("simulate", bouncing_ball_fmu, "-o", out), "--force")
+    assert out.read_text() == "precious"
+
+
+def test_inspect_lists_states_and_capabilities(bouncing_ball_fmu):
+    proc = run_cli("inspect", bouncing_ball_fmu)
+    assert proc.returncode == 0, proc.stderr
+    for text in ("der(h)", "der(v)", "event indicators", "directional derivatives", "default experiment"):
+        assert text in proc.stdout
+
+
+def test_help_does_not_import_torch():
+    code = "import sys; from fmubuilder.cli import main; main(['--version']) if False else None; " \
+           "import fmubuilder.cli, fmubuilder.inspect_fmu; print('torch' in sys.modules)"
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.stdout.strip() == "False"
