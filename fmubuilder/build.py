@@ -1,0 +1,237 @@
+"""Compile C FMU projects with CMake.
+
+Two entry points:
+
+* :func:`build_cmake_project` configures and builds any CMake project (the example FMUs,
+  later the exported hybrid FMUs) and turns a missing tool or a failed build into an
+  :class:`~fmubuilder.errors.FmuBuilderError` that shows the tail of the compiler output.
+* :func:`example_fmu` returns a built example FMU from ``examples/``. All examples are built
+  together on first use into a cache directory keyed by a hash of their C sources and CMake
+  files, so an unchanged tree reuses the FMUs and an edit triggers a rebuild.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import hashlib
+import os
+import pathlib
+import re
+import shutil
+import subprocess
+import tempfile
+from dataclasses import dataclass
+
+from fmubuilder.errors import FmuBuilderError
+
+# Bump when the cache layout or the build flags change, to invalidate old caches.
+_CACHE_FORMAT = "1"
+_LOG_TAIL_LINES = 40
+_FAILED_BUILD_LOG = "build.log"
+
+
+@dataclass(frozen=True)
+class CMakeBuild:
+    """A finished CMake build: where it is and what the tools printed."""
+
+    build_dir: pathlib.Path
+    output: str
+
+    def fmus(self) -> list[pathlib.Path]:
+        """The FMUs packed by add_fmu() (cmake/fmu.cmake) in this build."""
+        return sorted((self.build_dir / "fmus").glob("*.fmu"))
+
+
+# ---------------------------------------------------------------------------------------
+# Generic CMake build
+
+
+def build_cmake_project(
+    source_dir: str | os.PathLike,
+    build_dir: str | os.PathLike,
+    target: str | None = None,
+    definitions: dict[str, str] | None = None,
+    keep_going: bool = False,
+) -> CMakeBuild:
+    """Configure and build ``source_dir`` into ``build_dir`` (Release, all cores).
+
+    ``target`` builds one target instead of all; ``definitions`` become ``-D`` cache
+    entries. With ``keep_going`` the build continues past failing targets and reports
+    success; the caller then checks which outputs exist.
+    """
+    source_dir = pathlib.Path(source_dir).resolve()
+    build_dir = pathlib.Path(build_dir).resolve()
+    if not (source_dir / "CMakeLists.txt").is_file():
+        raise FmuBuilderError(f"no CMakeLists.txt in {source_dir}: pass the root of a CMake project")
+    cmake = _require_tools()
+
+    cache_entries = {"CMAKE_BUILD_TYPE": "Release"}
+    headers = _fmi_headers_dir()
+    if headers is not None:
+        cache_entries["FMI_HEADERS_DIR"] = str(headers)
+    cache_entries.update(definitions or {})
+
+    configure = [cmake, "-S", str(source_dir), "-B", str(build_dir)]
+    configure += [f"-D{key}={value}" for key, value in cache_entries.items()]
+    output = _run(configure, "configuring", source_dir, check=True)
+
+    build = [cmake, "--build", str(build_dir), "--parallel", str(os.cpu_count() or 1)]
+    if target is not None:
+        build += ["--target", target]
+    if keep_going:
+        build += ["--", *_keep_going_flags(build_dir)]
+    output += _run(build, "building", source_dir, check=not keep_going)
+    return CMakeBuild(build_dir=build_dir, output=output)
+
+
+def _require_tools() -> str:
+    cmake = shutil.which("cmake")
+    if cmake is None:
+        raise FmuBuilderError("cmake not found on PATH: install it (pip install cmake or apt-get install cmake)")
+    compilers = [os.environ.get("CC", ""), "cc", "gcc", "clang"]
+    if not any(name and shutil.which(name) for name in compilers):
+        raise FmuBuilderError(
+            "no C compiler found (cc, gcc, clang or $CC): install one, e.g. apt-get install build-essential"
+        )
+    return cmake
+
+
+def _fmi_headers_dir() -> pathlib.Path | None:
+    """fmpy ships the FMI 2.0 headers; CMake would otherwise ask whatever python is on PATH."""
+    try:
+        import fmpy
+    except ImportError:
+        return None
+    headers = pathlib.Path(fmpy.__file__).parent / "c-code"
+    return headers if (headers / "fmi2Functions.h").is_file() else None
+
+
+def _keep_going_flags(build_dir: pathlib.Path) -> list[str]:
+    cache = (build_dir / "CMakeCache.txt").read_text(errors="replace")
+    return ["-k", "0"] if "CMAKE_GENERATOR:INTERNAL=Ninja" in cache else ["-k"]
+
+
+def _run(command: list[str], what: str, source_dir: pathlib.Path, check: bool) -> str:
+    result = subprocess.run(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    if check and result.returncode != 0:
+        raise FmuBuilderError(
+            f"{what} {source_dir} with CMake failed (exit code {result.returncode}); fix the errors below:\n"
+            + _tail(result.stdout)
+        )
+    return result.stdout
+
+
+def _tail(text: str, lines: int = _LOG_TAIL_LINES) -> str:
+    return "\n".join("    " + line for line in text.rstrip().splitlines()[-lines:])
+
+
+# ---------------------------------------------------------------------------------------
+# Example FMUs
+
+
+def repo_root() -> pathlib.Path:
+    """The source tree holding examples/ and the top-level CMakeLists.txt."""
+    root = pathlib.Path(__file__).resolve().parent.parent
+    if not (root / "CMakeLists.txt").is_file() or not (root / "examples").is_dir():
+        raise FmuBuilderError(
+            f"example sources not found next to the fmubuilder package ({root}): "
+            "install fmubuilder from a source checkout with `pip install -e <checkout>`"
+        )
+    return root
+
+
+def list_examples() -> list[str]:
+    """Names of the example FMUs, as declared with add_fmu(TARGET ...) in CMakeLists.txt."""
+    text = (repo_root() / "CMakeLists.txt").read_text()
+    text = re.sub(r"#[^\n]*", "", text)  # drop comments, including commented-out models
+    return re.findall(r"\badd_fmu\s*\(\s*TARGET\s+([A-Za-z0-9_.+-]+)", text)
+
+
+def example_fmu(name: str) -> pathlib.Path:
+    """Path of the built example FMU ``name`` (e.g. "bouncing_ball"), building on demand."""
+    examples = list_examples()
+    if name not in examples:
+        raise FmuBuilderError(f"unknown example FMU '{name}': choose one of {', '.join(examples)}")
+    fmu_dir = _built_examples_dir()
+    fmu = fmu_dir / f"{name}.fmu"
+    if not fmu.is_file():
+        log = fmu_dir / _FAILED_BUILD_LOG
+        output = log.read_text(errors="replace") if log.is_file() else ""
+        raise FmuBuilderError(
+            f"example FMU '{name}' failed to build; fix its C sources in examples/ (compiler output below):\n"
+            + _tail(_lines_about(output, name))
+        )
+    return fmu
+
+
+def cache_dir() -> pathlib.Path:
+    """Root of the build cache: $FMUBUILDER_CACHE or ~/.cache/fmubuilder."""
+    configured = os.environ.get("FMUBUILDER_CACHE")
+    root = pathlib.Path(configured) if configured else pathlib.Path.home() / ".cache" / "fmubuilder"
+    return root.expanduser()
+
+
+def examples_source_hash() -> str:
+    """Hash of everything that goes into the example build (sources, headers, CMake files)."""
+    root = repo_root()
+    digest = hashlib.sha256(_CACHE_FORMAT.encode())
+    digest.update(str(_fmi_headers_dir()).encode())
+    for path in _build_inputs(root):
+        digest.update(str(path.relative_to(root)).encode() + b"\0")
+        digest.update(path.read_bytes() + b"\0")
+    return digest.hexdigest()[:20]
+
+
+def _build_inputs(root: pathlib.Path) -> list[pathlib.Path]:
+    files = [root / "CMakeLists.txt"]
+    for folder in (root / "cmake", root / "examples"):
+        for path in folder.rglob("*"):
+            hidden = any(part.startswith(".") or part == "__pycache__" for part in path.relative_to(root).parts)
+            if path.is_file() and not hidden:
+                files.append(path)
+    return sorted(files)
+
+
+def _built_examples_dir() -> pathlib.Path:
+    """Folder with all example FMUs for the current sources; builds it if missing.
+
+    Concurrent processes serialize on a lock file; the result appears by an atomic rename,
+    so a reader never sees a half-written folder.
+    """
+    examples_cache = cache_dir() / "examples"
+    examples_cache.mkdir(parents=True, exist_ok=True)
+    key = examples_source_hash()
+    final = examples_cache / key
+    if final.is_dir():
+        return final
+    with _file_lock(examples_cache / f".{key}.lock"):
+        if final.is_dir():  # another process finished it while we waited
+            return final
+        with tempfile.TemporaryDirectory(prefix=f".{key}-", dir=examples_cache) as scratch:
+            scratch = pathlib.Path(scratch)
+            build = build_cmake_project(repo_root(), scratch / "build", keep_going=True)
+            staged = scratch / "fmus"
+            staged.mkdir()
+            for fmu in build.fmus():
+                shutil.copy2(fmu, staged / fmu.name)
+            if len(build.fmus()) < len(list_examples()):
+                (staged / _FAILED_BUILD_LOG).write_text(build.output)
+            os.rename(staged, final)
+    return final
+
+
+@contextlib.contextmanager
+def _file_lock(path: pathlib.Path):
+    with open(path, "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def _lines_about(output: str, name: str) -> str:
+    """The part of a build log that concerns one example (falls back to the whole log)."""
+    relevant = [line for line in output.splitlines() if name in line or "error" in line.lower()]
+    return "\n".join(relevant) if relevant else output
