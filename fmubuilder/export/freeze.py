@@ -1,0 +1,165 @@
+"""Freeze a trained torch network into a float64 ONNX file, checked against torch with onnxruntime.
+
+The ONNX file is the hand-over point between training and code generation: everything after it
+(the C kernel, the exported FMU) is derived from the file alone, so it must reproduce the torch
+network to float64 round-off before it is written.
+"""
+
+from __future__ import annotations
+
+import copy
+import io
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from fmubuilder.errors import FmuBuilderError
+from fmubuilder.export.files import write_atomically
+
+if TYPE_CHECKING:
+    import torch
+
+INPUT_NAME = "input"
+OUTPUT_NAME = "output"
+# Opset 17 is read by every onnxruntime >= 1.13 and covers all operators an MLP needs.
+OPSET = 17
+# Agreement required between onnxruntime and torch, relative to max(1, |output|): float64 round-off
+# of differently ordered sums stays orders of magnitude below this.
+CHECK_TOLERANCE = 1e-12
+
+
+@dataclass(frozen=True)
+class FrozenNetwork:
+    """A network written to `path` as ONNX, with input shape [1, n_inputs] and output [1, n_outputs]."""
+
+    path: Path
+    n_inputs: int
+    n_outputs: int
+    max_abs_diff: float  # largest |onnxruntime - torch| over the check samples
+
+
+def freeze(
+    module: torch.nn.Module,
+    n_inputs: int,
+    path: str | os.PathLike,
+    *,
+    check_samples: int = 256,
+    seed: int = 0,
+) -> FrozenNetwork:
+    """Export `module` (one sample of `n_inputs` values in, a vector out) to ONNX in float64.
+
+    The ONNX model is run with onnxruntime on `check_samples` random inputs (standard normal,
+    seeded by `seed`) and compared with the torch network before the file is written atomically.
+    `module` itself is left untouched (a float64 copy is exported).
+    """
+    import torch  # deferred: importing fmubuilder.export must not load torch
+
+    _check_arguments(module, n_inputs, check_samples)
+    network = copy.deepcopy(module).to(torch.float64).eval()
+    n_outputs = _probe_outputs(network, n_inputs)
+    onnx_bytes = _export(network, n_inputs)
+    samples = np.random.default_rng(seed).standard_normal((check_samples, n_inputs))
+    max_abs_diff = _check_against_torch(network, onnx_bytes, samples)
+    target = Path(path)
+    write_atomically(target, onnx_bytes)
+    return FrozenNetwork(target, n_inputs, n_outputs, max_abs_diff)
+
+
+def _check_arguments(module, n_inputs, check_samples):
+    import torch
+
+    if not isinstance(module, torch.nn.Module):
+        raise FmuBuilderError(f"freeze() needs a torch.nn.Module, got {type(module).__name__}")
+    if isinstance(n_inputs, bool) or not isinstance(n_inputs, int) or n_inputs < 1:
+        raise FmuBuilderError(f"n_inputs must be a positive integer, got {n_inputs!r}")
+    if isinstance(check_samples, bool) or not isinstance(check_samples, int) or check_samples < 1:
+        raise FmuBuilderError(f"check_samples must be a positive integer, got {check_samples!r}")
+
+
+def _probe_outputs(network: torch.nn.Module, n_inputs: int) -> int:
+    """Run the network once on a [1, n_inputs] input and return its number of outputs."""
+    import torch
+
+    try:
+        with torch.no_grad():
+            out = network(torch.zeros(1, n_inputs, dtype=torch.float64))
+    except Exception as exc:  # the user's forward() can raise anything
+        raise FmuBuilderError(
+            f"the network does not accept an input of shape [1, {n_inputs}] ({exc}); "
+            "pass the number of inputs its first layer expects"
+        ) from exc
+    if not isinstance(out, torch.Tensor):
+        raise FmuBuilderError(
+            f"the network returns {type(out).__name__}, not one tensor; wrap it so forward() returns one tensor"
+        )
+    return int(out.numel())
+
+
+def _export(network: torch.nn.Module, n_inputs: int) -> bytes:
+    """ONNX bytes from the TorchScript exporter.
+
+    The torch.export-based exporter (dynamo=True, the default since torch 2.9) needs the optional
+    onnxscript package; the TorchScript exporter does not and produces the same plain Gemm/MatMul
+    graphs for MLPs, so it is used explicitly. Its deprecation warning is silenced on purpose.
+    """
+    import torch
+
+    buffer = io.BytesIO()
+    dummy = torch.zeros(1, n_inputs, dtype=torch.float64)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            torch.onnx.export(
+                network,
+                (dummy,),
+                buffer,
+                dynamo=False,
+                export_params=True,
+                opset_version=OPSET,
+                do_constant_folding=True,
+                input_names=[INPUT_NAME],
+                output_names=[OUTPUT_NAME],
+            )
+    except Exception as exc:  # exporter errors come in many types
+        raise FmuBuilderError(
+            f"torch could not export the network to ONNX ({exc}); use only standard layers "
+            "(Linear, Tanh, Sigmoid, ReLU, elementwise scaling) in forward()"
+        ) from exc
+    return buffer.getvalue()
+
+
+def _check_against_torch(network: torch.nn.Module, onnx_bytes: bytes, samples: np.ndarray) -> float:
+    """Largest |onnxruntime - torch| over the samples; raises if above tolerance."""
+    import onnxruntime
+    import torch
+
+    options = onnxruntime.SessionOptions()
+    options.log_severity_level = 3
+    session = onnxruntime.InferenceSession(onnx_bytes, options, providers=["CPUExecutionProvider"])
+    max_abs_diff = 0.0
+    with torch.no_grad():
+        for sample in samples:
+            x = sample.reshape(1, -1)
+            expected = network(torch.from_numpy(x)).numpy().ravel()
+            actual = np.asarray(session.run(None, {INPUT_NAME: x})[0], dtype=np.float64).ravel()
+            if actual.shape != expected.shape:
+                raise FmuBuilderError(
+                    f"the ONNX export returns {actual.size} values but the network {expected.size}; "
+                    "make forward() return one tensor without data-dependent shapes"
+                )
+            diff = np.abs(actual - expected)
+            allowed = CHECK_TOLERANCE * np.maximum(1.0, np.abs(expected))
+            # NaN == NaN counts as agreement: both sides propagate it the same way.
+            bad = (diff > allowed) | (np.isnan(actual) != np.isnan(expected))
+            if np.any(bad):
+                raise FmuBuilderError(
+                    f"the ONNX export disagrees with the torch network (|diff| = {np.max(diff):.3g} "
+                    f"at input {x.ravel().tolist()}); remove data-dependent control flow and "
+                    "randomness from forward()"
+                )
+            max_abs_diff = max(max_abs_diff, float(np.nanmax(diff, initial=0.0)))
+    return max_abs_diff

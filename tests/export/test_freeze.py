@@ -1,0 +1,91 @@
+"""freeze(): torch network -> float64 ONNX file, checked against torch with onnxruntime."""
+
+from __future__ import annotations
+
+import numpy as np
+import onnx
+import onnxruntime
+import pytest
+import torch
+
+from fmubuilder.errors import FmuBuilderError
+from fmubuilder.export import freeze
+
+
+def small_network(seed: int = 0) -> torch.nn.Module:
+    torch.manual_seed(seed)
+    return torch.nn.Sequential(torch.nn.Linear(3, 12), torch.nn.Tanh(), torch.nn.Linear(12, 2))
+
+
+class SignSwitch(torch.nn.Module):
+    """Data-dependent branch: tracing records only the branch taken for the dummy input."""
+
+    def forward(self, x):
+        if x.sum() > 0:
+            return 2.0 * x
+        return 3.0 * x
+
+
+def test_onnx_file_reproduces_torch_network(tmp_path):
+    network = small_network()
+    frozen = freeze(network, 3, tmp_path / "net.onnx")
+
+    assert (frozen.n_inputs, frozen.n_outputs) == (3, 2)
+    assert 0.0 <= frozen.max_abs_diff < 1e-12
+    model = onnx.load(frozen.path)
+    assert model.graph.input[0].type.tensor_type.elem_type == onnx.TensorProto.DOUBLE
+
+    # Fresh inputs, independent of the samples freeze() checked itself.
+    inputs = np.random.default_rng(42).uniform(-5, 5, size=(50, 1, 3))
+    session = onnxruntime.InferenceSession(str(frozen.path), providers=["CPUExecutionProvider"])
+    with torch.no_grad():
+        expected = [network.double()(torch.from_numpy(x)).numpy() for x in inputs]
+    actual = [session.run(None, {"input": x})[0] for x in inputs]
+    np.testing.assert_allclose(np.array(actual), np.array(expected), rtol=1e-13, atol=1e-13)
+
+
+def test_module_is_left_untouched(tmp_path):
+    network = small_network()
+    before = {name: value.clone() for name, value in network.state_dict().items()}
+    network.train()
+    freeze(network, 3, tmp_path / "net.onnx")
+    assert network.training
+    for name, value in network.state_dict().items():
+        assert value.dtype == torch.float32
+        assert torch.equal(value, before[name])
+
+
+def test_written_atomically_without_leftovers(tmp_path):
+    target = tmp_path / "net.onnx"
+    target.write_bytes(b"old contents")
+    freeze(small_network(), 3, target)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["net.onnx"]
+    onnx.checker.check_model(onnx.load(target))
+
+
+def test_traced_branch_mismatch_is_detected_and_nothing_written(tmp_path):
+    target = tmp_path / "net.onnx"
+    with pytest.raises(FmuBuilderError, match="disagrees with the torch network"):
+        freeze(SignSwitch(), 2, target)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_wrong_input_count(tmp_path):
+    with pytest.raises(FmuBuilderError, match=r"does not accept an input of shape \[1, 5\]"):
+        freeze(small_network(), 5, tmp_path / "net.onnx")
+
+
+@pytest.mark.parametrize("n_inputs", [0, -1, 2.0, True])
+def test_invalid_input_count(tmp_path, n_inputs):
+    with pytest.raises(FmuBuilderError, match="n_inputs must be a positive integer"):
+        freeze(small_network(), n_inputs, tmp_path / "net.onnx")
+
+
+def test_missing_directory(tmp_path):
+    with pytest.raises(FmuBuilderError, match="does not exist"):
+        freeze(small_network(), 3, tmp_path / "missing" / "net.onnx")
+
+
+def test_not_a_module(tmp_path):
+    with pytest.raises(FmuBuilderError, match="needs a torch.nn.Module"):
+        freeze(lambda x: x, 3, tmp_path / "net.onnx")
