@@ -357,8 +357,9 @@ fmi2Status fmi2SetReal(fmi2Component c, const fmi2ValueReference vr[], size_t nv
     for (size_t i = 0; i < nvr; i++) {
         if (model_set_real(m, vr[i], value[i]) != fmi2OK) {
             model_log(m, fmi2Error, "logStatusError",
-                      "fmi2SetReal: vr=%u is not a Real variable that can be set in state %s.",
-                      vr[i], state_name(m->state));
+                      "fmi2SetReal: cannot set vr=%u to %g in state %s (not a settable Real "
+                      "variable, or a value outside its valid range).",
+                      vr[i], value[i], state_name(m->state));
             return fmi2Error;
         }
     }
@@ -394,8 +395,9 @@ fmi2Status fmi2SetInteger(fmi2Component c, const fmi2ValueReference vr[], size_t
     for (size_t i = 0; i < nvr; i++) {
         if (model_set_integer(m, vr[i], value[i]) != fmi2OK) {
             model_log(m, fmi2Error, "logStatusError",
-                      "fmi2SetInteger: vr=%u is not an Integer variable that can be set.",
-                      vr[i]);
+                      "fmi2SetInteger: cannot set vr=%u to %d (not a settable Integer variable, "
+                      "or a value outside its valid range).",
+                      vr[i], value[i]);
             return fmi2Error;
         }
     }
@@ -431,8 +433,8 @@ fmi2Status fmi2SetBoolean(fmi2Component c, const fmi2ValueReference vr[], size_t
     for (size_t i = 0; i < nvr; i++) {
         if (model_set_boolean(m, vr[i], value[i] != fmi2False) != fmi2OK) {
             model_log(m, fmi2Error, "logStatusError",
-                      "fmi2SetBoolean: vr=%u is not a Boolean variable that can be set.",
-                      vr[i]);
+                      "fmi2SetBoolean: cannot set vr=%u to %d (not a settable Boolean variable).",
+                      vr[i], value[i]);
             return fmi2Error;
         }
     }

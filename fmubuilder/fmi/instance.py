@@ -102,6 +102,7 @@ class FmuInstance:
             detail = f": {self.messages[-1]}" if self.messages else ""
             raise FmuBuilderError(f"fmi2Instantiate failed for {self.info.model_name}{detail}")
         n, nz = self.info.n_states, self.info.n_event_indicators
+        self._n_states, self._n_indicators = n, nz   # read in every hot-path call
         self._x = ffi.new("double[]", max(n, 1))
         self._dx = ffi.new("double[]", max(n, 1))
         self._z = ffi.new("double[]", max(nz, 1))
@@ -251,26 +252,25 @@ class FmuInstance:
             self._check(status, "fmi2SetTime")
 
     def get_continuous_states(self) -> np.ndarray:
-        status = self._lib.fmi2GetContinuousStates(self.component, self._x, self.info.n_states)
+        status = self._lib.fmi2GetContinuousStates(self.component, self._x, self._n_states)
         if status > 1:
             self._check(status, "fmi2GetContinuousStates")
         return self._x_view.copy()
 
     def set_continuous_states(self, x) -> None:
-        n = self.info.n_states
         self._x_view[:] = x
-        status = self._lib.fmi2SetContinuousStates(self.component, self._x, n)
+        status = self._lib.fmi2SetContinuousStates(self.component, self._x, self._n_states)
         if status > 1:
             self._check(status, "fmi2SetContinuousStates")
 
     def get_derivatives(self) -> np.ndarray:
-        status = self._lib.fmi2GetDerivatives(self.component, self._dx, self.info.n_states)
+        status = self._lib.fmi2GetDerivatives(self.component, self._dx, self._n_states)
         if status > 1:
             self._check(status, "fmi2GetDerivatives")
         return self._dx_view.copy()
 
     def get_event_indicators(self) -> np.ndarray:
-        status = self._lib.fmi2GetEventIndicators(self.component, self._z, self.info.n_event_indicators)
+        status = self._lib.fmi2GetEventIndicators(self.component, self._z, self._n_indicators)
         if status > 1:
             self._check(status, "fmi2GetEventIndicators")
         return self._z_view.copy()
@@ -407,4 +407,4 @@ def convert_value(var: Variable, value):
         return str(value)
     except (TypeError, ValueError):
         raise FmuBuilderError(
-            f"cannot set {var.name} ({var.type}) to {value!r}; give a {var.type.lower()} value") from None
+            f"cannot set {var.name} ({var.type}) to {value!r}; give a value of type {var.type}") from None

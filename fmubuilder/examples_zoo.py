@@ -1,0 +1,304 @@
+"""`fmubuilder example NAME`: a ready-to-use folder with FMUs and measured data.
+
+The only example so far is ``vldm``, the electric-car reference case: the declared vehicle
+model, two "truth" variants with an effect the declared model lacks, and for each of the
+three a training set (CADC road cycle) and a test set (WLTC class 2) produced by the test
+bench of :mod:`fmubuilder.synth`. The declared model's own data are the control case: a
+hybrid model trained on them has nothing to learn.
+
+Data sets are cached under ``<cache>/example_data/<hash>/`` keyed by the truth FMU's bytes,
+the cycle, the bench settings and the generator's source, so a second call only copies
+files. Missing data sets are generated in parallel worker processes.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import secrets
+import shutil
+import tempfile
+import time
+import zlib
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+from .errors import FmuBuilderError
+
+# Bump when the layout of cached data changes.
+_CACHE_FORMAT = "1"
+
+
+@dataclass(frozen=True)
+class DrivingCycle:
+    key: str          # short name used in file names
+    number: int       # value of the VLDM parameter `cycle` (examples/vldm/make_tables.py order)
+    title: str
+    profile: str      # target-speed CSV in examples/vldm/data/cycles (gives the duration)
+    role: str         # "train" or "test"
+
+
+@dataclass(frozen=True)
+class Variant:
+    key: str          # short name used in file names
+    fmu: str          # example FMU name (fmubuilder.build.example_fmu)
+    summary: str
+
+
+VLDM_CYCLES = (
+    DrivingCycle("cadc", 1, "CADC road (Artemis road, 100 Hz test-bench profile)", "CADC_Road_100Hz.csv", "train"),
+    DrivingCycle("wltc2", 2, "WLTC class 2", "WLTP_class_2_1Hz.csv", "test"),
+)
+
+VLDM_VARIANTS = (
+    Variant("no_effect", "vldm", "the declared model itself: the control case, the data hold nothing to learn"),
+    Variant("extra_resistance", "vldm_truth_extra_resistance",
+            "an undeclared speed-dependent driving resistance (the driver compensates it: more energy, same speed)"),
+    Variant("extra_loss", "vldm_truth_extra_loss",
+            "an undeclared electrical drivetrain loss (more energy, the motion is unchanged)"),
+)
+
+EXAMPLES = ("vldm",)
+
+
+@dataclass(frozen=True)
+class DataSet:
+    variant: Variant
+    cycle: DrivingCycle
+    stop_time: float
+
+    @property
+    def file_name(self) -> str:
+        return f"{self.variant.key}_{self.cycle.role}_{self.cycle.key}.csv"
+
+    @property
+    def start_values(self) -> dict[str, int]:
+        return {"cycle": self.cycle.number}
+
+    @property
+    def seed(self) -> int:
+        """A fixed seed per data set, so that no two sets share a noise realisation."""
+        return zlib.crc32(self.file_name.encode())
+
+
+@dataclass
+class ExampleFolder:
+    path: Path
+    fmus: dict[str, Path]            # example FMU name -> file in the folder
+    data: dict[str, Path]            # data-set file name -> CSV in the folder
+    generation_seconds: float        # time spent simulating (0 when all data came from the cache)
+
+
+def vldm_data_sets() -> list[DataSet]:
+    """Every VLDM data set: each variant on the full training and test cycles."""
+    return [DataSet(variant, cycle, cycle_duration(cycle)) for variant in VLDM_VARIANTS for cycle in VLDM_CYCLES]
+
+
+def cycle_duration(cycle: DrivingCycle) -> float:
+    """Last time stamp of the cycle's target-speed profile [s]."""
+    from .build import repo_root
+    path = repo_root() / "examples" / "vldm" / "data" / "cycles" / cycle.profile
+    if not path.is_file():
+        raise FmuBuilderError(f"cycle profile {path} is missing; restore it from the source tree")
+    last = None
+    with open(path) as handle:
+        for line in handle:
+            first = line.split(",", 1)[0].strip()
+            if first and not first.startswith("#"):
+                last = first
+    try:
+        return float(last)
+    except (TypeError, ValueError):
+        raise FmuBuilderError(f"{path} has no time column; restore the cycle profile from the source tree") from None
+
+
+def write_example(name: str, output: Path, *, force: bool = False, workers: int | None = None) -> ExampleFolder:
+    """Write the example ``name`` into the folder ``output`` (created if missing)."""
+    if name not in EXAMPLES:
+        raise FmuBuilderError(f"unknown example '{name}': choose one of {', '.join(EXAMPLES)}")
+    output = Path(output)
+    _prepare_folder(output, force)
+    from .build import example_fmu
+
+    fmus = {}
+    for variant in VLDM_VARIANTS:
+        source = example_fmu(variant.fmu)
+        fmus[variant.fmu] = output / source.name
+        _atomic_copy(source, fmus[variant.fmu])
+
+    started = time.perf_counter()
+    sets = vldm_data_sets()
+    cached, generated = cached_data(sets, workers=workers)
+    seconds = time.perf_counter() - started if generated else 0.0
+    data = {}
+    for data_set, csv_path in zip(sets, cached):
+        data[data_set.file_name] = output / data_set.file_name
+        _atomic_copy(csv_path, output / data_set.file_name)
+        _atomic_copy(_sidecar(csv_path), _sidecar(output / data_set.file_name))
+    from .synth import write_text_atomic
+    write_text_atomic(output / "README.md", _readme(sets, data))
+    print(f"wrote the '{name}' example to {output}/: {len(fmus)} FMUs, {len(data)} data sets"
+          + (f" (generated {generated} in {seconds:.0f} s)" if generated else " (data from the cache)"))
+    return ExampleFolder(output, fmus, data, seconds)
+
+
+def _prepare_folder(output: Path, force: bool) -> None:
+    if output.exists() and not output.is_dir():
+        raise FmuBuilderError(f"{output} is a file; give a folder for the example with -o")
+    if output.is_dir() and any(output.iterdir()) and not force:
+        raise FmuBuilderError(f"{output} exists and is not empty; choose another folder or pass --force to overwrite its files")
+    output.mkdir(parents=True, exist_ok=True)
+
+
+# ---------------------------------------------------------------------------------------
+# Cached generation
+
+
+def bench_settings(data_set: DataSet):
+    from .synth import BenchSettings
+    return BenchSettings(seed=data_set.seed)
+
+
+def cached_data(sets: list[DataSet], workers: int | None = None) -> tuple[list[Path], int]:
+    """CSV paths of the data sets in the cache, generating the missing ones.
+    Returns (paths, number generated now)."""
+    from .build import example_fmu
+    jobs = [(example_fmu(s.variant.fmu), s) for s in sets]
+    paths = [_cache_folder(fmu, s) / s.file_name for fmu, s in jobs]
+    missing = [(fmu, s, path) for (fmu, s), path in zip(jobs, paths) if not path.is_file()]
+    if len(missing) > 1 and (workers or os.cpu_count() or 1) > 1:
+        import multiprocessing
+        count = min(len(missing), workers or os.cpu_count() or 1)
+        # fork, not spawn: spawn re-imports the caller's main module, which breaks scripts
+        # without a __main__ guard; the workers only simulate FMUs, so they need none of
+        # the parent's threads.
+        with ProcessPoolExecutor(count, mp_context=multiprocessing.get_context("fork")) as pool:
+            list(pool.map(_generate, *zip(*missing)))
+    else:
+        for job in missing:
+            _generate(*job)
+    return paths, len(missing)
+
+
+def data_cache_dir() -> Path:
+    """Where generated example data are kept: <fmubuilder cache>/example_data."""
+    from .build import cache_dir
+    return cache_dir() / "example_data"
+
+
+def _cache_folder(fmu: Path, data_set: DataSet) -> Path:
+    from .synth import file_sha256
+    key = json.dumps({
+        "format": _CACHE_FORMAT, "fmu": file_sha256(fmu), "file": data_set.file_name,
+        "stop_time": data_set.stop_time, "start_values": data_set.start_values,
+        "bench": bench_settings(data_set).as_dict(), "generator": _generator_source_hash(),
+    }, sort_keys=True)
+    return data_cache_dir() / hashlib.sha256(key.encode()).hexdigest()[:20]
+
+
+def _generator_source_hash() -> str:
+    """Hash of the code that turns an FMU into data: a change there regenerates the cache."""
+    package = Path(__file__).resolve().parent
+    digest = hashlib.sha256()
+    for path in [package / "synth.py", *sorted((package / "simulation").glob("*.py"))]:
+        if path.is_file():
+            digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()
+
+
+def _generate(fmu: Path, data_set: DataSet, target: Path) -> None:
+    """Simulate one data set into the cache; the folder appears atomically when complete."""
+    from .synth import measure, write_measurement
+    folder = target.parent
+    if folder.is_dir():
+        return
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    measurement = measure(fmu, stop_time=data_set.stop_time, start_values=data_set.start_values,
+                          settings=bench_settings(data_set))
+    extra = {"example": {"variant": data_set.variant.key, "effect": data_set.variant.summary,
+                         "cycle": data_set.cycle.title, "role": data_set.cycle.role}}
+    with tempfile.TemporaryDirectory(prefix=".tmp-", dir=folder.parent) as scratch:
+        staged = Path(scratch) / "data"
+        staged.mkdir()
+        write_measurement(measurement, staged / target.name, extra_metadata=extra)
+        try:
+            os.rename(staged, folder)
+        except OSError:
+            if not folder.is_dir():  # not just another process finishing the same set first
+                raise
+
+
+def _sidecar(path: Path) -> Path:
+    from .synth import sidecar_path
+    return sidecar_path(path)
+
+
+def _atomic_copy(source: Path, target: Path) -> None:
+    tmp = target.with_name(f".{target.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+    try:
+        shutil.copyfile(source, tmp)
+        os.replace(tmp, target)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+# ---------------------------------------------------------------------------------------
+# README
+
+
+def consumption_kwh_per_100km(csv_path: Path) -> tuple[float, float]:
+    """(distance [km], consumption [kWh/100 km]) from measured speed and energy."""
+    import numpy as np
+    from .simulation.inputs import read_csv_signals
+    time_s, columns = read_csv_signals(csv_path)
+    distance_km = float(np.trapezoid(columns["speed"], time_s)) / 1000.0
+    energy_kwh = float(columns["energy"][-1] - columns["energy"][0]) / 3.6e6
+    return distance_km, 100.0 * energy_kwh / distance_km
+
+
+def _readme(sets: list[DataSet], data: dict[str, Path]) -> str:
+    rows = []
+    for s in sets:
+        distance, consumption = consumption_kwh_per_100km(data[s.file_name])
+        rows.append(f"| `{s.file_name}` | `{s.variant.fmu}.fmu` | {s.cycle.title} ({s.cycle.role}) | "
+                    f"`--start cycle={s.cycle.number}` | {s.stop_time:g} | {distance:.2f} | {consumption:.2f} |")
+    variants = "\n".join(f"- `{v.fmu}.fmu` ({v.key}): {v.summary}." for v in VLDM_VARIANTS)
+    roles = {"train": "training", "test": "test"}
+    cycles = "\n".join(f"- `cycle={c.number}`: {c.title}, the {roles[c.role]} cycle." for c in VLDM_CYCLES)
+    example = sets[1] if len(sets) > 1 else sets[0]
+    return f"""# VLDM example: electric Smart fortwo on a chassis dynamometer
+
+`vldm.fmu` is the declared first-principle model (vehicle longitudinal dynamics with a PI
+driver following a driving cycle). The truth FMUs have the same interface, but contain physics
+that `vldm.fmu` lacks; the measured data come from them.
+
+{variants}
+
+The FMU parameter `cycle` selects the driving cycle:
+
+{cycles}
+
+## Data sets
+
+Each CSV was made by `fmubuilder synth` from the truth FMU named in the table: speed [m/s],
+electrical power [W] and cumulative electrical energy [J], logged at about 10 Hz with jittered
+time stamps, 0.1 s sensor lag and sensor noise, averaged over two runs. The `<signal>_std`
+columns are the spread of the two runs (sample standard deviation, ddof=1): an uncertainty,
+not a signal. Every CSV has a sidecar `<file>.csv.json` with the truth model, start values,
+noise settings and seed.
+
+Simulate or train with the start values of the data set, e.g. for `{example.file_name}`:
+
+    fmubuilder simulate vldm.fmu --start cycle={example.cycle.number} --stop-time {example.stop_time:g} -o sim.csv
+
+| file | truth model | cycle | start option | duration [s] | distance [km] | consumption [kWh/100 km] |
+|---|---|---|---|---|---|---|
+{chr(10).join(rows)}
+
+Distance and consumption are computed from the measured speed and energy.
+
+The driving cycles inside the FMUs are from the TUMFTM Component Library for Full Vehicle
+Simulations (LGPL-3.0) and FMIZoo.jl (based on TUMFTM's VVUQ-Framework, LGPL-2.1).
+"""
