@@ -1,15 +1,16 @@
 """One-step ODE solvers for x' = f(t, x), behind one small interface.
 
-A solver is restarted with `reset(f, t, x)` (at the start and after every event, since an
-event may change x or the right-hand side), advanced by `step(t_limit)` one accepted step
-at a time without passing `t_limit`, and asked for the state anywhere inside its last step
-by `interpolate(t)`. That is all the event-handling loop needs, so solvers stay free of FMI.
+A solver is started with `reset(f, t, x)` and restarted with `restart(t, x)` after every
+event (an event may change x or the right-hand side), advanced by `step(t_limit)` one
+accepted step at a time without passing `t_limit`, and asked for the state anywhere inside
+its last step by `interpolate(t)`. That is all the event-handling loop needs, so solvers
+stay free of FMI. `integrate` drives a solver over a plain ODE.
 
 `f(t, x)` returns dx as a numpy array; the solver copies it at once, so `f` may reuse one
 output buffer between calls (the FMU right-hand side does).
 
-Every solver evaluates f at the end of each step (the next step's first stage), so the
-derivative at both ends of the last step is always known.
+DOPRI5 evaluates f at the end of each step (its last stage is the next step's first); the
+fixed-step solvers evaluate it when the next step or an interpolation needs it.
 """
 from __future__ import annotations
 
@@ -53,6 +54,11 @@ class Solver:
         self.dx_prev = self.dx
         self.n_rhs += 1
 
+    def restart(self, t: float, x, keep_step: bool = False) -> None:
+        """Restart after an event at (t, x) with the same f; an adaptive solver keeps its
+        step-size estimate with keep_step, else starts no larger than it."""
+        self.reset(self._f, t, x)
+
     def step(self, t_limit: float) -> float:
         """Take one accepted step ending at or before t_limit; returns the new time."""
         raise NotImplementedError
@@ -60,6 +66,10 @@ class Solver:
     def interpolate(self, t: float) -> np.ndarray:
         """The state at t in [t_prev, t] from the last step's dense output."""
         raise NotImplementedError
+
+    def interpolate_many(self, times) -> np.ndarray:
+        """The states at several times of the last step, one row each."""
+        return np.array([self.interpolate(t) for t in times]).reshape(len(times), self.x.size)
 
     def stats(self) -> dict[str, int]:
         return {"steps": self.n_steps, "rejected_steps": self.n_rejected, "rhs_evaluations": self.n_rhs}
@@ -70,13 +80,30 @@ class Solver:
 
 
 class FixedStepSolver(Solver):
-    """Steps of a fixed size h, shortened only to land exactly on t_limit."""
+    """Steps of a fixed size h, shortened only to land exactly on t_limit.
+
+    The derivative at the current point is evaluated when the next step needs it, not at
+    the end of a step: after an event it would have to be evaluated again anyway."""
 
     def __init__(self, step_size: float):
         super().__init__()
         if not step_size > 0.0 or not math.isfinite(step_size):
             raise FmuBuilderError(f"step size must be a positive number, got {step_size}")
         self.h = float(step_size)
+        self._dx_current = False        # whether self.dx belongs to (self.t, self.x)
+
+    def reset(self, f: Rhs, t: float, x) -> None:
+        self._f = f
+        self.t = self.t_prev = float(t)
+        self.x = self.x_prev = np.array(x, dtype=float)
+        self._dx_current = False
+
+    def _derivative_here(self) -> np.ndarray:
+        if not self._dx_current:
+            self.dx = np.array(self._f(self.t, self.x), dtype=float)
+            self.n_rhs += 1
+            self._dx_current = True
+        return self.dx
 
     def step(self, t_limit: float) -> float:
         t = self.t
@@ -86,11 +113,11 @@ class FixedStepSolver(Solver):
             t_new = t + h
         else:
             t_new = t_limit
-        x_new = self._advance(t, self.x, self.dx, h)
-        self.t_prev, self.x_prev, self.dx_prev = t, self.x, self.dx
+        dx = self._derivative_here()
+        x_new = self._advance(t, self.x, dx, h)
+        self.t_prev, self.x_prev, self.dx_prev = t, self.x, dx
         self.t, self.x = t_new, x_new
-        self.dx = np.array(self._f(t_new, x_new), dtype=float)
-        self.n_rhs += 1
+        self._dx_current = False
         self.n_steps += 1
         return t_new
 
@@ -114,7 +141,8 @@ class Euler(FixedStepSolver):
 
 class RK4(FixedStepSolver):
     """Classical 4-stage Runge-Kutta, order 4; cubic Hermite interpolation inside a step
-    (uses the derivative at both ends, so it is third-order accurate and free)."""
+    from the derivatives at both ends (third-order accurate; the end derivative is the
+    next step's first stage, so it costs nothing extra when the integration goes on)."""
 
     name = "rk4"
     order = 4
@@ -129,6 +157,9 @@ class RK4(FixedStepSolver):
         return x + (h / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
 
     def interpolate(self, t: float) -> np.ndarray:
+        if self.t == self.t_prev:       # no step since the last reset
+            return self.x.copy()
+        self._derivative_here()
         return _hermite(self, t)
 
 
@@ -141,19 +172,20 @@ def _hermite(solver: Solver, t: float) -> np.ndarray:
             + (-2 * t3 + 3 * t2) * x1 + (t3 - t2) * h * d1)
 
 
-# Dormand-Prince 5(4): nodes, stage coefficients, 5th-order weights (the 7th stage is
-# evaluated at the new point, first-same-as-last), and the difference to the embedded
-# 4th-order weights, which estimates the local error.
-_C = np.array([0.0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1.0, 1.0])
-_A = [
-    np.array([1 / 5]),
-    np.array([3 / 40, 9 / 40]),
-    np.array([44 / 45, -56 / 15, 32 / 9]),
-    np.array([19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729]),
-    np.array([9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656]),
-]
-_B = np.array([35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84])
-_E = np.array([71 / 57600, 0.0, -71 / 16695, 71 / 1920, -17253 / 339200, 22 / 525, -1 / 40])
+# Dormand-Prince 5(4). Row i < 5 of _M gives stage i + 2 from the stage derivatives
+# k1..k7 (zero-padded, so each row is one dot product with all of K); row 5 holds the
+# 5th-order weights (x_new; its derivative is stage 7, first-same-as-last) and row 6 the
+# difference to the embedded 4th-order weights, which estimates the local error.
+_C = [0.0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1.0, 1.0]
+_M = np.array([
+    [1 / 5, 0, 0, 0, 0, 0, 0],
+    [3 / 40, 9 / 40, 0, 0, 0, 0, 0],
+    [44 / 45, -56 / 15, 32 / 9, 0, 0, 0, 0],
+    [19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729, 0, 0, 0],
+    [9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656, 0, 0],
+    [35 / 384, 0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84, 0],
+    [71 / 57600, 0, -71 / 16695, 71 / 1920, -17253 / 339200, 22 / 525, -1 / 40],
+])
 # Continuous extension of order 4 (Shampine/Dormand-Prince): over a step of size h,
 # x(t0 + theta h) = x0 + h * sum_i k_i * (P[i] @ [theta, theta^2, theta^3, theta^4]).
 _P = np.array([
@@ -165,14 +197,19 @@ _P = np.array([
     [0.0, -282668133 / 205662961, 2019193451 / 616988883, -1453857185 / 822651844],
     [0.0, 40617522 / 29380423, -110615467 / 29380423, 69997945 / 29380423],
 ])
+_POWERS = np.arange(1, 5)
 
 
 class DOPRI5(Solver):
     """Adaptive explicit Runge-Kutta of order 5 with an embedded order-4 error estimate.
 
-    The local error estimate, scaled per component by atol + rtol * |x|, must have an RMS
-    norm <= 1 for a step to be accepted; the next step size follows the standard
-    controller h * clip(0.9 * err^(-1/5), 0.2, 10) (never growing right after a rejection).
+    The local error estimate, scaled per component by atol + rtol * max(|x_old|, |x_new|),
+    must have an RMS norm <= 1 for a step to be accepted; the next step size follows the
+    standard controller h * clip(0.9 * err^(-1/5), 0.2, 10), not growing right after a
+    rejection. After an event, `restart` estimates a new first step (capped by the step
+    size reached so far) or, with keep_step, reuses that step size directly: cheap for
+    frequent time events (sampled controllers), while a state event, which often
+    reverses a motion, starts small again so that the next crossing is not stepped over.
     """
 
     name = "dopri5"
@@ -192,17 +229,33 @@ class DOPRI5(Solver):
         self.rtol, self.atol, self.max_step = float(rtol), float(atol), float(max_step)
         self.first_step = first_step
         self.h = 0.0                    # proposed size of the next step
-        self._K = np.zeros((7, 0))      # stage derivatives of the last step
-        self._Q = None                  # K.T @ P of the last step (dense-output coefficients)
+        # Two stage buffers used in turn: the last step's stays intact for dense output
+        # while the next step fills the other.
+        self._K = np.zeros((7, 0))
+        self._K_last = np.zeros((7, 0))
+        self._Q = None                  # dense-output coefficients of the last step, on demand
+        self._stepped = False
+        self._abs_x = np.zeros(0)
 
     def reset(self, f: Rhs, t: float, x) -> None:
+        self._start(f, t, x, self.first_step)
+
+    def restart(self, t: float, x, keep_step: bool = False) -> None:
+        previous = self.h
+        self._start(self._f, t, x, previous if keep_step and previous > 0.0 else None)
+        if previous > 0.0:
+            self.h = min(self.h, previous)
+
+    def _start(self, f: Rhs, t: float, x, first_step: float | None) -> None:
         super().reset(f, t, x)
         n = self.x.size
         if self._K.shape[1] != n:
-            self._K = np.zeros((7, n))
+            self._K, self._K_last = np.zeros((7, n)), np.zeros((7, n))
         self._K[0] = self.dx
         self._Q = None
-        self.h = self.first_step or self._initial_step()
+        self._stepped = False
+        self._abs_x = np.abs(self.x)
+        self.h = first_step or self._initial_step()
 
     def _initial_step(self) -> float:
         """Hairer's starting-step heuristic: one extra f evaluation."""
@@ -225,62 +278,84 @@ class DOPRI5(Solver):
 
     def step(self, t_limit: float) -> float:
         f, K, x, t = self._f, self._K, self.x, self.t
-        rtol, atol = self.rtol, self.atol
         n = x.size
-        h_proposed = min(self.h, self.max_step)
+        h_wanted = h = min(self.h, self.max_step)
         rejected = False
         while True:
-            h = h_proposed
             remaining = t_limit - t
             if h >= remaining * (1.0 - _SNAP):
                 h, t_new = remaining, t_limit
             else:
                 t_new = t + h
+            hM = h * _M
             for i in range(5):
-                K[i + 1] = f(t + _C[i + 1] * h, x + h * (_A[i] @ K[:i + 1]))
-            x_new = x + h * (_B @ K[:6])
+                K[i + 1] = f(t + _C[i + 1] * h, x + hM[i].dot(K))
+            x_new = x + hM[5].dot(K)
             K[6] = f(t_new, x_new)
             self.n_rhs += 6
             if n:
-                error = (h * (_E @ K)) / (atol + rtol * np.maximum(np.abs(x), np.abs(x_new)))
-                err = math.sqrt(float(error @ error) / n)
+                abs_new = np.abs(x_new)
+                error = hM[6].dot(K) / (self.atol + self.rtol * np.maximum(self._abs_x, abs_new))
+                err = math.sqrt(error.dot(error) / n)
             else:
                 err = 0.0
             if err <= 1.0:
                 break
             self.n_rejected += 1
             rejected = True
-            h_proposed = h * max(0.2, 0.9 * err ** -0.2)
-            if h_proposed < 1e-14 * max(1.0, abs(t)):
+            if not math.isfinite(err):      # f failed somewhere: retreat, clear the stages
+                K[1:] = 0.0
+                h *= 0.2
+            else:
+                h *= max(0.2, 0.9 * err ** -0.2)
+            h_wanted = h
+            if h < 1e-14 * max(1.0, abs(t)):
                 raise FmuBuilderError(
-                    f"step size underflow at t={t:.12g} (error test fails for h={h_proposed:.3g}); "
+                    f"step size underflow at t={t:.12g} (error test fails for h={h:.3g}); "
                     "the model may be stiff or discontinuous without an event indicator: "
                     "loosen rtol/atol or use a fixed-step solver")
         factor = 10.0 if err == 0.0 else min(10.0, max(0.2, 0.9 * err ** -0.2))
         if rejected:
             factor = min(1.0, factor)
         h_next = h * factor
-        if t_new == t_limit and h < h_proposed:
+        if t_new == t_limit and h < h_wanted:
             # A step shortened to land on t_limit says nothing against the longer one.
-            h_next = max(h_next, h_proposed)
+            h_next = max(h_next, h_wanted)
         self.h = min(h_next, self.max_step)
-        self.t_prev, self.x_prev, self.dx_prev = t, x, K[0].copy()
-        self.t, self.x, self.dx = t_new, x_new, K[6].copy()
-        self._Q = K.T @ _P
-        K[0] = K[6]
+        self.t_prev, self.x_prev, self.dx_prev = t, x, K[0]
+        self.t, self.x, self.dx = t_new, x_new, K[6]
+        if n:
+            self._abs_x = abs_new
+        # Swap the stage buffers; the next step starts from this one's last stage.
+        self._K, self._K_last = self._K_last, K
+        self._K[0] = K[6]
+        self._Q = None
+        self._stepped = True
         self.n_steps += 1
         return t_new
 
+    def _dense(self) -> np.ndarray:
+        if self._Q is None:
+            self._Q = self._K_last.T @ _P
+        return self._Q
+
     def interpolate(self, t: float) -> np.ndarray:
-        theta, h = self._theta(t)
-        if self._Q is None:     # no step since the last reset
+        if not self._stepped:       # no step since the last reset
             return self.x.copy()
+        theta, h = self._theta(t)
         powers = np.array([theta, theta * theta, theta ** 3, theta ** 4])
-        return self.x_prev + h * (self._Q @ powers)
+        return self.x_prev + h * self._dense().dot(powers)
+
+    def interpolate_many(self, times) -> np.ndarray:
+        if not self._stepped:
+            return np.tile(self.x, (len(times), 1))
+        h = self.t - self.t_prev
+        theta = (np.asarray(times, dtype=float) - self.t_prev) / h if h else np.ones(len(times))
+        return self.x_prev + h * ((theta[:, None] ** _POWERS) @ self._dense().T)
 
 
 def _rms(v: np.ndarray) -> float:
-    return math.sqrt(float(v @ v) / v.size)
+    return math.sqrt(v.dot(v) / v.size)
 
 
 SOLVERS = {"euler": Euler, "rk4": RK4, "dopri5": DOPRI5}

@@ -1,0 +1,86 @@
+"""State events: detecting that an event indicator crossed zero during a step, and
+locating the earliest crossing in time.
+
+Crossing convention (the one of fmpy and FMUSDK-style importers): indicator i fires
+between z0 (at the step start) and z1 when
+
+    z0 < 0 and z1 >= 0      or      z0 > 0 and z1 <= 0
+
+so reaching exactly 0 fires, while leaving exactly 0 does not (an indicator that an event
+has just reset to 0, like a bouncing ball's height, must not fire again at once).
+
+Location brackets the earliest crossing by a vector Illinois (modified regula falsi)
+iteration on the indicators evaluated along the solver's dense output, and returns the
+right end of the final bracket: there the crossing has happened, so the model's event
+update sees the condition that fired, and all indicators crossed by then are one event.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+
+def crossed(z0: np.ndarray, z1: np.ndarray) -> np.ndarray:
+    """Mask of the indicators that fire between z0 and z1 (see the module docstring)."""
+    return ((z0 < 0.0) & (z1 >= 0.0)) | ((z0 > 0.0) & (z1 <= 0.0))
+
+
+def any_crossed(z0: np.ndarray, z1: np.ndarray) -> bool:
+    """Whether any indicator fires; cheap when none does (the usual step)."""
+    # A crossing needs z0 * z1 <= 0, so that product rules out almost every step at once.
+    return bool((z0 * z1 <= 0.0).any()) and bool(crossed(z0, z1).any())
+
+
+def locate(indicators_at: Callable[[float], np.ndarray], t0: float, z0: np.ndarray,
+           t1: float, z1: np.ndarray, tolerance: float, max_iterations: int = 200):
+    """Earliest time in (t0, t1] at which some indicator fires.
+
+    `indicators_at(t)` evaluates the indicators at time t (on the interpolated state);
+    z0, z1 are their values at t0 and t1, with at least one crossing between them.
+    Returns (t_event, z_event, fired, evaluations): t_event is within `tolerance` after the
+    earliest crossing, `fired` is the mask of the indicators that fired by t_event.
+    """
+    ta, tb = t0, t1
+    za = np.array(z0, dtype=float)       # values at the bracket's left end (before any crossing)
+    zb = np.array(z1, dtype=float)       # values at its right end (some crossing happened)
+    wa = np.ones_like(za)                # Illinois weights on the retained ends
+    wb = np.ones_like(zb)
+    last_side = 0
+    evaluations = 0
+    width_before = tb - ta
+    while tb - ta > tolerance and evaluations < max_iterations:
+        fire = crossed(z0, zb)
+        t_trial = _secant_earliest(ta, tb, wa[fire] * za[fire], wb[fire] * zb[fire])
+        if evaluations % 3 == 2 and tb - ta > 0.5 * width_before:
+            t_trial = 0.5 * (ta + tb)     # slow progress: bisect to keep the bracket shrinking
+        if evaluations % 3 == 2:
+            width_before = tb - ta
+        margin = 0.25 * tolerance
+        t_trial = min(max(t_trial, ta + margin), tb - margin)
+        z_trial = np.array(indicators_at(t_trial), dtype=float)
+        evaluations += 1
+        if crossed(z0, z_trial).any():
+            tb, zb = t_trial, z_trial
+            wb[:] = 1.0
+            if last_side == 1:
+                wa *= 0.5                  # the left end stayed twice: damp it
+            last_side = 1
+        else:
+            ta, za = t_trial, z_trial
+            wa[:] = 1.0
+            if last_side == -1:
+                wb *= 0.5
+            last_side = -1
+    return tb, zb, crossed(z0, zb), evaluations
+
+
+def _secant_earliest(ta: float, tb: float, za: np.ndarray, zb: np.ndarray) -> float:
+    """The earliest of the secant roots of the firing indicators inside [ta, tb]."""
+    denominator = zb - za
+    with np.errstate(divide="ignore", invalid="ignore"):
+        roots = tb - zb * (tb - ta) / denominator
+    roots = roots[np.isfinite(roots)]
+    if roots.size == 0:
+        return 0.5 * (ta + tb)
+    return float(min(max(roots.min(), ta), tb))

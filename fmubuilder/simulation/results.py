@@ -1,0 +1,107 @@
+"""The outcome of a simulation: sampled variables, event log and solver statistics."""
+from __future__ import annotations
+
+import io
+import os
+import tempfile
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import IO
+
+import numpy as np
+
+from ..errors import FmuBuilderError
+
+
+@dataclass
+class SimulationStats:
+    solver: str = ""
+    steps: int = 0                  # accepted solver steps
+    rejected_steps: int = 0         # steps repeated with a smaller size (adaptive solver)
+    rhs_evaluations: int = 0        # derivative evaluations by the solver
+    indicator_evaluations: int = 0  # event-indicator evaluations (step ends and root finding)
+    time_events: int = 0
+    state_events: int = 0
+    step_events: int = 0
+    event_iterations: int = 0       # fmi2NewDiscreteStates passes, initialisation included
+    wall_time: float = 0.0          # seconds, initialisation to termination
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class SimulationResult:
+    """Sampled values of the recorded variables: `result['h']` is an array over `result.time`.
+
+    Rows are non-decreasing in time; a time appears twice only when events are recorded
+    (values just before and just after the event). Integer and Boolean variables keep
+    their type.
+    """
+    time: np.ndarray
+    values: dict[str, np.ndarray]
+    stats: SimulationStats = field(default_factory=SimulationStats)
+    terminated_early: bool = False      # the model asked to stop before the stop time
+    stop_time: float = 0.0              # the time the simulation reached
+    events: list[tuple[float, str]] = field(default_factory=list)   # (time, 'time'|'state'|'step')
+
+    @property
+    def names(self) -> list[str]:
+        return list(self.values)
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name == "time":
+            return self.time
+        try:
+            return self.values[name]
+        except KeyError:
+            raise FmuBuilderError(
+                f"'{name}' was not recorded; recorded: {', '.join(self.values) or 'nothing'}") from None
+
+    def __contains__(self, name: str) -> bool:
+        return name == "time" or name in self.values
+
+    def stats_line(self) -> str:
+        s = self.stats
+        end = f"terminated by the model at t={self.stop_time:g}" if self.terminated_early else f"t={self.stop_time:g}"
+        return (f"{s.solver}: {end}, {s.steps} steps ({s.rejected_steps} rejected), "
+                f"{s.rhs_evaluations} derivative evaluations, events: {s.time_events} time, "
+                f"{s.state_events} state, {s.step_events} step; {s.wall_time * 1e3:.1f} ms")
+
+    def to_csv(self, target: str | os.PathLike | IO[str]) -> None:
+        """Write `time,<names...>` rows; a path is replaced atomically (temp file + rename)."""
+        if hasattr(target, "write"):
+            target.write(self._csv_text())
+            return
+        path = Path(target)
+        directory = path.parent if str(path.parent) else Path(".")
+        if not directory.is_dir():
+            raise FmuBuilderError(f"cannot write {path}: folder {directory} does not exist; create it first")
+        fd, temp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+        try:
+            with os.fdopen(fd, "w", newline="") as file:
+                file.write(self._csv_text())
+            os.replace(temp, path)
+        except OSError as exc:
+            Path(temp).unlink(missing_ok=True)
+            raise FmuBuilderError(f"cannot write {path}: {exc.strerror or exc}") from None
+        except BaseException:
+            Path(temp).unlink(missing_ok=True)
+            raise
+
+    def _csv_text(self) -> str:
+        columns = [self.time, *self.values.values()]
+        formatted = [_format_column(c) for c in columns]
+        out = io.StringIO()
+        out.write(",".join(["time", *self.values]) + "\n")
+        for row in zip(*formatted):
+            out.write(",".join(row) + "\n")
+        return out.getvalue()
+
+
+def _format_column(values: np.ndarray) -> list[str]:
+    if values.dtype == bool:
+        return ["1" if v else "0" for v in values.tolist()]
+    if np.issubdtype(values.dtype, np.integer):
+        return [str(v) for v in values.tolist()]
+    return [repr(v) for v in values.tolist()]   # shortest text that reads back exactly

@@ -1,0 +1,275 @@
+"""What the simulation loop drives: a hybrid system with continuous states, event
+indicators and discrete events, behind a small protocol.
+
+`FmuSystem` implements it for one FMI 2.0 Model-Exchange instance. A system that changes
+the dynamics (a NeuralFMU adds a network's output to some derivatives) wraps or subclasses
+it and overrides `derivatives`; the loop in engine.py stays the same.
+
+Every method that takes (t, x) puts the FMU at that time and state first (cheap C calls),
+so callers never track which point the FMU was last evaluated at.
+"""
+from __future__ import annotations
+
+import bisect
+import math
+from typing import Protocol, Sequence
+
+import numpy as np
+
+from ..errors import FmuBuilderError
+from ..fmi.instance import Fmu, FmuCallError, convert_value
+from ..fmi.model import Variable
+from .inputs import InputSignals
+
+
+class HybridSystem(Protocol):
+    """The protocol the engine needs (see FmuSystem for the FMI meaning of each call)."""
+
+    n_states: int
+    n_indicators: int
+    output_names: list[str]
+    output_types: list[str]         # 'Real', 'Integer' or 'Boolean' per output column
+    breakpoints: Sequence[float]    # times where the right-hand side has a kink
+    event_iterations: int           # discrete-state update passes so far
+
+    def initialize(self, start_time: float, stop_time: float) -> tuple[np.ndarray, float, bool]:
+        """Set up and initialise; returns (x0, next_time_event or inf, terminate)."""
+
+    def derivatives(self, t: float, x: np.ndarray) -> np.ndarray:
+        """dx/dt at (t, x); may reuse one buffer between calls (solvers copy it)."""
+
+    def indicators(self, t: float, x: np.ndarray) -> np.ndarray:
+        """Event indicators at (t, x), as a new array (the engine keeps it for a step)."""
+
+    def completed_step(self, t: float, x: np.ndarray) -> tuple[bool, bool]:
+        """After an accepted step ending at (t, x): (step_event, terminate)."""
+
+    def handle_event(self, t: float, x: np.ndarray) -> tuple[np.ndarray, float, bool]:
+        """Process an event at (t, x): (x after the event, next_time_event or inf, terminate)."""
+
+    def outputs(self, times: np.ndarray, states: np.ndarray) -> np.ndarray:
+        """Values of the recorded variables (columns, in output_names order) at several
+        points (rows): times has shape (k,), states (k, n_states)."""
+
+    def terminate(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class FmuSystem:
+    """An FMI 2.0 Model-Exchange instance as a HybridSystem.
+
+    `start_values` (name -> value, strings allowed) are set before initialisation; `inputs`
+    drive input variables over time; `variables` are the names recorded by `outputs`.
+    """
+
+    def __init__(self, fmu: Fmu, *, variables: Sequence[str], start_values: dict | None = None,
+                 inputs: InputSignals | None = None, tolerance: float | None = None, logging: bool = False):
+        self.info = info = fmu.info
+        self.n_states = info.n_states
+        self.n_indicators = info.n_event_indicators
+        self.tolerance = tolerance
+        self.start_values = _checked_start_values(info, start_values or {})
+        recorded = [info.variable(name) for name in variables]
+        for var in recorded:
+            if var.api_type == "String":
+                raise FmuBuilderError(f"cannot record String variable '{var.name}'; choose numeric variables")
+        self.output_names = [v.name for v in recorded]
+        self.output_types = [v.api_type for v in recorded]
+        self.inputs = inputs
+        self.breakpoints = inputs.breakpoints if inputs is not None else np.zeros(0)
+        self._input_events = inputs.discrete_change_times().tolist() if inputs is not None else []
+        self.event_iterations = 0
+        self._continuous_mode = False
+        self._terminated = False
+
+        self.instance = fmu.instantiate(logging=logging)
+        inst = self.instance
+        self._set_time = inst.set_time
+        self._set_x = inst.set_continuous_states
+        self._get_dx = inst.get_derivatives
+        self._get_z = inst.get_event_indicators
+        self._completed = inst.completed_integrator_step
+        self._needs_completed_step = not info.capabilities.completed_integrator_step_not_needed
+        self._set_inputs = None
+        if inputs is not None and inputs.continuous:
+            self._set_inputs = inst.real_setter([v.value_reference for v in inputs.continuous])
+        self._columns = _OutputColumns(inst, info, recorded)
+
+    # -- life cycle ------------------------------------------------------------------------
+    def initialize(self, start_time: float, stop_time: float) -> tuple[np.ndarray, float, bool]:
+        inst = self.instance
+        inst.setup_experiment(start_time, stop_time, self.tolerance)
+        for name, value in self.start_values.items():
+            try:
+                inst.set({name: value})
+            except FmuCallError as exc:
+                raise FmuBuilderError(f"the FMU rejected the start value {name}={value!r} ({exc})") from None
+        inst.enter_initialization_mode()
+        self._apply_inputs(start_time, discrete=True)
+        inst.exit_initialization_mode()
+        self._columns.discrete_changed()
+        next_time, terminate = self._event_iteration()
+        if terminate:
+            return inst.get_continuous_states(), math.inf, True
+        inst.enter_continuous_time_mode()
+        self._continuous_mode = True
+        return inst.get_continuous_states(), self._next_time_event(next_time, start_time), False
+
+    def terminate(self) -> None:
+        if not self._terminated:
+            self._terminated = True
+            self._continuous_mode = False
+            self.instance.terminate()
+
+    def close(self) -> None:
+        self.instance.free()
+
+    # -- continuous time (hot path) ----------------------------------------------------------
+    def _at(self, t: float, x: np.ndarray) -> None:
+        self._set_time(t)
+        if self._set_inputs is not None:
+            self._set_inputs(self.inputs.at(t))
+        self._set_x(x)
+
+    def derivatives(self, t: float, x: np.ndarray) -> np.ndarray:
+        self._set_time(t)           # _at, inlined: this is the innermost call of a simulation
+        if self._set_inputs is not None:
+            self._set_inputs(self.inputs.at(t))
+        self._set_x(x)
+        return self._get_dx()
+
+    def indicators(self, t: float, x: np.ndarray) -> np.ndarray:
+        self._at(t, x)
+        return self._get_z()
+
+    def completed_step(self, t: float, x: np.ndarray) -> tuple[bool, bool]:
+        if not self._needs_completed_step:
+            return False, False
+        self._at(t, x)
+        return self._completed(True)
+
+    def outputs(self, times: np.ndarray, states: np.ndarray) -> np.ndarray:
+        columns = self._columns
+        parts = [states]
+        if columns.n_discrete:
+            discrete = columns.discrete_values()[None, :]
+            parts.append(discrete if len(times) == 1 else discrete.repeat(len(times), axis=0))
+        if columns.n_computed:
+            computed, read = np.empty((len(times), columns.n_computed)), columns.read_computed
+            for row, t in enumerate(times):
+                if self._continuous_mode:       # in event mode the FMU already holds (t, x)
+                    self._at(t, states[row])
+                computed[row] = read()
+            parts.append(computed)
+        # The parts side by side are [all states | discrete | computed]; order picks the columns.
+        table = np.concatenate(parts, axis=1) if len(parts) > 1 else np.array(states, dtype=float)
+        return table if columns.in_order(table.shape[1]) else table.take(columns.order, axis=1)
+
+    # -- events ------------------------------------------------------------------------------
+    def handle_event(self, t: float, x: np.ndarray) -> tuple[np.ndarray, float, bool]:
+        inst = self.instance
+        self._at(t, x)
+        inst.enter_event_mode()
+        self._continuous_mode = False
+        self._columns.discrete_changed()
+        self._apply_inputs(t, discrete=True)
+        next_time, terminate = self._event_iteration()
+        if terminate:
+            return inst.get_continuous_states(), math.inf, True
+        inst.enter_continuous_time_mode()
+        self._continuous_mode = True
+        # Re-read the states: the event may have reset them (valuesOfContinuousStatesChanged).
+        return inst.get_continuous_states(), self._next_time_event(next_time, t), False
+
+    def _event_iteration(self) -> tuple[float, bool]:
+        """fmi2NewDiscreteStates until the discrete states settle."""
+        while True:
+            info = self.instance.new_discrete_states()
+            self.event_iterations += 1
+            if info.terminate_simulation:
+                return math.inf, True
+            if not info.new_discrete_states_needed:
+                return info.next_event_time_or_inf, False
+
+    def _next_time_event(self, fmu_next: float, t: float) -> float:
+        """The FMU's next time event or the next change of a discrete input, if earlier."""
+        i = bisect.bisect_right(self._input_events, t)
+        return min(fmu_next, self._input_events[i]) if i < len(self._input_events) else fmu_next
+
+    def _apply_inputs(self, t: float, discrete: bool) -> None:
+        if self.inputs is None:
+            return
+        if self._set_inputs is not None:
+            self._set_inputs(self.inputs.at(t))
+        if discrete and self.inputs.discrete:
+            self.instance.set(self.inputs.discrete_at(t))
+
+
+class _OutputColumns:
+    """How each recorded variable is read, cheapest first: states straight from x;
+    variables that change only at events (discrete, parameters) once per event; the rest
+    (continuous, computed from the state) from the FMU at each sample."""
+
+    def __init__(self, inst, info, recorded: list[Variable]):
+        state_index = {v.name: i for i, v in enumerate(info.states)}
+        discrete = [v for v in recorded if v.name not in state_index and v.variability != "continuous"]
+        computed = [v for v in recorded if v.name not in state_index and v.variability == "continuous"]
+        self.n_discrete, self.n_computed = len(discrete), len(computed)
+        # Column of each recorded variable in [states | discrete | computed].
+        position = {v.name: len(state_index) + k for k, v in enumerate(discrete + computed)}
+        position.update(state_index)
+        self.order = np.array([position[v.name] for v in recorded], dtype=int)
+        self._natural = self.order.tolist() == list(range(len(self.order)))
+        self.read_computed = inst.real_getter([v.value_reference for v in computed])
+        self._discrete_readers = []
+        for api_type in ("Real", "Integer", "Boolean"):
+            positions = [k for k, v in enumerate(discrete) if v.api_type == api_type]
+            if positions:
+                vrs = [discrete[k].value_reference for k in positions]
+                read = inst.real_getter(vrs) if api_type == "Real" else (
+                    lambda get, refs: lambda: get(refs))(getattr(inst, f"get_{api_type.lower()}"), vrs)
+                self._discrete_readers.append((np.array(positions, dtype=int), read))
+        self._discrete = None
+
+    def in_order(self, width: int) -> bool:
+        """Whether [states | discrete | computed] is already the recorded columns' order."""
+        return self._natural and width == len(self.order)
+
+    def discrete_changed(self) -> None:
+        self._discrete = None
+
+    def discrete_values(self) -> np.ndarray:
+        if self._discrete is None:
+            values = np.empty(self.n_discrete)
+            for positions, read in self._discrete_readers:
+                values[positions] = read()
+            self._discrete = values
+        return self._discrete
+
+
+def _checked_start_values(info, start_values: dict) -> dict:
+    """Start values converted to their variables' types; unknown or unsettable names fail."""
+    if not isinstance(start_values, dict):
+        raise FmuBuilderError("start values must be a mapping of variable names to values, e.g. {'g': 9.81}")
+    checked = {}
+    for name, value in start_values.items():
+        var = info.variable(str(name))
+        if not _settable_before_initialization(var):
+            raise FmuBuilderError(
+                f"cannot set a start value for '{var.name}': it is a {var.variability} {var.causality} "
+                f"the model computes (initial='{var.initial or 'calculated'}'); set a parameter, input "
+                "or a variable with initial='exact' or 'approx' instead")
+        converted = convert_value(var, value)
+        if var.api_type == "Real" and not math.isfinite(converted):
+            raise FmuBuilderError(f"start value of {var.name} must be a finite number, got {value!r}")
+        checked[var.name] = converted
+    return checked
+
+
+def _settable_before_initialization(var: Variable) -> bool:
+    if var.variability == "constant" or var.causality in ("calculatedParameter", "independent"):
+        return False
+    if var.causality in ("parameter", "input"):
+        return True
+    return var.initial in ("exact", "approx")
