@@ -104,16 +104,17 @@ class LowLevelFmu:
 
 def _recording_callbacks(messages):
     from fmpy import calloc, free
-    from fmpy.logging import addLoggerProxy
 
+    # fmpy's addLoggerProxy keeps the last logger in a process-wide variable, which would
+    # dangle once these callbacks are collected. The glue passes preformatted text with
+    # '%' doubled, so the message needs no C-side formatting.
     def logger(env, instance, status, category, message):
-        messages.append((status, message.decode()))
+        messages.append((status, message.decode().replace("%%", "%")))
 
     callbacks = fmi2CallbackFunctions()
     callbacks.logger = fmi2CallbackLoggerTYPE(logger)
     callbacks.allocateMemory = fmi2CallbackAllocateMemoryTYPE(calloc)
     callbacks.freeMemory = fmi2CallbackFreeMemoryTYPE(free)
-    addLoggerProxy(ctypes.byref(callbacks))  # formats the variadic message in C
     return callbacks
 
 
