@@ -97,9 +97,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="overwrite an existing output file")
     p.set_defaults(func=cmd_simulate)
 
+    from .export.cli import add_export_parsers
     from .synth_cli import add_example_parser, add_synth_parser
     add_synth_parser(sub)
     add_example_parser(sub)
+    add_export_parsers(sub)
 
     p = sub.add_parser("demo", help="run the whole workflow on the bundled example and write a report")
     p.add_argument("--output", "-o", default="fmubuilder-demo", help="output folder (default: ./fmubuilder-demo)")

@@ -1,0 +1,91 @@
+"""Command-line parsers of the export stage:
+
+    fmubuilder export TRAINED -o HYBRID.fmu [--force]
+    fmubuilder validate HYBRID.fmu [--against TRAINED] [--data DATA.csv] [--start NAME=VALUE]...
+
+TRAINED is a hybrid spec JSON (spec.py) or a trained NeuralFMU file, which the neural
+stage turns into a spec. `validate` prints a table and exits non-zero when the round trip
+misses its tolerances.
+"""
+from __future__ import annotations
+
+import contextlib
+import importlib
+import tempfile
+from pathlib import Path
+
+from fmubuilder.errors import FmuBuilderError
+
+
+def add_export_parsers(subparsers) -> None:
+    """Add the `export` and `validate` commands to an argparse subparsers object."""
+    p = subparsers.add_parser("export", help="export a trained hybrid model as an FMI 2.0 Model-Exchange FMU")
+    p.add_argument("trained", metavar="TRAINED", help="hybrid spec JSON or trained NeuralFMU file")
+    p.add_argument("--output", "-o", required=True, metavar="HYBRID.fmu", help="the FMU to write")
+    p.add_argument("--force", action="store_true", help="overwrite an existing output file")
+    p.set_defaults(func=cmd_export)
+
+    p = subparsers.add_parser("validate", help="check an exported hybrid FMU against the Python reference")
+    p.add_argument("fmu", metavar="HYBRID.fmu", help="hybrid FMU written by `fmubuilder export`")
+    p.add_argument("--against", metavar="TRAINED",
+                   help="hybrid spec JSON or trained NeuralFMU file (default: the spec stored in the FMU)")
+    p.add_argument("--data", metavar="DATA.csv", help="input signals and time span: `time`, then FMU input columns")
+    p.add_argument("--start", action="append", metavar="NAME=VALUE",
+                   help="start value of a parameter, state or gate, e.g. hybrid.v.p_ann=0 (repeatable)")
+    p.add_argument("--stop-time", type=float, default=None, help="default: the FMU's DefaultExperiment")
+    p.add_argument("--step-size", type=float, default=None,
+                   help="fixed step and output interval (default: the FMU's DefaultExperiment stepSize)")
+    p.set_defaults(func=cmd_validate)
+
+
+def cmd_export(args) -> None:
+    from .wrapper import export_hybrid
+    with _spec_from(args.trained) as spec:
+        output = export_hybrid(spec, args.output, force=args.force)
+    print(f"wrote {output}")
+
+
+def cmd_validate(args) -> None:
+    from fmubuilder.cli import parse_assignments
+    from .validate import validate_hybrid
+    with contextlib.ExitStack() as stack:
+        spec = stack.enter_context(_spec_from(args.against)) if args.against else None
+        report = validate_hybrid(args.fmu, spec=spec, data_csv=args.data, start_values=parse_assignments(args.start),
+                                 stop_time=args.stop_time, step_size=args.step_size)
+    print(report.format_table())
+    if not report.passed:
+        raise FmuBuilderError("the hybrid FMU failed the round-trip validation (see the table above)")
+
+
+@contextlib.contextmanager
+def _spec_from(trained: str):
+    """A HybridSpec from a spec JSON, or from a trained NeuralFMU file via the neural stage
+    (its ONNX file lives in a temporary folder for the duration of the command)."""
+    from .spec import HybridSpec
+    path = Path(trained)
+    if not path.is_file():
+        raise FmuBuilderError(f"{path}: no such file; give a hybrid spec JSON or a trained NeuralFMU file")
+    if _looks_like_json(path):
+        yield HybridSpec.load(path)
+        return
+    to_hybrid_spec = _neural_converter()
+    if to_hybrid_spec is None:
+        raise FmuBuilderError(
+            f"{path} is not a hybrid spec JSON, and this installation cannot convert trained NeuralFMU files; "
+            "give the hybrid spec JSON written at training")
+    with tempfile.TemporaryDirectory(prefix="fmubuilder-spec-") as folder:
+        spec = to_hybrid_spec(path, Path(folder))
+        yield spec if isinstance(spec, HybridSpec) else HybridSpec.load(spec)
+
+
+def _looks_like_json(path: Path) -> bool:
+    with open(path, "rb") as file:
+        return file.read(64).lstrip().startswith(b"{")
+
+
+def _neural_converter():
+    try:
+        module = importlib.import_module("fmubuilder.neural.io")
+    except ImportError:
+        return None
+    return getattr(module, "to_hybrid_spec", None)

@@ -1,0 +1,255 @@
+"""The modelDescription.xml of a hybrid FMU, derived from the original's.
+
+Everything the original declares stays as it is (variables, value references, units, types,
+log categories, default experiment), so tools and scripts written for the original work on
+the hybrid. Changed or added:
+
+* a new GUID and modelIdentifier (``<original>_hybrid``), generationTool "fmubuilder";
+* Model Exchange only; FMU state capabilities as the original; no directional derivatives
+  (the network part has no derivative code);
+* per channel der(x), three Real variables appended after the original's (so the original's
+  indices in ModelStructure stay valid), with value references beyond all of the original's:
+  ``hybrid.<x>.p_ann`` and ``hybrid.<x>.p_fmu`` (tunable parameters, the gates) and
+  ``hybrid.<x>.ann`` (local: the network output before gating);
+* ModelStructure: the dependencies of each channel's derivative gain those of the network
+  inputs; where they are not known (e.g. a local variable feeds the network) the attribute is
+  dropped, which per FMI 2.0 means "depends on everything".
+"""
+from __future__ import annotations
+
+import datetime
+import re
+import uuid
+from dataclasses import dataclass
+
+from lxml import etree
+
+from fmubuilder.errors import FmuBuilderError
+
+from .spec import HybridSpec
+
+WRAPPER_LOG_CATEGORY = "logStatusError"
+GENERATION_TOOL = "fmubuilder"
+_STRUCTURED_NAME = re.compile(r"[A-Za-z_]\w*(\[\d+(,\d+)*\])?(\.[A-Za-z_]\w*(\[\d+(,\d+)*\])?)*\Z")
+# Children of fmiModelDescription in schema order (for inserting a missing LogCategories).
+_ELEMENT_ORDER = ("ModelExchange", "CoSimulation", "UnitDefinitions", "TypeDefinitions", "LogCategories",
+                  "DefaultExperiment", "VendorAnnotations", "ModelVariables", "ModelStructure")
+
+
+@dataclass(frozen=True)
+class ChannelLayout:
+    """Where one channel lives in the original FMU and which variables the hybrid adds for it."""
+
+    channel: str            # der(x)
+    state: str              # x
+    state_index: int        # index of x in the state vector
+    der_vr: int
+    p_ann: str
+    p_ann_vr: int
+    p_fmu: str
+    p_fmu_vr: int
+    ann: str
+    ann_vr: int
+
+
+@dataclass(frozen=True)
+class HybridDescription:
+    xml: bytes
+    guid: str
+    model_identifier: str
+    channels: list[ChannelLayout]
+    log_categories: list[str]   # the original's
+
+
+def hybrid_identifier(original_identifier: str) -> str:
+    return f"{original_identifier}_hybrid"
+
+
+def derive_model_description(original_xml: bytes, spec: HybridSpec, info) -> HybridDescription:
+    """The hybrid's modelDescription.xml from the original's XML and its ModelInfo `info`."""
+    try:
+        root = etree.fromstring(original_xml)
+    except etree.XMLSyntaxError as exc:
+        raise FmuBuilderError(f"the original modelDescription.xml is not valid XML ({exc})") from None
+    identifier = hybrid_identifier(info.model_identifier)
+    guid = "{" + str(uuid.uuid4()) + "}"
+    _set_header(root, info, spec, guid)
+    _set_model_exchange(root, identifier)
+    log_categories = _log_categories(root)
+    variables = root.find("ModelVariables")
+    layout = _add_channel_variables(variables, spec, info)
+    _update_structure(root, spec, info)
+    etree.indent(root, space="  ")
+    xml = etree.tostring(root, xml_declaration=True, encoding="UTF-8", pretty_print=True)
+    return HybridDescription(xml=xml, guid=guid, model_identifier=identifier, channels=layout,
+                             log_categories=log_categories)
+
+
+def _set_header(root, info, spec: HybridSpec, guid: str) -> None:
+    root.set("guid", guid)
+    root.set("modelName", f"{info.model_name}_hybrid")
+    root.set("description", f"{info.model_name} with {', '.join(spec.channels)} corrected by a neural network "
+                            "(gates p_ann, p_fmu per corrected derivative)")
+    root.set("generationTool", GENERATION_TOOL)
+    now = datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0)
+    root.set("generationDateAndTime", now.strftime("%Y-%m-%dT%H:%M:%SZ"))
+
+
+def _set_model_exchange(root, identifier: str) -> None:
+    for cs in root.findall("CoSimulation"):
+        root.remove(cs)
+    me = root.find("ModelExchange")
+    me.set("modelIdentifier", identifier)
+    me.set("providesDirectionalDerivative", "false")
+    # The wrapper allocates through the importer's callbacks.
+    if "canNotUseMemoryManagementFunctions" in me.attrib:
+        del me.attrib["canNotUseMemoryManagementFunctions"]
+    for source_files in me.findall("SourceFiles"):
+        me.remove(source_files)
+
+
+def _log_categories(root) -> list[str]:
+    """The original's categories; adds the one the wrapper logs its errors under."""
+    element = root.find("LogCategories")
+    if element is None:
+        element = etree.Element("LogCategories")
+        _insert_in_order(root, element)
+    names = [c.get("name") for c in element.findall("Category")]
+    if WRAPPER_LOG_CATEGORY not in names:
+        etree.SubElement(element, "Category", name=WRAPPER_LOG_CATEGORY,
+                         description="Calls rejected with fmi2Error")
+    return names
+
+
+def _insert_in_order(root, element) -> None:
+    rank = _ELEMENT_ORDER.index(element.tag)
+    for position, child in enumerate(root):
+        if isinstance(child.tag, str) and child.tag in _ELEMENT_ORDER and _ELEMENT_ORDER.index(child.tag) > rank:
+            root.insert(position, element)
+            return
+    root.append(element)
+
+
+def _variable_label(state: str) -> str:
+    """A readable name part for state x: x itself when it composes into a structured name."""
+    if _STRUCTURED_NAME.match(state):
+        return state
+    label = re.sub(r"\W+", "_", state).strip("_")
+    return label if label and not label[0].isdigit() else f"x_{label}"
+
+
+def _name_prefix(existing: set[str]) -> str:
+    """'hybrid', or 'hybrid_<n>' if the original already uses names under 'hybrid'."""
+    candidates = ["hybrid"] + [f"hybrid_{n}" for n in range(1, 1000)]
+    for prefix in candidates:
+        if not any(name == prefix or name.startswith(prefix + ".") or name.startswith(prefix + "[")
+                   for name in existing):
+            return prefix
+    raise FmuBuilderError("the original FMU uses every variable prefix hybrid_1..999; rename its variables")
+
+
+def _add_channel_variables(variables, spec: HybridSpec, info) -> list[ChannelLayout]:
+    scalar_variables = variables.findall("ScalarVariable")
+    by_name = {sv.get("name"): sv for sv in scalar_variables}
+    prefix = _name_prefix(set(by_name))
+    next_vr = max((v.value_reference for v in info.variables.values()), default=-1) + 1
+    state_index = {d.name: i for i, d in enumerate(info.derivatives)}
+    layout = []
+    for c, (channel, state) in enumerate(zip(spec.channels, spec.channel_states(info))):
+        base = f"{prefix}.{_variable_label(state)}"
+        if any(f"{base}.{suffix}" in by_name for suffix in ("p_ann", "p_fmu", "ann")):
+            base = f"{prefix}.channel{c + 1}"
+        der_real = by_name[channel].find("Real")
+        p_ann = _append_variable(
+            variables, f"{base}.p_ann", next_vr, causality="parameter", variability="tunable", initial="exact",
+            description=f"Gate of the network term in {channel} (0 switches the network off)",
+            start=spec.p_ann[c])
+        p_fmu = _append_variable(
+            variables, f"{base}.p_fmu", next_vr + 1, causality="parameter", variability="tunable",
+            initial="exact", description=f"Gate of the original model's term in {channel}", start=spec.p_fmu[c])
+        unit_attributes = {k: der_real.get(k) for k in ("declaredType", "quantity", "unit")
+                           if der_real is not None and der_real.get(k) is not None}
+        ann = _append_variable(
+            variables, f"{base}.ann", next_vr + 2, causality="local", variability="continuous",
+            description=f"Network output for {channel} before gating", real_attributes=unit_attributes)
+        layout.append(ChannelLayout(
+            channel=channel, state=state, state_index=state_index[channel],
+            der_vr=info.variable(channel).value_reference, p_ann=p_ann, p_ann_vr=next_vr,
+            p_fmu=p_fmu, p_fmu_vr=next_vr + 1, ann=ann, ann_vr=next_vr + 2))
+        next_vr += 3
+    return layout
+
+
+def _append_variable(variables, name: str, vr: int, *, causality: str, variability: str, description: str,
+                     initial: str | None = None, start: float | None = None,
+                     real_attributes: dict | None = None) -> str:
+    attributes = {"name": name, "valueReference": str(vr), "description": description,
+                  "causality": causality, "variability": variability}
+    if initial is not None:
+        attributes["initial"] = initial
+    element = etree.SubElement(variables, "ScalarVariable", attributes)
+    real = etree.SubElement(element, "Real", real_attributes or {})
+    if start is not None:
+        real.set("start", repr(float(start)))
+    return name
+
+
+# -- ModelStructure -----------------------------------------------------------------------------
+
+def _update_structure(root, spec: HybridSpec, info) -> None:
+    structure = root.find("ModelStructure")
+    names = [sv.get("name") for sv in root.find("ModelVariables").findall("ScalarVariable")]
+    index_of = {name: i + 1 for i, name in enumerate(names)}
+    unknowns = {section: {names[int(u.get("index")) - 1]: u for u in structure.iterfind(f"{section}/Unknown")}
+                for section in ("Outputs", "Derivatives", "InitialUnknowns")}
+    state_names = {s.name for s in info.states}
+    network_deps = _network_dependencies(spec, info, unknowns, index_of, state_names)
+    for channel in spec.channels:
+        derivative = unknowns["Derivatives"].get(channel)
+        if derivative is not None:
+            _merge_dependencies(derivative, network_deps)
+        initial = unknowns["InitialUnknowns"].get(channel)
+        if initial is not None:  # initial dependencies through the network are not tracked
+            _drop_dependencies(initial)
+
+
+def _network_dependencies(spec, info, unknowns, index_of, state_names) -> set[int] | None:
+    """Indices of the states and inputs the network inputs depend on; None when unknown."""
+    dependencies: set[int] = set()
+    for name in spec.inputs:
+        var = info.variable(name)
+        if name in state_names or var.causality == "input":
+            dependencies.add(index_of[name])
+        elif var.causality in ("parameter", "calculatedParameter", "independent") or var.variability == "constant":
+            continue  # not a state or input: no entry in the dependency lists
+        else:
+            listed = unknowns["Derivatives"].get(name)
+            if listed is None:
+                listed = unknowns["Outputs"].get(name)
+            if listed is None or listed.get("dependencies") is None:
+                return None
+            dependencies.update(int(i) for i in listed.get("dependencies").split())
+    return dependencies
+
+
+def _merge_dependencies(unknown, extra: set[int] | None) -> None:
+    if unknown.get("dependencies") is None:
+        return  # already "depends on everything"
+    if extra is None:
+        _drop_dependencies(unknown)
+        return
+    own = [int(i) for i in unknown.get("dependencies").split()]
+    kinds = unknown.get("dependenciesKind")
+    kind_of = dict(zip(own, kinds.split())) if kinds is not None else {}
+    merged = sorted(set(own) | extra)
+    unknown.set("dependencies", " ".join(str(i) for i in merged))
+    if kinds is not None:
+        # The network term is nonlinear in its inputs.
+        unknown.set("dependenciesKind", " ".join(
+            kind_of[i] if i in kind_of and i not in extra else "dependent" for i in merged))
+
+
+def _drop_dependencies(unknown) -> None:
+    for attribute in ("dependencies", "dependenciesKind"):
+        if attribute in unknown.attrib:
+            del unknown.attrib[attribute]

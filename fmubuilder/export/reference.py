@@ -1,0 +1,124 @@
+"""The hybrid model computed in Python: the original FMU plus onnxruntime.
+
+`HybridReference` is a `HybridSystem` for the simulation engine that evaluates exactly what
+the exported FMU evaluates in C (see spec.py for the formula), but from independent parts:
+the original FMU's binary for f, and onnxruntime on the ONNX file for the network (the FMU
+uses the C kernel generated from that file). Validation compares the two.
+"""
+from __future__ import annotations
+
+import os
+from typing import Sequence
+
+import numpy as np
+
+from fmubuilder.errors import FmuBuilderError
+from fmubuilder.fmi.instance import Fmu
+from fmubuilder.simulation.system import FmuSystem
+
+from .spec import HybridSpec
+
+
+class OnnxNetwork:
+    """A one-sample ONNX network run by onnxruntime: 1-D float64 array in, 1-D array out."""
+
+    def __init__(self, path: str | os.PathLike):
+        import onnxruntime
+        options = onnxruntime.SessionOptions()
+        options.log_severity_level = 3
+        # One thread: no parallel reduction, so the summation order matches the kernel's.
+        options.intra_op_num_threads = 1
+        options.inter_op_num_threads = 1
+        try:
+            self.session = onnxruntime.InferenceSession(os.fspath(path), options,
+                                                        providers=["CPUExecutionProvider"])
+        except Exception as exc:  # missing file, invalid model, ...
+            raise FmuBuilderError(f"onnxruntime cannot load {path} ({exc}); give the network written by "
+                                  "freeze()") from None
+        inputs = self.session.get_inputs()
+        if len(inputs) != 1 or len(self.session.get_outputs()) != 1:
+            raise FmuBuilderError(f"{path} must have exactly one input and one output tensor; export it with freeze()")
+        if inputs[0].type != "tensor(double)":
+            raise FmuBuilderError(f"{path} takes {inputs[0].type}, not tensor(double); export it with freeze()")
+        self.input_name = inputs[0].name
+        self.input_shape = [d if isinstance(d, int) else 1 for d in inputs[0].shape]
+        self.n_inputs = int(np.prod(self.input_shape))
+        self.n_outputs = self(np.zeros(self.n_inputs)).size
+
+    def __call__(self, values: np.ndarray) -> np.ndarray:
+        feed = np.asarray(values, dtype=np.float64).reshape(self.input_shape)
+        return np.asarray(self.session.run(None, {self.input_name: feed})[0], dtype=np.float64).ravel()
+
+
+def hybrid_value(p_fmu: float, f: float, p_ann: float, ann: float) -> float:
+    """p_fmu * f + p_ann * ann where a zero gate drops its term, in the wrapper's order."""
+    value = p_fmu * f if p_fmu != 0.0 else 0.0
+    if p_ann != 0.0:
+        value = value + p_ann * ann
+    return value
+
+
+class HybridReference(FmuSystem):
+    """The hybrid model as a HybridSystem: the original FMU with corrected derivatives.
+
+    `fmu` is the loaded original FMU; `p_ann`/`p_fmu` override the spec's gate values.
+    Recorded `variables` may include the channels' der(x): they are recorded as hybrid values.
+    """
+
+    def __init__(self, fmu: Fmu, spec: HybridSpec, *, variables: Sequence[str], start_values: dict | None = None,
+                 inputs=None, tolerance: float | None = None, p_ann: Sequence[float] | None = None,
+                 p_fmu: Sequence[float] | None = None, network: OnnxNetwork | None = None):
+        super().__init__(fmu, variables=variables, start_values=start_values, inputs=inputs, tolerance=tolerance)
+        info = fmu.info
+        self.network = network if network is not None else OnnxNetwork(spec.onnx)
+        self.p_ann = [float(g) for g in (p_ann if p_ann is not None else spec.p_ann)]
+        self.p_fmu = [float(g) for g in (p_fmu if p_fmu is not None else spec.p_fmu)]
+        self.channel_index = [info.state_index(c) for c in spec.channels]
+        self._readers = _input_readers(self.instance, info, spec.inputs)
+        self._n_inputs = len(spec.inputs)
+        self._channel_columns = [(j, spec.channels.index(name)) for j, name in enumerate(self.output_names)
+                                 if name in spec.channels]
+
+    def derivatives(self, t: float, x: np.ndarray) -> np.ndarray:
+        return self._hybrid(super().derivatives(t, x))
+
+    def outputs(self, times: np.ndarray, states: np.ndarray) -> np.ndarray:
+        table = super().outputs(times, states)
+        for row, (t, x) in enumerate(zip(times, states)) if self._channel_columns else ():
+            if self._continuous_mode:   # in event mode the FMU already holds (t, x)
+                self._at(t, x)
+            dx = self._hybrid(self.instance.get_derivatives())
+            for column, c in self._channel_columns:
+                table[row, column] = dx[self.channel_index[c]]
+        return table
+
+    def network_output(self) -> np.ndarray:
+        """The network's output at the FMU's current point."""
+        values = np.empty(self._n_inputs)
+        for positions, read in self._readers:
+            values[positions] = read()
+        return self.network(values)
+
+    def _hybrid(self, dx: np.ndarray) -> np.ndarray:
+        dx = np.array(dx, dtype=float)
+        ann = self.network_output() if any(g != 0.0 for g in self.p_ann) else None
+        for c, i in enumerate(self.channel_index):
+            dx[i] = hybrid_value(self.p_fmu[c], float(dx[i]), self.p_ann[c], float(ann[c]) if ann is not None else 0.0)
+        return dx
+
+
+def _input_readers(instance, info, names: Sequence[str]):
+    """(positions, read) per variable type; read() returns the values as float64."""
+    readers = []
+    for api_type in ("Real", "Integer", "Boolean"):
+        positions = [k for k, name in enumerate(names) if info.variable(name).api_type == api_type]
+        if not positions:
+            continue
+        vrs = [info.variable(names[k]).value_reference for k in positions]
+        if api_type == "Real":
+            read = instance.real_getter(vrs)
+        else:
+            getter = getattr(instance, f"get_{api_type.lower()}")
+            read = (lambda get, refs: lambda: np.asarray(get(refs), dtype=float))(getter, vrs)
+        readers.append((np.array(positions, dtype=int), read))
+    return readers

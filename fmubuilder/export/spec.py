@@ -1,0 +1,171 @@
+"""HybridSpec: everything needed to turn a trained hybrid model back into an FMU.
+
+A hybrid model is an original FMI 2.0 Model-Exchange FMU whose derivatives of some states
+(the *channels*) are corrected by a neural network:
+
+    der(x_c) = p_fmu_c * f_c(x) + p_ann_c * net(u)_c        for each channel c
+    der(x_k) = f_k(x)                                        for every other state
+
+where f is the original FMU's derivative function, u the values of the FMU variables listed
+in ``inputs`` (read from the original FMU, so a derivative among them is the original's
+value), and net the network stored as ONNX: it maps the raw input values to one value per
+channel, with any scaling of inputs and outputs inside the graph. A gate that is exactly 0
+switches its term off completely (so p_ann = 0, p_fmu = 1 reproduces the original model
+even if the network returned NaN). The gates are tunable parameters of the exported FMU;
+the values here are their start values.
+
+JSON form (paths relative to the JSON file's folder)::
+
+    {
+      "format": "fmubuilder.hybrid_spec", "version": 1,
+      "original_fmu": "plant.fmu", "original_guid": "{...}",
+      "channels": ["der(speed)"],
+      "inputs": ["speed", "der(speed)", "force"],
+      "onnx": "network.onnx",
+      "p_ann": [1.0], "p_fmu": [1.0]
+    }
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from fmubuilder.errors import FmuBuilderError
+
+FORMAT = "fmubuilder.hybrid_spec"
+VERSION = 1
+# Variable types a network input may have: their values are passed to the network as doubles.
+INPUT_TYPES = ("Real", "Integer", "Enumeration", "Boolean")
+
+
+@dataclass
+class HybridSpec:
+    """The hand-over from training to export; see the module docstring for the semantics."""
+
+    original_fmu: Path
+    original_guid: str
+    channels: list[str]
+    inputs: list[str]
+    onnx: Path
+    p_ann: list[float] = field(default_factory=list)
+    p_fmu: list[float] = field(default_factory=list)
+
+    def __post_init__(self):
+        self.original_fmu = Path(self.original_fmu)
+        self.onnx = Path(self.onnx)
+        self.channels = [str(c) for c in self.channels]
+        self.inputs = [str(i) for i in self.inputs]
+        n = len(self.channels)
+        # Gates default to "both on": the trained hybrid as it was trained.
+        self.p_ann = _gates(self.p_ann, n, 1.0, "p_ann")
+        self.p_fmu = _gates(self.p_fmu, n, 1.0, "p_fmu")
+        if n == 0:
+            raise FmuBuilderError("the hybrid spec has no channels; list the derivatives the network corrects")
+        if len(set(self.channels)) != n:
+            raise FmuBuilderError(f"the hybrid spec lists a channel twice ({self.channels}); list each derivative once")
+        if not self.inputs:
+            raise FmuBuilderError("the hybrid spec has no network inputs; list the FMU variables fed to the network")
+
+    # -- JSON ------------------------------------------------------------------------------
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "HybridSpec":
+        """Read a spec written by save(); relative paths are resolved against its folder."""
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise FmuBuilderError(f"{path}: no such file; give the hybrid spec JSON written at training") from None
+        except (OSError, ValueError) as exc:
+            raise FmuBuilderError(f"{path}: not a readable JSON file ({exc}); give a hybrid spec JSON") from None
+        if not isinstance(data, dict) or data.get("format") != FORMAT:
+            raise FmuBuilderError(f"{path} is not a hybrid spec (no \"format\": \"{FORMAT}\"); give the spec JSON")
+        if data.get("version") != VERSION:
+            raise FmuBuilderError(
+                f"{path} is a hybrid spec of version {data.get('version')}; this fmubuilder reads version {VERSION}")
+        missing = [k for k in ("original_fmu", "original_guid", "channels", "inputs", "onnx") if k not in data]
+        if missing:
+            raise FmuBuilderError(f"{path}: the hybrid spec lacks {', '.join(missing)}; add them or re-export the spec")
+        base = path.resolve().parent
+        return cls(
+            original_fmu=base / data["original_fmu"], original_guid=str(data["original_guid"]),
+            channels=list(data["channels"]), inputs=list(data["inputs"]), onnx=base / data["onnx"],
+            p_ann=list(data.get("p_ann", [])), p_fmu=list(data.get("p_fmu", [])))
+
+    def to_dict(self, relative_to: str | os.PathLike | None = None) -> dict:
+        def where(p: Path) -> str:
+            # Files beside the JSON are written relative, so the folder can move as a whole.
+            if relative_to is not None and Path(relative_to).resolve() in p.resolve().parents:
+                return p.resolve().relative_to(Path(relative_to).resolve()).as_posix()
+            return str(p.resolve()) if relative_to is not None else str(p)
+        return {
+            "format": FORMAT, "version": VERSION,
+            "original_fmu": where(self.original_fmu), "original_guid": self.original_guid,
+            "channels": list(self.channels), "inputs": list(self.inputs), "onnx": where(self.onnx),
+            "p_ann": list(self.p_ann), "p_fmu": list(self.p_fmu),
+        }
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the spec as JSON (atomically), with paths relative to the JSON's folder."""
+        from fmubuilder.export.files import write_atomically
+        path = Path(path)
+        return write_atomically(path, json.dumps(self.to_dict(relative_to=path.parent), indent=2) + "\n")
+
+    # -- consistency with the original FMU and the network ----------------------------------
+    def check(self, info=None) -> None:
+        """Check the spec against the original FMU (a ModelInfo, read if not given) and the ONNX file."""
+        if info is None:
+            from fmubuilder.fmi import read_model_info
+            info = read_model_info(self.original_fmu)
+        if info.guid != self.original_guid:
+            raise FmuBuilderError(
+                f"{self.original_fmu} has GUID {info.guid}, the hybrid spec was trained on {self.original_guid}; "
+                "export with the FMU the network was trained on")
+        derivative_names = {d.name for d in info.derivatives}
+        for channel in self.channels:
+            if channel not in derivative_names:
+                raise FmuBuilderError(
+                    f"channel '{channel}' is not a state derivative of {info.model_name} "
+                    f"(its derivatives: {', '.join(sorted(derivative_names))}); fix 'channels' in the spec")
+        for name in self.inputs:
+            var = info.variable(name)
+            if var.type not in INPUT_TYPES:
+                raise FmuBuilderError(
+                    f"network input '{name}' is a {var.type} variable; only {', '.join(INPUT_TYPES)} can feed "
+                    "the network")
+        n_in, n_out = onnx_io_sizes(self.onnx)
+        if n_in != len(self.inputs) or n_out != len(self.channels):
+            raise FmuBuilderError(
+                f"{self.onnx} maps {n_in} inputs to {n_out} outputs, the spec has {len(self.inputs)} inputs and "
+                f"{len(self.channels)} channels; export the network that belongs to this spec")
+
+    def channel_states(self, info) -> list[str]:
+        """Name of the state x of each channel der(x)."""
+        by_name = {d.name: s.name for s, d in zip(info.states, info.derivatives)}
+        return [by_name[c] for c in self.channels]
+
+
+def _gates(values, n: int, default: float, what: str) -> list[float]:
+    values = [default] * n if values is None or len(values) == 0 else list(values)
+    if len(values) != n:
+        raise FmuBuilderError(f"the hybrid spec has {len(values)} {what} values for {n} channels; give one per channel")
+    try:
+        gates = [float(v) for v in values]
+    except (TypeError, ValueError):
+        raise FmuBuilderError(f"the {what} values {values} are not numbers; give one number per channel") from None
+    if not all(math.isfinite(g) for g in gates):
+        raise FmuBuilderError(f"the {what} values {gates} are not all finite; give finite gate values")
+    return gates
+
+
+def onnx_io_sizes(path: str | os.PathLike) -> tuple[int, int]:
+    """(number of input values, number of output values) of a one-sample ONNX network.
+
+    The output size is found by running the network once on zeros, since exporters do not
+    always record the output shape in the graph.
+    """
+    from fmubuilder.export.reference import OnnxNetwork
+    network = OnnxNetwork(path)
+    return network.n_inputs, network.n_outputs

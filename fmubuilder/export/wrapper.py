@@ -1,0 +1,216 @@
+"""Export a hybrid model as an FMI 2.0 Model-Exchange FMU that wraps the original FMU.
+
+    export_hybrid("hybrid_spec.json", "plant_hybrid.fmu")
+
+Steps, all inside a temporary folder: render the wrapper C file (c_templates/
+hybrid_wrapper.c.j2) and the network kernel, derive modelDescription.xml, stage the
+resources (the original's binary as resources/<id>.so, its own resources, and under
+resources/fmubuilder_hybrid/ the spec, the network and the original modelDescription.xml so
+the FMU can be validated on its own), build with CMake's add_fmu() (cmake/fmu.cmake), check
+the result with fmpy's validation, and only then move it to the output path.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import zipfile
+from pathlib import Path
+
+import jinja2
+
+from fmubuilder.errors import FmuBuilderError
+
+from .hybrid_description import HybridDescription, derive_model_description
+from .spec import HybridSpec
+
+TEMPLATE_DIR = Path(__file__).resolve().parents[2] / "c_templates"
+FMU_CMAKE = Path(__file__).resolve().parents[2] / "cmake" / "fmu.cmake"
+KERNEL_PREFIX = "hybrid_ann"
+WRAPPER_SOURCE = "hybrid_wrapper.c"
+# Inside resources/: what validation needs to rebuild the reference without the spec file.
+EMBEDDED_DIR = "fmubuilder_hybrid"
+EMBEDDED_SPEC = "hybrid_spec.json"
+EMBEDDED_ONNX = "network.onnx"
+EMBEDDED_ORIGINAL_XML = "original_modelDescription.xml"
+_INPUT_GROUPS = {"Real": "real", "Integer": "integer", "Enumeration": "integer", "Boolean": "boolean"}
+
+
+def export_hybrid(spec_or_path: HybridSpec | str | os.PathLike, output_fmu: str | os.PathLike,
+                  force: bool = False) -> Path:
+    """Build the hybrid FMU described by a HybridSpec (or its JSON file) at `output_fmu`.
+
+    Refuses to overwrite an existing file unless `force`. Returns the output path.
+    """
+    spec = spec_or_path if isinstance(spec_or_path, HybridSpec) else HybridSpec.load(spec_or_path)
+    output = Path(output_fmu)
+    if output.suffix.lower() != ".fmu":
+        raise FmuBuilderError(f"{output}: the output file must end in .fmu")
+    if not output.parent.is_dir():
+        raise FmuBuilderError(f"cannot write {output}: folder {output.parent} does not exist; create it first")
+    if output.exists() and not force:
+        raise FmuBuilderError(f"{output} exists; choose another name or overwrite it with --force (force=True)")
+
+    from fmubuilder.fmi import read_model_info
+    info = read_model_info(spec.original_fmu)
+    spec.check(info)
+    with tempfile.TemporaryDirectory(prefix="fmubuilder-export-") as scratch:
+        scratch = Path(scratch)
+        built = _build(spec, info, scratch)
+        _check_with_fmpy(built)
+        _move_into_place(built, output)
+    return output
+
+
+def _build(spec: HybridSpec, info, scratch: Path) -> Path:
+    """Stage the CMake project in scratch/project, build it, return the packed FMU."""
+    from fmubuilder.build import build_cmake_project
+    from fmubuilder.export.kernel import generate_kernel
+
+    project = scratch / "project"
+    (project / "sources").mkdir(parents=True)
+    with zipfile.ZipFile(spec.original_fmu) as original:
+        original_xml = original.read("modelDescription.xml")
+        description = derive_model_description(original_xml, spec, info)
+        _stage_resources(original, info, project / "resources")
+    (project / "modelDescription.xml").write_bytes(description.xml)
+    _embed_for_validation(spec, description, original_xml, project / "resources" / EMBEDDED_DIR)
+
+    kernel = generate_kernel(spec.onnx, prefix=KERNEL_PREFIX)
+    kernel.write(project / "sources")
+    (project / "sources" / WRAPPER_SOURCE).write_text(render_wrapper(spec, info, description))
+    (project / "CMakeLists.txt").write_text(_render("hybrid_CMakeLists.txt.j2", {
+        "identifier": description.model_identifier,
+        "fmu_cmake": FMU_CMAKE.as_posix(),
+        "sources": [f"sources/{WRAPPER_SOURCE}", f"sources/{kernel.source_name}"],
+        "headers": [f"sources/{kernel.header_name}"],
+    }))
+    build = build_cmake_project(project, scratch / "build")
+    fmu = build.build_dir / "fmus" / f"{description.model_identifier}.fmu"
+    if not fmu.is_file():
+        raise FmuBuilderError(f"the build produced no {fmu.name}; see the CMake output:\n{build.output[-2000:]}")
+    return fmu
+
+
+def render_wrapper(spec: HybridSpec, info, description: HybridDescription) -> str:
+    """The wrapper C source for `spec` on the original FMU `info`."""
+    groups = {name: {"type": name, "vrs": [], "positions": []} for name in ("real", "integer", "boolean")}
+    derivative_inputs = {"states": [], "positions": []}
+    derivative_names = {d.name for d in info.derivatives}
+    for position, name in enumerate(spec.inputs):
+        if name in derivative_names:
+            derivative_inputs["states"].append(info.state_index(name))
+            derivative_inputs["positions"].append(position)
+            continue
+        var = info.variable(name)
+        group = groups[_INPUT_GROUPS[var.type]]
+        group["vrs"].append(var.value_reference)
+        group["positions"].append(position)
+    channels = [{
+        "name": c.channel, "der_vr": c.der_vr, "state_index": c.state_index,
+        "p_ann_vr": c.p_ann_vr, "p_fmu_vr": c.p_fmu_vr, "ann_vr": c.ann_vr,
+        "p_ann_start": _c_double(spec.p_ann[i]), "p_fmu_start": _c_double(spec.p_fmu[i]),
+    } for i, c in enumerate(description.channels)]
+    caps = info.capabilities
+    return _render("hybrid_wrapper.c.j2", {
+        "identifier": description.model_identifier,
+        "guid": description.guid,
+        "inner_identifier": info.model_identifier,
+        "inner_guid": info.guid,
+        "inner_library": f"{info.model_identifier}.so",
+        "n_states": info.n_states,
+        "n_ann_inputs": len(spec.inputs),
+        "channels": channels,
+        "input_groups": list(groups.values()),
+        "derivative_inputs": derivative_inputs,
+        "inner_log_categories": description.log_categories,
+        "can_get_and_set_fmu_state": caps.can_get_and_set_fmu_state,
+        "can_serialize_fmu_state": caps.can_get_and_set_fmu_state and caps.can_serialize_fmu_state,
+        "kernel_prefix": KERNEL_PREFIX,
+        "kernel_header": f"{KERNEL_PREFIX}.h",
+    })
+
+
+def _render(template: str, context: dict) -> str:
+    env = jinja2.Environment(loader=jinja2.FileSystemLoader(TEMPLATE_DIR), undefined=jinja2.StrictUndefined,
+                             trim_blocks=True, lstrip_blocks=True, keep_trailing_newline=True)
+    env.filters["c_string"] = c_string
+    return env.get_template(template).render(context)
+
+
+def c_string(text: str) -> str:
+    """A C string literal for any text: printable ASCII as is, everything else as octal
+    escapes of its UTF-8 bytes (variable names may hold quotes, backslashes, non-ASCII)."""
+    out = []
+    for byte in str(text).encode("utf-8"):
+        char = chr(byte)
+        if char in '"\\?' or not 32 <= byte < 127:
+            out.append(f"\\{byte:03o}")
+        else:
+            out.append(char)
+    return '"' + "".join(out) + '"'
+
+
+def _c_double(value: float) -> str:
+    text = repr(float(value))
+    return text if any(ch in text for ch in ".en") else text + ".0"
+
+
+def _stage_resources(original: zipfile.ZipFile, info, resources: Path) -> None:
+    """resources/ = the original's resources + its binary as <id>.so."""
+    from fmubuilder.fmi.archive import binary_platform
+    resources.mkdir(parents=True)
+    library = f"{info.model_identifier}.so"
+    for member in original.infolist():
+        if not member.filename.startswith("resources/") or member.is_dir():
+            continue
+        relative = member.filename[len("resources/"):]
+        if relative == library or relative.split("/")[0] == EMBEDDED_DIR:
+            raise FmuBuilderError(
+                f"the original FMU has resources/{relative}, which the hybrid FMU needs for itself; "
+                "rename that resource in the original FMU")
+        target = (resources / relative).resolve()
+        if resources.resolve() not in target.parents:
+            raise FmuBuilderError(f"the original FMU's entry {member.filename} points outside resources/; "
+                                  "the FMU is corrupt")
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_bytes(original.read(member))
+    binary = f"binaries/{binary_platform()}/{library}"
+    (resources / library).write_bytes(original.read(binary))
+
+
+def _embed_for_validation(spec: HybridSpec, description: HybridDescription, original_xml: bytes,
+                          folder: Path) -> None:
+    folder.mkdir(parents=True)
+    shutil.copyfile(spec.onnx, folder / EMBEDDED_ONNX)
+    (folder / EMBEDDED_ORIGINAL_XML).write_bytes(original_xml)
+    embedded = HybridSpec(original_fmu=Path("original.fmu"), original_guid=spec.original_guid,
+                          channels=spec.channels, inputs=spec.inputs, onnx=Path(EMBEDDED_ONNX),
+                          p_ann=spec.p_ann, p_fmu=spec.p_fmu)
+    data = embedded.to_dict()
+    data["gates"] = [{"channel": c.channel, "p_ann": c.p_ann, "p_fmu": c.p_fmu, "ann": c.ann}
+                     for c in description.channels]
+    (folder / EMBEDDED_SPEC).write_text(json.dumps(data, indent=2) + "\n")
+
+
+def _check_with_fmpy(fmu: Path) -> None:
+    from fmpy.validation import validate_fmu
+    problems = validate_fmu(str(fmu))
+    if problems:
+        raise FmuBuilderError(
+            "the generated hybrid FMU fails fmpy's validation (a bug in fmubuilder's export, please report it): "
+            + "; ".join(problems))
+
+
+def _move_into_place(built: Path, output: Path) -> None:
+    """Copy next to the output first, then rename: readers never see a partial FMU."""
+    fd, temporary = tempfile.mkstemp(dir=output.parent, prefix=f".{output.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        shutil.copyfile(built, temporary)
+        os.chmod(temporary, 0o644)
+        os.replace(temporary, output)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
