@@ -97,10 +97,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="overwrite an existing output file")
     p.set_defaults(func=cmd_simulate)
 
+    from .diagnose.cli import add_diagnose_parser
     from .export.cli import add_export_parsers
     from .synth_cli import add_example_parser, add_synth_parser
     add_synth_parser(sub)
     add_example_parser(sub)
+    add_diagnose_parser(sub)
     add_export_parsers(sub)
 
     p = sub.add_parser("demo", help="run the whole workflow on the bundled example and write a report")

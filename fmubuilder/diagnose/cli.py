@@ -1,0 +1,46 @@
+"""`fmubuilder diagnose MODEL.fmu --data DATA.csv`: the diagnosis stage on the command line."""
+from __future__ import annotations
+
+import json
+import math
+
+
+def add_diagnose_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "diagnose",
+        help="compare a model with measured data: errors, is it more than noise, where is an effect missing",
+        description="Simulate the declared model against measured data, test whether the residual exceeds the "
+                    "measurement noise and, if so, trace it to the state derivative and the variables a missing "
+                    "term depends on.")
+    p.add_argument("fmu", help="the declared model: an FMI 2.0 Model-Exchange FMU")
+    p.add_argument("--data", required=True, metavar="CSV",
+                   help="measured data: `time` first, then signals named after FMU variables (optional <signal>_std)")
+    p.add_argument("--start", action="append", metavar="NAME=VALUE",
+                   help="start value of a parameter or state (repeatable; added to the data's sidecar values)")
+    p.add_argument("--json", metavar="OUT.json", help="write the full diagnosis as JSON")
+    p.add_argument("--plots", metavar="DIR", help="write PNG plots into this folder")
+    p.add_argument("--time-budget", type=float, default=60.0, metavar="SECONDS",
+                   help="time the tracing may take; long data are traced on a leading window (default 60)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing JSON file")
+    p.set_defaults(func=cmd_diagnose)
+
+
+def cmd_diagnose(args) -> None:
+    from ..cli import check_output_path, parse_assignments
+    from ..errors import FmuBuilderError
+    from .diagnosis import diagnose
+
+    if not (math.isfinite(args.time_budget) and args.time_budget > 0):
+        raise FmuBuilderError(f"--time-budget {args.time_budget:g}: give a positive number of seconds")
+    json_path = check_output_path(args.json, args.force) if args.json else None
+    result = diagnose(args.fmu, args.data, start_values=parse_assignments(args.start), plots_dir=args.plots,
+                      time_budget=args.time_budget)
+    print(result.report())
+    if json_path is not None:
+        try:
+            json_path.write_text(json.dumps(result.to_dict(), indent=2) + "\n")
+        except OSError as exc:
+            raise FmuBuilderError(f"cannot write {json_path}: {exc.strerror or exc}") from None
+        print(f"wrote {json_path}")
+    for path in result.plots:
+        print(f"wrote {path}")

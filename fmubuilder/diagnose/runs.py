@@ -1,0 +1,231 @@
+"""Runs of the declared model, plain or with an added term in one state derivative.
+
+An :class:`AddedTerm` is ``coefficient * basis(w - center)`` added to ``der(x_c)``, where
+``w`` is a state, an FMU variable or the time. :class:`TermSystem` wraps the engine's
+:class:`~fmubuilder.simulation.FmuSystem` and adds the terms inside the closed loop, so a
+controller in the model reacts to them as it would to the real effect.
+
+:class:`ModelRunner` simulates over the data window and returns what the sensors would
+have logged: the measured signals filtered by the bench's sensor lag and sampled at the
+data's time stamps, plus the trajectories of the variables the diagnosis looks at.
+"""
+from __future__ import annotations
+
+import math
+import time as wallclock
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from ..errors import FmuBuilderError
+from ..fmi.instance import Fmu
+from ..simulation.engine import output_grid, run
+from ..simulation.solvers import make_solver
+from ..simulation.system import FmuSystem
+from ..synth import first_order_lag
+
+TIME = "time"  # pseudo-variable: a term in the time since the start of the window
+
+# Basis forms phi(u) of a centered variable u = w - center: odd and even, linear and quadratic.
+BASES = {
+    "1": lambda u: 1.0,
+    "w": lambda u: u,
+    "|w|": abs,
+    "w*|w|": lambda u: u * abs(u),
+    "w^2": lambda u: u * u,
+}
+
+
+def basis_values(basis: str, u: np.ndarray) -> np.ndarray:
+    """phi(u) for an array (the scalar forms above, vectorised)."""
+    if basis == "1":
+        return np.ones_like(u)
+    if basis == "|w|":
+        return np.abs(u)
+    return np.asarray(BASES[basis](u), dtype=float)
+
+
+@dataclass(frozen=True)
+class AddedTerm:
+    channel: int          # index of the state whose derivative gets the term
+    variable: str         # FMU variable name or TIME
+    basis: str            # key of BASES
+    center: float         # value of the variable at the window start
+    coefficient: float
+
+    def form(self) -> str:
+        """phi(w - center) as text, e.g. 'speed*|speed|' or '(temperature - 293.15)^2'."""
+        return form_text(self.variable, self.basis, self.center)
+
+    def expression(self, digits: int = 4) -> str:
+        """coefficient * form, e.g. '-0.0003 * speed*|speed|'."""
+        if self.basis == "1":
+            return f"{self.coefficient:.{digits}g}"
+        return f"{self.coefficient:.{digits}g} * {self.form()}"
+
+
+def form_text(variable: str, basis: str, center: float) -> str:
+    if basis == "1":
+        return "1"
+    u = _centered_text(variable, center)
+    atom = u if _is_atom(u) else f"({u})"
+    return {"w": atom, "|w|": f"|{u}|", "w*|w|": f"{atom}*|{u}|", "w^2": f"{atom}^2"}[basis]
+
+
+def _centered_text(variable: str, center: float) -> str:
+    if center == 0.0:
+        return variable
+    sign = "-" if center > 0 else "+"
+    return f"{variable} {sign} {abs(center):.6g}"
+
+
+def _is_atom(text: str) -> bool:
+    return " " not in text
+
+
+class TrialTooSlow(FmuBuilderError):
+    """A run with an added term takes far longer than the plain model (the term made the
+    model stiff or chattering); the caller abandons or shrinks the term."""
+
+
+class TermSystem:
+    """A HybridSystem: an FmuSystem whose derivatives get the added terms; everything else
+    is the FmuSystem's."""
+
+    def __init__(self, base: FmuSystem, terms: Sequence[AddedTerm], deadline: float = math.inf):
+        self.base = base
+        self.terms = list(terms)
+        self._start_time = 0.0
+        self._deadline = deadline     # perf_counter() time after which the run is abandoned
+        self._calls = 0
+        info = base.info
+        state_index = {v.name: i for i, v in enumerate(info.states)}
+        self._readers = []
+        for term in self.terms:
+            if term.variable == TIME or term.variable in state_index:
+                self._readers.append(state_index.get(term.variable))
+            else:
+                getter = base.instance.real_getter([info.variable(term.variable).value_reference])
+                self._readers.append(getter)
+
+    def __getattr__(self, name):  # n_states, outputs, breakpoints, handle_event, ...
+        return getattr(self.base, name)
+
+    def initialize(self, start_time: float, stop_time: float):
+        self._start_time = start_time
+        return self.base.initialize(start_time, stop_time)
+
+    def derivatives(self, t: float, x: np.ndarray) -> np.ndarray:
+        self._calls += 1
+        if self._calls % 256 == 0 and wallclock.perf_counter() > self._deadline:
+            raise TrialTooSlow(f"a run with the added term {self.terms[0].expression()} exceeded its time limit")
+        dx = self.base.derivatives(t, x)          # the FMU is now at (t, x)
+        for term, reader in zip(self.terms, self._readers):
+            if term.variable == TIME:
+                w = t - self._start_time
+            elif isinstance(reader, int):
+                w = x[reader]
+            else:
+                w = reader()[0]
+            dx[term.channel] += term.coefficient * BASES[term.basis](w - term.center)
+        return dx
+
+
+@dataclass
+class ModelRun:
+    """What one simulation gives the diagnosis."""
+    predicted: dict[str, np.ndarray]     # measured signals as the sensors would log them, at the data times
+    trajectories: dict[str, np.ndarray]  # recorded variables at the data times (no sensor lag)
+    wall_time: float
+
+
+class ModelRunner:
+    """Simulates the declared model over [start, stop] for the data's time stamps."""
+
+    def __init__(self, fmu_path, *, start_values: dict, data_time: np.ndarray, start: float, stop: float,
+                 measured: Sequence[str], recorded: Sequence[str], sensor_lag: float = 0.0,
+                 fine_step: float | None = None, rtol: float = 1e-6):
+        self.fmu = Fmu(fmu_path)
+        self.info = self.fmu.info
+        self.start_values = dict(start_values)
+        self.start, self.stop = float(start), float(stop)
+        self.data_time = data_time[(data_time >= self.start) & (data_time <= self.stop)]
+        self.measured = list(measured)
+        self.recorded = list(dict.fromkeys([*self.measured, *recorded]))
+        self.sensor_lag = float(sensor_lag)
+        self.rtol = rtol
+        # Measured outputs equal to a state derivative (name -> channels): a term added to
+        # that derivative is added to the output too.
+        self.output_aliases: dict[str, list[int]] = {}
+        if self.sensor_lag > 0:
+            step = fine_step or min(0.01, self.sensor_lag / 5, float(np.median(np.diff(data_time))) / 4)
+            self.grid = output_grid(self.start, self.stop, step)
+        else:
+            self.grid = self.data_time
+        self.runs = 0
+        self.total_wall_time = 0.0
+
+    def close(self) -> None:
+        self.fmu.close()
+
+    def simulate(self, terms: Sequence[AddedTerm] = (), *, trajectories: bool = True,
+                 time_limit: float = math.inf) -> ModelRun:
+        """One run; without `trajectories` only the measured signals are recorded (faster).
+        A run with terms that takes longer than `time_limit` seconds raises TrialTooSlow."""
+        started = wallclock.perf_counter()
+        recorded = self.recorded if trajectories else self.measured
+        if terms and self.output_aliases:   # the terms' variables, to add them to aliased outputs
+            recorded = list(dict.fromkeys([*recorded, *(t.variable for t in terms if t.variable != TIME)]))
+        base = FmuSystem(self.fmu, variables=recorded, start_values=self.start_values, tolerance=self.rtol)
+        system = TermSystem(base, terms, started + time_limit) if terms else base
+        solver = make_solver("dopri5", rtol=self.rtol, atol=1e-9, max_step=(self.stop - self.start) / 50)
+        try:
+            # A trial term can drive the model far off (overflow, NaN); the trial's score says so.
+            with np.errstate(all="ignore"):
+                result = run(system, solver, start_time=self.start, stop_time=self.stop, output_times=self.grid,
+                             record_events=self.sensor_lag > 0)
+        finally:
+            base.close()
+        predicted, sampled = {}, {}
+        for name in recorded:
+            values = np.asarray(result[name], dtype=float)
+            values = values + self._aliased_terms(name, terms, result)
+            sampled[name] = _sample(result.time, values, self.data_time)
+            if name in self.measured:
+                lagged = first_order_lag(result.time, values, self.sensor_lag) if self.sensor_lag > 0 else values
+                predicted[name] = _sample(result.time, lagged, self.data_time)
+        wall = wallclock.perf_counter() - started
+        self.runs += 1
+        self.total_wall_time += wall
+        return ModelRun(predicted=predicted, trajectories=sampled, wall_time=wall)
+
+    def _aliased_terms(self, name: str, terms: Sequence[AddedTerm], result) -> np.ndarray | float:
+        """The terms added to the derivatives an output equals (see output_aliases)."""
+        total = 0.0
+        for term in terms:
+            if term.channel in self.output_aliases.get(name, ()):
+                if term.variable == TIME:
+                    w = result.time - self.start
+                else:
+                    w = np.asarray(result[term.variable], dtype=float)
+                total = total + term.coefficient * basis_values(term.basis, w - term.center)
+        return total
+
+
+def _sample(time: np.ndarray, values: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Values at the times `at`; rows recorded around an event share a time, and a stamp there
+    takes the value after the event (the logger samples the settled value)."""
+    if len(time) == len(at) and np.array_equal(time, at):
+        return values.copy()
+    index = np.searchsorted(time, at, side="right") - 1
+    index = np.clip(index, 0, len(time) - 2)
+    t0, t1 = time[index], time[index + 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = np.where(t1 > t0, (at - t0) / (t1 - t0), 1.0)
+    return values[index] + np.clip(f, 0.0, 1.0) * (values[index + 1] - values[index])
+
+
+def rms(values: np.ndarray) -> float:
+    values = np.asarray(values, dtype=float)
+    return math.sqrt(float(np.mean(values * values))) if values.size else 0.0
