@@ -99,9 +99,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     from .diagnose.cli import add_diagnose_parser
     from .export.cli import add_export_parsers
+    from .neural.cli import add_train_parser
     from .synth_cli import add_example_parser, add_synth_parser
     add_synth_parser(sub)
     add_example_parser(sub)
+    add_train_parser(sub)
     add_diagnose_parser(sub)
     add_export_parsers(sub)
 

@@ -1,0 +1,30 @@
+"""NeuralFMU: an FMU as a differentiable layer inside a small ANN topology, simulated with FMI event
+handling and trained on measured data (PyTorch).
+
+Importing this package does not import torch; its names load on first use, so the command line
+pays for torch only in the commands that need it.
+
+    from fmubuilder.neural import train_neural_fmu, load_neural_fmu
+    result = train_neural_fmu("vldm.fmu", "train.csv", targets=["der(speed)"], inputs=["speed", "der(speed)"])
+"""
+from __future__ import annotations
+
+import importlib
+
+_EXPORTS = {
+    "NeuralFMU": "model", "TopologyConfig": "topology", "Topology": "topology",
+    "simulate": "solve", "ElementStart": "solve", "InputSignals": "solve", "Trajectory": "solve",
+    "train_neural_fmu": "train", "TrainSettings": "train", "TrainingResult": "train", "evaluate": "train",
+    "save_neural_fmu": "io", "load_neural_fmu": "io", "read_neural_fmu": "io",
+    "NeuralFmuSystem": "system", "simulate_hybrid": "system", "load_data": "data", "MeasuredData": "data",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,0 +1,106 @@
+"""`fmubuilder train`: the command-line face of fmubuilder.neural.train (torch loads only when it runs).
+
+fmubuilder/cli.py registers it with one line: `add_train_parser(sub)`.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def add_train_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "train", help="train a NeuralFMU (FMU + ANN on chosen derivatives) on measured data",
+        description="Train a NeuralFMU: an ANN corrects chosen state derivatives of the FMU; it is fitted to "
+                    "measured signals by simulating the hybrid model with the FMU's event handling.")
+    p.add_argument("fmu", help="path of an FMI 2.0 Model-Exchange FMU")
+    p.add_argument("--data", required=True, metavar="CSV",
+                   help="measured data: `time` first, then columns named after FMU states/outputs (and inputs)")
+    p.add_argument("--start", action="append", metavar="NAME=VALUE", help="start value of a parameter or state (repeatable)")
+    p.add_argument("--target", action="append", required=True, metavar="DER",
+                   help="derivative the ANN acts on, e.g. 'der(speed)' (repeatable)")
+    p.add_argument("--inputs", required=True, metavar="A,B,...", help="FMU variables fed to the ANN")
+    p.add_argument("--topology", default="residual", choices=["residual", "gates"],
+                   help="residual: der + ANN correction (zero at the start); gates: gate_ann * ANN + gate_fmu * der "
+                        "with gates 0 and 1 at the start (slower to leave the FMU). Default: residual")
+    p.add_argument("--hidden", default="16,16", metavar="N,N", help="hidden layer sizes (default 16,16)")
+    p.add_argument("--activation", default="tanh", choices=["tanh", "sigmoid", "relu"])
+    p.add_argument("--parameters", metavar="A,B", help="tunable FMU parameters to train as well")
+    p.add_argument("--epochs", type=int, default=30, help="default 30")
+    p.add_argument("--time-budget", type=float, metavar="SECONDS", help="stop training after this many seconds")
+    p.add_argument("--element-length", type=float, default=100.0, metavar="SECONDS", help="batch element length (default 100)")
+    p.add_argument("--batch-size", type=int, default=0, help="elements per optimizer step (default: all)")
+    p.add_argument("--order", default="random", choices=["random", "sequential"])
+    p.add_argument("--step-size", type=float, help="solver step (default: the FMU's DefaultExperiment stepSize)")
+    p.add_argument("--solver", default="euler", choices=["euler", "rk4"])
+    p.add_argument("--lr", type=float, default=3e-3, help="Adam step size (default 3e-3)")
+    p.add_argument("--decay", type=float, default=0.95, help="step-size factor per epoch (default 0.95)")
+    p.add_argument("--nipt", type=int, default=400, metavar="ITERATIONS", help="neutral pre-training iterations (gates)")
+    p.add_argument("--ccpt", type=int, default=0, metavar="ITERATIONS", help="collocation pre-training iterations (default off)")
+    p.add_argument("--loss", metavar="A,B", help="signals in the loss (default: all measured)")
+    p.add_argument("--test-data", metavar="CSV", help="held-out data: its errors are added to the metrics")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--resume", action="store_true", help="continue from the checkpoint TRAINED.ckpt")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--output", "-o", required=True, metavar="TRAINED", help="file for the trained NeuralFMU")
+    p.add_argument("--json", metavar="METRICS.json", help="write the errors before/after training as JSON")
+    p.add_argument("--force", action="store_true", help="overwrite existing output files")
+    p.set_defaults(func=cmd_train)
+    return p
+
+
+def cmd_train(args) -> None:
+    from ..cli import parse_assignments, parse_names
+    from ..errors import FmuBuilderError
+    from .train import TrainSettings, train_neural_fmu
+
+    try:
+        hidden = [int(h) for h in parse_names(args.hidden)]
+    except ValueError:
+        raise FmuBuilderError(f"--hidden must be comma-separated integers, got '{args.hidden}'") from None
+    if args.resume and args.force:
+        args.force = True
+    settings = TrainSettings(
+        epochs=args.epochs, element_length=args.element_length, order=args.order, batch_size=args.batch_size,
+        step_size=args.step_size, solver=args.solver, learning_rate=args.lr, decay=args.decay,
+        nipt_iterations=args.nipt, ccpt_iterations=args.ccpt, time_budget=args.time_budget, seed=args.seed,
+        loss_signals=parse_names(args.loss), resume=args.resume, progress=not args.quiet)
+    result = train_neural_fmu(
+        args.fmu, args.data, targets=args.target, inputs=parse_names(args.inputs),
+        start_values=parse_assignments(args.start), topology=args.topology, hidden=hidden,
+        activation=args.activation, parameters=parse_names(args.parameters) or [], settings=settings,
+        output=args.output, metrics_path=args.json, force=args.force or args.resume, test_data=args.test_data)
+    try:
+        print(summary(result.metrics, args.output))
+    finally:
+        result.model.close()
+
+
+def summary(metrics: dict, output) -> str:
+    lines = [f"trained {metrics['epochs']} epoch(s) in {metrics['seconds']:.1f} s; wrote {output}"]
+    for key, label in (("errors", "training data"), ("test_errors", "test data")):
+        if key not in metrics:
+            continue
+        before, after = metrics[key]["before"], metrics[key]["after"]
+        for name in before:
+            b, a = before[name]["mse"], after[name]["mse"]
+            factor = b / a if a > 0 else float("inf")
+            lines.append(f"  {label}: {name}: MSE {b:.4g} -> {a:.4g} (factor {factor:.3g})")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:  # for `python -m fmubuilder.neural.cli`
+    from ..errors import FmuBuilderError
+    parser = argparse.ArgumentParser(prog="fmubuilder")
+    add_train_parser(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(argv)
+    try:
+        args.func(args)
+    except FmuBuilderError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

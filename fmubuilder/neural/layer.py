@@ -1,0 +1,616 @@
+"""The FMU as a differentiable layer, and the FMU-side work the differentiable solver does at events.
+
+`FmuEvaluator` drives B instances of one FMU side by side (one per batch element): it sets time,
+inputs and continuous states, reads the state derivatives and a chosen list of Real variables
+(outputs, locals), and - only when a gradient is wanted - their Jacobian with respect to the
+continuous states x and to chosen tunable parameters p:
+
+* from fmi2GetDirectionalDerivative when the FMU provides it (one call per column), probed once and
+  replaced by finite differences if the FMU rejects a requested unknown/known pair;
+* otherwise by forward finite differences: perturb one state with fmi2SetContinuousStates by a
+  step scaled to max(|x_i|, nominal_i), read again, restore.
+
+`fmu_call` wraps this in a torch.autograd.Function: the Jacobian is computed in the forward pass
+(the FMU's discrete state has moved on by the time backward runs) and applied in backward.
+`ColumnSparsity` learns which columns are structurally zero and skips them.
+
+At events (see solve.py for the whole design) `FmuEvaluator.handle_event` runs the FMU's own event
+iteration and, when asked, its linearisation (`EventOutcome`): the Jacobian R of the reset map
+x+(x-, p) and the effect of (x-, p) *through the discrete states only* - by restoring an FMU-state
+snapshot taken before the event and redoing the event iteration with one known perturbed - plus,
+for discrete states with memory, their dependence on the previous event's discrete states, found
+by redoing the event on "shadow" snapshots that carry perturbed discrete states.
+`EventSensitivity` skips columns found exactly zero and re-checks them periodically.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from ..errors import FmuBuilderError
+from ..fmi import FmuCallError, FmuInstance, ModelInfo
+
+# Relative step of the one-sided finite differences (about sqrt of the float64 resolution).
+FD_RELATIVE_STEP = 1e-7
+
+
+def fd_steps(x: np.ndarray, nominal: np.ndarray) -> np.ndarray:
+    """Perturbation per state: relative to the state's magnitude or its nominal value."""
+    return FD_RELATIVE_STEP * np.maximum(np.abs(x), nominal)
+
+
+@dataclass
+class EventOutcome:
+    """What one event (or the initialization) did to one batch element, and its linearisation.
+
+    With q tracked discrete states d (`FmuEvaluator.q`), the solver propagates a zero-valued
+    gradient carrier dd [q] per element:  dd+ = B (x-, p)-deviation + A dd,  x+ = x+_value +
+    R (x-, p)-deviation + Rd dd,  and every FMU evaluation until the next event adds G dd+.
+    In the memoryless fallback (no discrete state observable) dd has width n+k, B is the matrix M
+    of the design notes in solve.py, A is zero and G the identity (all None here)."""
+    x_plus: np.ndarray           # continuous state after the event
+    values_changed: bool         # the FMU reset continuous states
+    next_event_time: float       # inf when no time event is scheduled
+    terminate: bool
+    R: np.ndarray | None = None  # [n, n+P]  d x+ / d(x-, p); None when the states were not reset
+    Rd: np.ndarray | None = None  # [n, q]   d x+ / d d-
+    B: np.ndarray | None = None  # [q, n+P]  d d+ / d(x-, p)
+    A: np.ndarray | None = None  # [q, q]    d d+ / d d-
+    G: np.ndarray | None = None  # [n+k, q]  d(derivatives, variables) / d d+
+
+
+class ColumnSparsity:
+    """Learned sparsity of one Jacobian: which knowns (columns) have ever had an effect.
+
+    All columns are computed in the first `warmup` uses and every `recheck`-th use after; in
+    between, columns never seen non-zero are skipped (treated as exactly zero). A column seen
+    non-zero once is always computed. Kept on the NeuralFMU, so it persists across runs."""
+
+    def __init__(self, n_knowns: int, warmup: int = 4, recheck: int = 100):
+        self.n_knowns, self.warmup, self.recheck = n_knowns, warmup, recheck
+        self.seen = np.zeros(n_knowns, dtype=bool)
+        self.uses = 0
+        self._all = np.arange(n_knowns)
+
+    def columns(self) -> np.ndarray:
+        if self.uses < self.warmup or self.uses % self.recheck == 0:
+            return self._all
+        return np.flatnonzero(self.seen)
+
+    def observe(self, columns: np.ndarray, nonzero: np.ndarray) -> None:
+        self.uses += 1
+        self.seen[columns[nonzero]] = True
+
+    @property
+    def skipped(self) -> list[int]:
+        return np.flatnonzero(~self.seen).tolist()
+
+
+class EventSensitivity(ColumnSparsity):
+    """Per-event perturbation bookkeeping, shared by all elements and kept across runs.
+
+    A column is non-trivial when its perturbation changed the discrete states, the derivatives
+    or variables, or the reset map beyond identity. Shadows (discrete states with memory, see
+    solve.py) are kept while any propagated shadow has shown an effect, during the warmup and
+    around each recheck."""
+
+    def __init__(self, n_knowns: int, warmup: int = 4, recheck: int = 500):
+        super().__init__(n_knowns, warmup, recheck)
+        self.memory_seen = False
+        self.perturbations = 0
+        self.propagations = 0
+        self.seconds = 0.0
+        self._run_events = 0
+
+    @property
+    def events(self) -> int:
+        return self.uses
+
+    def keep_shadows(self) -> bool:
+        return self.memory_seen or self.uses < self.warmup + 1 or self.uses % self.recheck >= self.recheck - 1
+
+    def start_run(self) -> None:
+        self.perturbations = self.propagations = self._run_events = 0
+        self.seconds = 0.0
+
+    def observe(self, columns: np.ndarray, nonzero: np.ndarray) -> None:
+        super().observe(columns, nonzero)
+        self._run_events += 1
+        self.perturbations += len(columns)
+
+    def stats(self) -> dict:
+        events = max(self._run_events, 1)
+        return {"events": self._run_events, "perturbations": self.perturbations,
+                "shadow_propagations": self.propagations,
+                "event_iterations_per_event": (self.perturbations + self.propagations) / events,
+                "seconds": self.seconds, "skipped_columns": self.skipped, "memory": self.memory_seen}
+
+
+def discrete_state_names(info: ModelInfo) -> list[str]:
+    """Real variables the FMU changes at events only (discrete locals and outputs): the observable
+    part of its discrete state."""
+    return [v.name for v in info.variables.values()
+            if v.type == "Real" and v.variability == "discrete" and v.causality in ("local", "output")]
+
+
+class _Candidates:
+    """Perturbed post-event FMU states of one element and one event: their discrete-state
+    deviations, output deviations and reset deviations, with optional snapshots (shadows)."""
+
+    def __init__(self):
+        self.dd, self.df, self.dx, self.handles = [], [], [], []
+
+    def add(self, dd, df, dx, handle):
+        self.dd.append(dd)
+        self.df.append(df)
+        self.dx.append(dx)
+        self.handles.append(handle)
+
+
+class FmuEvaluator:
+    """B instances of one FMU, evaluated side by side (see the module docstring).
+
+    Rows of the returned arrays are [derivatives (n) | variables (k)].
+    """
+
+    def __init__(self, instances: Sequence[FmuInstance], info: ModelInfo, variables: Sequence[str] = (),
+                 inputs: Sequence[str] = (), parameters: Sequence[str] = (), jacobian: str = "auto",
+                 discrete_states: Sequence[str] | str = "auto", jacobian_sparsity: ColumnSparsity | None = None):
+        self.instances = list(instances)
+        self.info = info
+        self.n = info.n_states
+        self.nz = info.n_event_indicators
+        self.variables = list(variables)
+        self.k = len(self.variables)
+        self.inputs = list(inputs)
+        self.parameters = list(parameters)
+        self.P = len(self.parameters)
+        for name in self.variables + self.inputs + self.parameters:
+            var = info.variable(name)
+            if var.type != "Real":
+                raise FmuBuilderError(f"'{name}' is a {var.type} variable; only Real variables can feed a NeuralFMU")
+        for name in self.inputs:
+            var = info.variable(name)
+            if var.causality != "input" or var.variability != "continuous":
+                raise FmuBuilderError(f"'{name}' is not a continuous Real input of {info.model_name}; "
+                                      "a NeuralFMU takes only continuous Real inputs from data")
+        for name in self.parameters:
+            var = info.variable(name)
+            if not (var.is_parameter and var.variability == "tunable"):
+                raise FmuBuilderError(
+                    f"'{name}' is not a tunable parameter of {info.model_name}; only tunable parameters can be trained")
+        self.state_vrs = [v.value_reference for v in info.states]
+        self.unknown_vrs = [v.value_reference for v in info.derivatives] + \
+                           [info.variable(name).value_reference for name in self.variables]
+        self.input_vrs = [info.variable(name).value_reference for name in self.inputs]
+        self.param_vrs = [info.variable(name).value_reference for name in self.parameters]
+        self._getters = [inst.real_getter([info.variable(v).value_reference for v in self.variables])
+                         for inst in self.instances]
+        self._input_setters = [inst.real_setter(self.input_vrs) for inst in self.instances]
+        self.nominal = np.ones(self.n)
+        self.can_snapshot = info.capabilities.can_get_and_set_fmu_state
+        if jacobian not in ("auto", "directional", "fd"):
+            raise FmuBuilderError(f"unknown jacobian method '{jacobian}': use auto, directional or fd")
+        provides = info.capabilities.provides_directional_derivative
+        if jacobian == "directional" and not provides:
+            raise FmuBuilderError(f"{info.model_name} provides no directional derivatives; use jacobian='fd'")
+        self._directional_x = provides and jacobian != "fd"
+        self._directional_p = provides and jacobian != "fd"
+        self._param_mode: str | None = None  # how the CT-mode parameter columns are found (probed)
+        self.jacobian_sparsity = jacobian_sparsity or ColumnSparsity(self.n)
+        self.discrete = discrete_state_names(info) if discrete_states == "auto" else list(discrete_states)
+        self.q = len(self.discrete)
+        self._d_getters = [inst.real_getter([info.variable(v).value_reference for v in self.discrete])
+                           for inst in self.instances]
+        B = len(self.instances)
+        self._pre = [None] * B   # FMU-state snapshots, reused in place
+        self._post = [None] * B
+        self._shadows: list[list] = [[] for _ in range(B)]     # (snapshot, discrete deviation) per element
+        self._pools: list[list[list]] = [[[], []] for _ in range(B)]  # two alternating snapshot pools
+        self._turn = [0] * B
+        self.n_evaluations = 0
+        self.n_jacobian_columns = 0
+
+    @property
+    def width(self) -> int:
+        return self.n + self.k
+
+    @property
+    def carrier_width(self) -> int:
+        """Width of the discrete-state gradient carrier dd (see EventOutcome)."""
+        return self.q if self.q else self.width
+
+    def refresh_nominals(self) -> None:
+        if self.n:
+            nominal = np.abs(self.instances[0].get_nominals_of_continuous_states())
+            self.nominal = np.where(nominal > 0, nominal, 1.0)
+
+    def free(self) -> None:
+        """Release the snapshots (the instances belong to the caller)."""
+        for b, inst in enumerate(self.instances):
+            handles = [self._pre[b], self._post[b]] + self._pools[b][0] + self._pools[b][1]
+            for handle in handles:
+                if handle is not None:
+                    inst.free_fmu_state(handle)
+            self._pre[b] = self._post[b] = None
+            self._pools[b] = [[], []]
+            self._shadows[b] = []
+
+    def forget_shadows(self, b: int) -> None:
+        self._shadows[b] = []
+
+    # -- evaluation --------------------------------------------------------------------------
+    def set_point(self, b: int, t: float, x: np.ndarray, u: np.ndarray | None = None) -> None:
+        inst = self.instances[b]
+        inst.set_time(t)
+        if self.inputs and u is not None:
+            self._input_setters[b](u)
+        if self.n:
+            inst.set_continuous_states(x)
+
+    def read(self, b: int, out: np.ndarray) -> None:
+        """Derivatives and variables of instance b at its current point into out[:n+k]."""
+        n = self.n
+        if n:
+            out[:n] = self.instances[b].get_derivatives()
+        if self.k:
+            out[n:] = self._getters[b]()
+
+    def evaluate(self, rows: Sequence[int], t: np.ndarray, x: np.ndarray, u: np.ndarray | None = None,
+                 jac_x: bool = False, jac_p: bool = False):
+        """Evaluate the instances `rows` at t[r], x[r] (and inputs u[r]).
+
+        Returns (out [R, n+k], Jx [R, n+k, n] or None, Jp [R, n+k, P] or None).
+        """
+        R, n, w = len(rows), self.n, self.width
+        out = np.empty((R, w))
+        Jx = np.empty((R, w, n)) if jac_x else None
+        Jp = np.empty((R, w, self.P)) if jac_p and self.P else None
+        columns = self.jacobian_sparsity.columns() if jac_x else None
+        for r, b in enumerate(rows):
+            ur = None if u is None else u[r]
+            self.set_point(b, float(t[r]), x[r], ur)
+            self.read(b, out[r])
+            if jac_x:
+                self._jacobian_x(b, x[r], out[r], Jx[r], columns)
+            if Jp is not None:
+                self._jacobian_p(b, x[r], out[r], Jp[r])
+        if jac_x:
+            self.jacobian_sparsity.observe(columns, (Jx[:, :, columns] != 0).any(axis=(0, 1)))
+        self.n_evaluations += R
+        return out, Jx, Jp
+
+    def _jacobian_x(self, b: int, x: np.ndarray, base: np.ndarray, J: np.ndarray, columns: np.ndarray) -> None:
+        self.n_jacobian_columns += len(columns)
+        if self._directional_x:
+            try:
+                self._directional(b, self.state_vrs, J)
+                return
+            except FmuCallError:
+                self._directional_x = False  # the FMU rejects some pair: use finite differences from now on
+        inst = self.instances[b]
+        steps = fd_steps(x, self.nominal)
+        xp = x.copy()
+        row = np.empty(self.width)
+        J[:] = 0.0
+        for i in columns:
+            xp[i] = x[i] + steps[i]
+            delta = xp[i] - x[i]
+            inst.set_continuous_states(xp)
+            self.read(b, row)
+            J[:, i] = (row - base) / delta
+            xp[i] = x[i]
+        inst.set_continuous_states(x)
+
+    def _directional(self, b: int, knowns: Sequence[int], J: np.ndarray) -> None:
+        inst = self.instances[b]
+        seed = np.zeros(len(knowns))
+        for j in range(len(knowns)):
+            seed[j] = 1.0
+            J[:, j] = inst.get_directional_derivative(self.unknown_vrs, knowns, seed)
+            seed[j] = 0.0
+
+    def _jacobian_p(self, b: int, x: np.ndarray, base: np.ndarray, J: np.ndarray) -> None:
+        """Columns for the tunable parameters in continuous-time mode."""
+        if self._directional_p:
+            try:
+                self._directional(b, self.param_vrs, J)
+                return
+            except FmuCallError:
+                self._directional_p = False
+        inst = self.instances[b]
+        values = inst.get_real(self.param_vrs)
+        row = np.empty(self.width)
+        for j, vr in enumerate(self.param_vrs):
+            value = values[j] + FD_RELATIVE_STEP * max(abs(values[j]), 1.0)
+            self._with_parameter(b, vr, value, x, row)
+            J[:, j] = (row - base) / (value - values[j])
+
+    def _with_parameter(self, b: int, vr: int, value: float, x: np.ndarray, row: np.ndarray) -> None:
+        """Read the outputs at x with one tunable parameter changed, then undo the change.
+
+        Tunable parameters may be set in event mode only (FMI 2.0 ME); FMUs that also accept them
+        in continuous-time mode are used directly. The mode is probed on first use."""
+        inst = self.instances[b]
+        old = inst.get_real([vr])[0]
+        if self._param_mode is None:
+            try:
+                inst.set_real([vr], [old])
+                self._param_mode = "direct"
+            except FmuCallError:
+                if not self.can_snapshot:
+                    raise FmuBuilderError(
+                        f"{self.info.model_name} accepts its tunable parameters only in event mode and cannot "
+                        "save its state; its parameters cannot be trained") from None
+                self._param_mode = "event"
+        if self._param_mode == "direct":
+            inst.set_real([vr], [value])
+            inst.set_continuous_states(x)
+            self.read(b, row)
+            inst.set_real([vr], [old])
+            inst.set_continuous_states(x)
+            return
+        self._pre[b] = inst.get_fmu_state(self._pre[b])
+        inst.enter_event_mode()
+        inst.set_real([vr], [value])
+        inst.enter_continuous_time_mode()
+        inst.set_continuous_states(x)
+        self.read(b, row)
+        inst.set_fmu_state(self._pre[b])
+
+    # -- event indicators --------------------------------------------------------------------
+    def indicators(self, b: int, t: float, x: np.ndarray, u: np.ndarray | None = None) -> np.ndarray:
+        self.set_point(b, t, x, u)
+        return self.instances[b].get_event_indicators()
+
+    def indicator_gradient(self, b: int, t: float, x: np.ndarray, j: int, u: np.ndarray | None = None):
+        """(dz_j/dx [n], dz_j/dt) at (t, x) by finite differences; leaves the instance at (t, x)."""
+        inst = self.instances[b]
+        z0 = self.indicators(b, t, x, u)[j]
+        steps = fd_steps(x, self.nominal)
+        grad = np.empty(self.n)
+        xp = x.copy()
+        for i in range(self.n):
+            xp[i] = x[i] + steps[i]
+            delta = xp[i] - x[i]
+            inst.set_continuous_states(xp)
+            grad[i] = (inst.get_event_indicators()[j] - z0) / delta
+            xp[i] = x[i]
+        inst.set_continuous_states(x)
+        dt = FD_RELATIVE_STEP * max(abs(t), 1.0)
+        inst.set_time(t + dt)
+        dz_dt = (inst.get_event_indicators()[j] - z0) / ((t + dt) - t)
+        inst.set_time(t)
+        return grad, dz_dt
+
+    # -- events ------------------------------------------------------------------------------
+    def handle_event(self, b: int, t: float, x_minus: np.ndarray, u: np.ndarray | None = None,
+                     sensitivity: EventSensitivity | None = None, signs: np.ndarray | None = None) -> EventOutcome:
+        """Run the event iteration of instance b at (t, x_minus); with `sensitivity`, also its
+        linearisation (EventOutcome). `signs` (+1/-1 per known) orients the perturbations, so that
+        at a state event the perturbed pre-event state stays beyond the crossing."""
+        inst = self.instances[b]
+        self.set_point(b, t, x_minus, u)
+        want = sensitivity is not None and self.can_snapshot
+        if want:
+            self._pre[b] = inst.get_fmu_state(self._pre[b])
+        inst.enter_event_mode()
+        info = inst.update_discrete_states()
+        inst.enter_continuous_time_mode()
+        changed = info.values_of_continuous_states_changed
+        x_plus = inst.get_continuous_states() if changed else np.array(x_minus, dtype=float)
+        outcome = EventOutcome(x_plus, changed, info.next_event_time_or_inf, info.terminate_simulation)
+        if want and not info.terminate_simulation:
+            started = time.perf_counter()
+            self._post[b] = inst.get_fmu_state(self._post[b])
+            self._event_sensitivity(b, t, x_minus, u, outcome, sensitivity, signs)
+            inst.set_fmu_state(self._post[b])
+            sensitivity.seconds += time.perf_counter() - started
+        return outcome
+
+    def _event_sensitivity(self, b, t, x_minus, u, outcome: EventOutcome, sensitivity: EventSensitivity, signs):
+        inst, n = self.instances[b], self.n
+        base = np.empty(self.width)
+        self.read(b, base)
+        d0 = self._d_getters[b]()
+        knowns = n + self.P
+        changed, x_plus = outcome.values_changed, outcome.x_plus
+        R = _identity_reset(n, knowns) if changed else None
+        B = np.zeros((self.carrier_width, knowns))
+        pool, candidates = self._next_pool(b), _Candidates()
+        columns = sensitivity.columns()
+        nonzero = np.zeros(len(columns), dtype=bool)
+        shadows = sensitivity.keep_shadows()
+        steps = fd_steps(x_minus, self.nominal)
+        params = inst.get_real(self.param_vrs) if self.P else None
+        for c, i in enumerate(columns):
+            sign = 1.0 if signs is None else signs[i]
+            inst.set_fmu_state(self._pre[b])
+            if i < n:
+                xp = np.array(x_minus, dtype=float)
+                xp[i] = x_minus[i] + sign * steps[i]
+                delta = xp[i] - x_minus[i]
+                inst.set_continuous_states(xp)
+                inst.enter_event_mode()
+            else:
+                value = params[i - n] + sign * FD_RELATIVE_STEP * max(abs(params[i - n]), 1.0)
+                delta = value - params[i - n]
+                inst.enter_event_mode()
+                inst.set_real([self.param_vrs[i - n]], [value])
+            inst.update_discrete_states()
+            if i >= n:  # the perturbation acted through the event; shadows must carry nominal parameters
+                inst.set_real([self.param_vrs[i - n]], [params[i - n]])
+            inst.enter_continuous_time_mode()
+            dd, df, dx = self._measure(b, x_plus, base, d0, changed)
+            if R is not None:
+                R[:, i] = dx / delta
+            B[:, i] = (dd if self.q else df) / delta
+            if self.q and _nonzero(dd, d0):
+                handle = self._snapshot(b, pool, len(candidates.handles)) if shadows else None
+                candidates.add(dd, df, dx, handle)
+            nonzero[c] = df.any() or (self.q and dd.any()) or not (R is None or _identity_column(R, i, n))
+        sensitivity.observe(columns, nonzero)
+        outcome.R, outcome.B = R, B
+        if self.q:
+            self._propagate_shadows(b, t, x_minus, u, outcome, base, d0, candidates, pool, sensitivity, shadows)
+
+    def _measure(self, b, x_plus, base, d0, changed):
+        """After a perturbed event iteration: (discrete, output, reset) deviations from nominal, read
+        with the continuous states put back to the nominal x+ (so only the discrete path shows)."""
+        inst = self.instances[b]
+        dx = inst.get_continuous_states() - x_plus if changed else None
+        inst.set_continuous_states(x_plus)
+        row = np.empty(self.width)
+        self.read(b, row)
+        dd = self._d_getters[b]() - d0 if self.q else None
+        return dd, row - base, dx
+
+    def _propagate_shadows(self, b, t, x_minus, u, outcome, base, d0, candidates, pool, sensitivity, keep):
+        """Redo the event on each shadow (nominal continuous state, perturbed discrete state from the
+        previous event): gives A (and Rd) on the shadows' span; then G by regression over all
+        candidates, and at most q independent candidates become the new shadows."""
+        inst = self.instances[b]
+        d_in, d_out, x_out = [], [], []
+        for handle, deviation in self._shadows[b]:
+            inst.set_fmu_state(handle)
+            self.set_point(b, t, x_minus, u)
+            inst.enter_event_mode()
+            inst.update_discrete_states()
+            inst.enter_continuous_time_mode()
+            dd, df, dx = self._measure(b, outcome.x_plus, base, d0, outcome.values_changed)
+            d_in.append(deviation)
+            d_out.append(dd)
+            x_out.append(dx)
+            sensitivity.propagations += 1
+            if _nonzero(dd, d0):
+                sensitivity.memory_seen = True
+                handle = self._snapshot(b, pool, len(candidates.handles)) if keep else None
+                candidates.add(dd, df, dx, handle)
+        if d_in:
+            inverse = _pinv(np.array(d_in).T)
+            outcome.A = np.array(d_out).T @ inverse
+            if outcome.values_changed:
+                outcome.Rd = np.array(x_out).T @ inverse
+        outcome.G = _regression(candidates, self.width, self.q)
+        self._shadows[b] = _independent(candidates, self.q) if keep else []
+
+    def init_sensitivity(self, b: int, x_init: np.ndarray, restarts) -> EventOutcome:
+        """Linearisation of the initialization with respect to (x0, p): `restarts[i]()` re-initializes
+        instance b with known i perturbed and returns the perturbation. The caller re-initializes
+        the nominal case afterwards."""
+        n, knowns = self.n, len(restarts)
+        base = np.empty(self.width)
+        self.read(b, base)
+        d0 = self._d_getters[b]()
+        R = np.zeros((n, knowns))
+        B = np.zeros((self.carrier_width, knowns))
+        pool, candidates = self._next_pool(b), _Candidates()
+        for i, restart in enumerate(restarts):
+            delta = restart()
+            dd, df, dx = self._measure(b, x_init, base, d0, True)
+            R[:, i] = dx / delta
+            B[:, i] = (dd if self.q else df) / delta
+            if self.q and _nonzero(dd, d0):
+                candidates.add(dd, df, dx, self._snapshot(b, pool, len(candidates.handles)))
+        outcome = EventOutcome(x_init, True, np.inf, False, R=R, B=B)
+        if self.q:
+            outcome.G = _regression(candidates, self.width, self.q)
+            self._shadows[b] = _independent(candidates, self.q)
+        return outcome
+
+    def _next_pool(self, b: int) -> list:
+        """The snapshot pool not holding the current shadows."""
+        self._turn[b] ^= 1
+        return self._pools[b][self._turn[b]]
+
+    def _snapshot(self, b: int, pool: list, slot: int):
+        inst = self.instances[b]
+        if slot < len(pool):
+            return inst.get_fmu_state(pool[slot])
+        pool.append(inst.get_fmu_state())
+        return pool[-1]
+
+
+def _identity_reset(n: int, knowns: int) -> np.ndarray:
+    R = np.zeros((n, knowns))
+    R[np.arange(n), np.arange(n)] = 1.0
+    return R
+
+
+def _identity_column(R: np.ndarray, i: int, n: int) -> bool:
+    if i < n:
+        return bool((R[:, i] == (np.arange(n) == i)).all())
+    return not R[:, i].any()
+
+
+def _nonzero(dd: np.ndarray, d0: np.ndarray) -> bool:
+    """A discrete deviation worth tracking: above round-off of the discrete values."""
+    size = float(np.abs(dd).max(initial=0.0))
+    return size > 0.0 and size > 1e-13 * float(np.abs(d0).max(initial=0.0))
+
+
+def _regression(candidates: _Candidates, width: int, q: int) -> np.ndarray:
+    """G with df = G dd over the candidates (least squares on their span)."""
+    if not candidates.dd:
+        return np.zeros((width, q))
+    dd = np.array(candidates.dd).T
+    df = np.array(candidates.df).T
+    return df @ _pinv(dd)
+
+
+def _pinv(a: np.ndarray) -> np.ndarray:
+    """Pseudo-inverse; the one-row and one-column cases (the common ones) without an SVD."""
+    if a.shape[0] == 1 or a.shape[1] == 1:
+        norm2 = float((a * a).sum())
+        return a.T / norm2 if norm2 > 0 else np.zeros(a.T.shape)
+    return np.linalg.pinv(a, rcond=1e-10)
+
+
+def _independent(candidates: _Candidates, q: int) -> list:
+    """Up to q candidates with linearly independent discrete deviations (Gram-Schmidt, in order)."""
+    basis, chosen = [], []
+    for j, dd in enumerate(candidates.dd):
+        v = dd / np.linalg.norm(dd)
+        for e in basis:
+            v = v - (e @ v) * e
+        r = np.linalg.norm(v)
+        if r > 1e-6:
+            basis.append(v / r)
+            chosen.append((candidates.handles[j], dd))
+            if len(chosen) == q:
+                break
+    return chosen
+
+
+def fmu_call(evaluator: FmuEvaluator, rows: Sequence[int], t: np.ndarray, x: torch.Tensor, p: torch.Tensor,
+             u: np.ndarray | None = None) -> torch.Tensor:
+    """Differentiable evaluation: out [R, n+k] = [derivatives | variables] of the instances `rows`.
+
+    x: tensor [R, n]; p: tensor [P] of the trained tunable parameters (may be empty)."""
+    return FmuFunction.apply(x, p, evaluator, rows, t, u)
+
+
+class FmuFunction(torch.autograd.Function):
+    """Jacobians are computed in forward, and only for the inputs that need a gradient."""
+
+    @staticmethod
+    def forward(ctx, x, p, evaluator, rows, t, u):
+        want_x, want_p = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+        out, Jx, Jp = evaluator.evaluate(rows, t, x.detach().numpy(), u, jac_x=want_x, jac_p=want_p)
+        ctx.Jx = None if Jx is None else torch.from_numpy(Jx)
+        ctx.Jp = None if Jp is None else torch.from_numpy(Jp)
+        return torch.from_numpy(out)
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        gx = gp = None
+        g = grad_out.unsqueeze(1)
+        if ctx.Jx is not None:
+            gx = torch.bmm(g, ctx.Jx).squeeze(1)
+        if ctx.Jp is not None:
+            gp = torch.bmm(g, ctx.Jp).squeeze(1).sum(0)
+        return gx, gp, None, None, None, None

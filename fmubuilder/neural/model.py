@@ -1,0 +1,92 @@
+"""A NeuralFMU: one FMU (kept loaded, with a pool of instances) plus a trainable topology."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..errors import FmuBuilderError
+from ..fmi import Fmu, FmuInstance, convert_value
+from .layer import ColumnSparsity, EventSensitivity
+from .topology import Topology, TopologyConfig
+
+
+class NeuralFMU(nn.Module):
+    """An FMI 2.0 ME FMU wrapped with a `Topology`.
+
+    `start_values` (name -> value) are applied to every instance before initialization (parameters,
+    start values of states). Instances are created on demand, one per batch element, and reused.
+    Call close() (or use as a context manager) to free them.
+    """
+
+    def __init__(self, fmu_path: str | Path, config: TopologyConfig | dict,
+                 start_values: dict[str, object] | None = None):
+        super().__init__()
+        self.fmu_path = Path(fmu_path)
+        self.fmu = Fmu(self.fmu_path)
+        self.info = self.fmu.info
+        if self.info.n_states == 0:
+            raise FmuBuilderError(f"{self.info.model_name} has no continuous states; a NeuralFMU needs state derivatives")
+        config = config if isinstance(config, TopologyConfig) else TopologyConfig.from_dict(config)
+        self.start_values = {}
+        for name, value in (start_values or {}).items():
+            self.start_values[name] = convert_value(self.info.variable(name), value)
+        parameter_values = [float(self.start_values.get(p, self.info.variable(p).start or 0.0)) for p in config.parameters]
+        self.topology = Topology(config, self.info, parameter_values)
+        self._instances: list[FmuInstance] = []
+        # Learned sparsity of the FMU's Jacobians, kept across simulations (see layer.ColumnSparsity).
+        n_knowns = self.info.n_states + len(config.parameters)
+        self.jacobian_sparsity = ColumnSparsity(self.info.n_states)
+        self.event_sensitivity = EventSensitivity(n_knowns)
+
+    @property
+    def config(self) -> TopologyConfig:
+        return self.topology.config
+
+    @property
+    def guid(self) -> str:
+        return self.info.guid
+
+    def instances(self, count: int) -> list[FmuInstance]:
+        while len(self._instances) < count:
+            self._instances.append(self.fmu.instantiate())
+        return self._instances[:count]
+
+    def start_values_with_parameters(self) -> dict[str, object]:
+        """Start values plus the current values of the trained FMU parameters."""
+        values = dict(self.start_values)
+        for name, value in zip(self.config.parameters, self.topology.fmu_parameters.detach().tolist()):
+            values[name] = value
+        return values
+
+    def state_names(self) -> list[str]:
+        return [v.name for v in self.info.states]
+
+    def close(self) -> None:
+        for inst in self._instances:
+            inst.free()
+        self._instances.clear()
+        self.fmu.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def simulate(self, *args, **kwargs):
+        """Shortcut for fmubuilder.neural.solve.simulate(self, ...)."""
+        from .solve import simulate
+        return simulate(self, *args, **kwargs)
+
+    def forward(self, *args, **kwargs):  # an nn.Module needs one; the solver is the forward pass
+        return self.simulate(*args, **kwargs)
+
+
+def as_float_array(values, n: int, what: str) -> np.ndarray:
+    array = np.asarray(values.detach().numpy() if isinstance(values, torch.Tensor) else values, dtype=float)
+    if array.shape != (n,):
+        raise FmuBuilderError(f"{what} needs {n} values, got shape {array.shape}")
+    return array

@@ -1,0 +1,687 @@
+"""Differentiable simulation of a NeuralFMU with the FMI 2.0 event semantics.
+
+Batch elements run side by side: B FMU instances, states as a [B, n] tensor, the ANN evaluated once
+per solver stage for all elements. Fixed-step explicit Euler or classical RK4 on a fixed grid
+(t0_b + k h); a time event or a state event inside a step splits it, and the step after the event
+ends on the next grid point again, so grid times never depend on event times. Under
+torch.no_grad() nothing below the "gradients" items is done (the forward-only path).
+
+Events (one call of the FMU's own event iteration, FmuInstance.update_discrete_states, per event):
+* time events at the FMU's nextEventTime (the step ends exactly there), step events requested by
+  fmi2CompletedIntegratorStep after each step, state events where an event indicator changes sign
+  within a step (the engine's convention, simulation/events.py: reaching zero fires, leaving it does not).
+* State events are located without gradients on the step's dense output (Euler: linear; RK4:
+  cubic Hermite) by secant steps safeguarded with bisection, to the side beyond the crossing.
+
+Gradients across events:
+1. Event time. With t* the located time and z the crossing indicator,
+       t_e = t* - (z(t*, x(t*)) - value) / (dz/dt)
+   is evaluated with grad: its value is t* exactly and its gradient is the implicit-function
+   (saltation) sensitivity -z_x dx/dtheta / zdot. The pre-event state is the dense output at t_e,
+   the step after the event has length t_next - t_e, so autograd carries dt_e/dtheta into both.
+   The indicator gradient z_x (and dz/dt) come from finite differences, at state events only.
+2. Reset map. If the FMU reports valuesOfContinuousStatesChanged, x+ = x+_value + R (x- - x-.detach())
+   with R = dx+/dx- by finite differences through the event iteration; otherwise x+ is x- itself.
+3. Discrete states. Sampled controllers and relays keep discrete states d inside the FMU that are
+   set at events and drive the derivatives until the next event; without their path the gradient of
+   a closed loop can have the wrong sign. At each event the FMU state before the event is saved
+   (fmi2GetFMUstate); for each state i it is restored, x-_i perturbed, the event iteration redone,
+   the continuous states set back to the nominal x+, and the derivatives and recorded variables
+   read: their change is the effect through the discrete states only.
+   a) Memoryless fallback (the FMU exposes no discrete Real variable): M = d(der, vars)/dx- from
+      these perturbations; until the element's next event every FMU evaluation adds
+      M (x- - x-.detach()): zero in value, the discrete-state path in the gradient. Exact when the
+      discrete states are functions of the latest pre-event state (a held sample).
+   b) Discrete states with memory (a discrete integrator, d+ = D(x-, d-)): when the FMU exposes its
+      discrete Real variables (variability="discrete"), they are read after each perturbation, which
+      gives B = dd+/dx-. A zero-valued carrier dd [q] per element follows dd+ = B dev + A dd- and
+      every FMU evaluation adds G dd+ (G = d(der, vars)/dd by least squares over the perturbations).
+      A = dd+/dd- needs perturbed discrete states, which FMI cannot set: they are kept as *shadow*
+      snapshots (at most q, linearly independent, taken from the perturbed post-event states); at
+      the next event each shadow is restored, given the nominal time and continuous state, and its
+      event iteration redone. This reduces to a) for memoryless discrete states, costs n + q event
+      iterations per event, and is exact to first order as long as the exposed discrete variables
+      are the FMU's discrete state.
+   Trained tunable FMU parameters are perturbed like states (set in event mode). Perturbations at
+   state events are oriented so that the perturbed state stays beyond the crossing. Columns found
+   exactly zero (no discrete, output or reset change) over the first events of a run are skipped
+   and re-checked periodically (layer.EventSensitivity); Trajectory.stats["event_sensitivity"]
+   reports the count and time. Limits: an event of an element restarts its memoryless M (case a);
+   an FMU that cannot save its state gets no discrete-state path (a warning says so).
+4. Initial state. For a fresh initialization with x0 or FMU parameters requiring grad, the same is
+   done for the initialization: one re-initialization per perturbed start value (needs fmi2Reset);
+   its perturbed states seed the shadows.
+
+The FMU itself has no time gradient: its explicit time dependence inside a split step is ignored
+(inputs from data need none).
+"""
+from __future__ import annotations
+
+import math
+import time as _time
+import warnings
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from ..errors import FmuBuilderError
+from ..simulation.events import crossed
+from .layer import EventSensitivity, FmuEvaluator, fd_steps, fmu_call
+from .model import NeuralFMU, as_float_array
+from .rhs import RhsPlan, hybrid_rhs
+
+SOLVERS = ("euler", "rk4")
+MAX_EVENTS_PER_STEP = 100
+
+
+def time_tolerance(t) -> float:
+    """Times closer than this are the same instant (rounding of event and grid times)."""
+    return 1e-11 * max(1.0, float(np.max(np.abs(t))))
+
+
+@dataclass
+class ElementStart:
+    """Where one batch element starts: a fresh initialization at t0, or a saved FMU state."""
+    t0: float
+    fmu_state: bytes | None = None            # serialized FMU state (continuous-time mode) at t0
+    next_event_time: float = math.inf         # the FMU's time event pending at the saved state
+    states: dict[str, float] | None = None    # continuous states to override (e.g. measured values)
+
+
+class InputSignals:
+    """FMU inputs from data, linearly interpolated (held constant outside the data)."""
+
+    def __init__(self, times: np.ndarray, columns: dict[str, np.ndarray]):
+        self.times = np.asarray(times, dtype=float)
+        self.names = list(columns)
+        self.values = [np.asarray(columns[n], dtype=float) for n in self.names]
+
+    def at(self, t: np.ndarray) -> np.ndarray:
+        t = np.atleast_1d(t)
+        out = np.empty((len(t), len(self.names)))
+        for j, v in enumerate(self.values):
+            out[:, j] = np.interp(t, self.times, v)
+        return out
+
+
+@dataclass
+class Trajectory:
+    """Recorded values on the grid: `values[k, b, j]` is variable names[j] of element b at t0[b] + times[k]."""
+    times: np.ndarray
+    t0: np.ndarray
+    names: list[str]
+    values: torch.Tensor
+    final_states: torch.Tensor
+    final_starts: list[ElementStart] | None = None
+    captured: dict[int, list[ElementStart]] = field(default_factory=dict)
+    stats: dict = field(default_factory=dict)
+
+    def signal(self, name: str) -> torch.Tensor:
+        """[T, B] values of one recorded variable."""
+        if name not in self.names:
+            raise FmuBuilderError(f"'{name}' was not recorded; record it with record=[..., '{name}']")
+        return self.values[:, :, self.names.index(name)]
+
+    def numpy(self, name: str) -> np.ndarray:
+        return self.signal(name).detach().numpy()
+
+
+def simulate(model: NeuralFMU, duration: float, step_size: float, *, starts: Sequence[ElementStart] | None = None,
+             t_start: float = 0.0, x0: torch.Tensor | None = None, record: Sequence[str] = (),
+             solver: str = "euler", inputs: InputSignals | None = None, keep_final_state: bool = False,
+             capture: Sequence[int] = (), event_gradients: bool = True,
+             sensitivity: EventSensitivity | None = None, forcing=None) -> Trajectory:
+    """Simulate `model` for `duration` seconds with a fixed step from each start.
+
+    starts: one ElementStart per batch element (default: one fresh start at t_start).
+    x0: optional tensor [B, n] of initial continuous states (may require grad).
+    record: variables to record on the grid (states, derivatives = hybrid derivatives, FMU variables).
+    capture: grid indices k at which every element's FMU state is saved into Trajectory.captured.
+    keep_final_state: save each element's final FMU state into Trajectory.final_starts.
+    forcing: (state indices, f(t [B]) -> values [B, len(indices)]): those states are set to the given
+    values after every step, before the events are detected (no gradient; used by collocation).
+    """
+    run = _Run(model, list(starts) if starts else [ElementStart(float(t_start))], duration, step_size,
+               solver, list(record), inputs, x0, keep_final_state, set(capture), event_gradients, sensitivity,
+               forcing)
+    try:
+        return run.run()
+    finally:
+        run.ev.free()
+
+
+def batch_matvec(matrices: np.ndarray, vectors: torch.Tensor) -> torch.Tensor:
+    """[B, i, j] (numpy) times [B, j] -> [B, i]."""
+    return torch.bmm(torch.from_numpy(matrices), vectors.unsqueeze(-1)).squeeze(-1)
+
+
+class _Run:
+    def __init__(self, model: NeuralFMU, starts, duration, step_size, solver, record, inputs, x0,
+                 keep_final_state, capture, event_gradients, sensitivity, forcing=None):
+        if solver not in SOLVERS:
+            raise FmuBuilderError(f"unknown solver '{solver}': choose one of {', '.join(SOLVERS)}")
+        if not (step_size > 0 and math.isfinite(step_size)):
+            raise FmuBuilderError(f"step size must be a positive number, got {step_size}")
+        if not (duration > 0 and math.isfinite(duration)):
+            raise FmuBuilderError(f"duration must be a positive number, got {duration}")
+        self.model, self.topology, self.info = model, model.topology, model.info
+        self.starts = starts
+        self.B = len(starts)
+        self.n = self.info.n_states
+        self.h = float(step_size)
+        self.K = max(1, int(math.ceil(duration / self.h - 1e-9)))
+        self.grid = np.minimum(np.arange(self.K + 1) * self.h, duration)
+        self.grid[-1] = duration
+        self.rk4 = solver == "rk4"
+        self.inputs = inputs
+        self.keep_final_state = keep_final_state
+        self.capture = capture
+        self.instances = model.instances(self.B)
+        self.rows = list(range(self.B))
+        state_names = model.state_names()
+        derivative_names = [v.name for v in self.info.derivatives]
+        variables = list(self.topology.fmu_variables)
+        self.record_source = []
+        for name in record:
+            self.info.variable(name)
+            if name in state_names:
+                self.record_source.append(state_names.index(name))
+            elif name in derivative_names:
+                self.record_source.append(self.n + derivative_names.index(name))
+            else:
+                if name not in variables:
+                    variables.append(name)
+                self.record_source.append(2 * self.n + variables.index(name))
+        self.record_names = list(record)
+        self.record_index = torch.tensor(self.record_source, dtype=torch.long)
+        self.ev = FmuEvaluator(self.instances, self.info, variables, inputs.names if inputs else (),
+                               model.config.parameters, jacobian_sparsity=model.jacobian_sparsity)
+        self.p = self.topology.fmu_parameters
+        self.plan = RhsPlan(self.topology) if self.topology.has_ann else None
+        self.theta = None
+        self.x0 = x0
+        self.grad = torch.is_grad_enabled() and (
+            (x0 is not None and x0.requires_grad) or any(q.requires_grad for q in model.parameters()))
+        self.event_grad = self.grad and event_gradients
+        if self.event_grad and not self.ev.can_snapshot:
+            warnings.warn(f"{self.info.model_name} cannot get/set its FMU state: gradients treat its discrete "
+                          "states as constants at events and its state resets as constant", stacklevel=3)
+        self.sens = sensitivity or model.event_sensitivity
+        self.sens.start_run()
+        self.done = np.zeros(self.B, dtype=bool)
+        self.next_event = np.full(self.B, math.inf)
+        self.z = None
+        self.counts = {"steps": 0, "time_events": 0, "state_events": 0, "step_events": 0}
+        self.step_events = not self.info.capabilities.completed_integrator_step_not_needed
+        if forcing is not None and self.grad:
+            raise FmuBuilderError("forced states are for simulations without gradients; use torch.no_grad()")
+        self.forcing = forcing
+
+    # -- set-up ------------------------------------------------------------------------------
+    def _inputs_at(self, t) -> np.ndarray | None:
+        return None if self.inputs is None else self.inputs.at(np.atleast_1d(t))
+
+    def _u(self, b: int, t: float):
+        return None if self.inputs is None else self.inputs.at(np.array([t]))[0]
+
+    def initialise(self):
+        """Start every element; returns (x [B, n], dd carrier or None, correction c or None)."""
+        n, B = self.n, self.B
+        self.t0 = np.array([s.t0 for s in self.starts], dtype=float)
+        x0_values = None if self.x0 is None else as_float_array(self.x0.detach().reshape(-1), B * n, "x0").reshape(B, n)
+        x = np.empty((B, n))
+        init_outcomes = {}
+        init_sens = self.grad and self.ev.can_snapshot and (
+            (self.x0 is not None and self.x0.requires_grad) or self.p.requires_grad)
+        for b, start in enumerate(self.starts):
+            self.ev.forget_shadows(b)
+            overrides = dict(start.states or {})
+            if x0_values is not None:
+                overrides.update(zip(self.model.state_names(), x0_values[b]))
+            if start.fmu_state is None:
+                x[b], self.next_event[b] = self._fresh_init(b, overrides)
+                if init_sens:
+                    init_outcomes[b] = self._init_sensitivity(b, overrides, x[b])
+            else:
+                x[b] = self._restore(b, start, overrides)
+        self.ev.refresh_nominals()
+        x_t, dd, c = torch.from_numpy(x), None, None
+        x0_t = None if self.x0 is None else self.x0.reshape(B, n)
+        if x0_t is not None and x0_t.requires_grad:
+            x_t = x_t + (x0_t - x0_t.detach())  # restored starts take x0 as it is
+        if init_outcomes:
+            # fresh starts follow the initialization x_init(x0, p) and its discrete states
+            dev = self._known_deviation(x0_t if x0_t is not None else torch.from_numpy(x))
+            rows = np.array(sorted(init_outcomes))
+            mask = np.zeros(B, dtype=bool)
+            mask[rows] = True
+            x_init, dd, c = self._linearised_event(x_t, dev, {b: init_outcomes[b] for b in rows}, None, None, mask)
+            x_t = x_init
+        if self.info.n_event_indicators:
+            self.z = np.stack([self.ev.indicators(b, self.t0[b], x[b], self._u(b, self.t0[b])) for b in range(B)])
+        return x_t, dd, c
+
+    def _fresh_init(self, b: int, overrides: dict) -> tuple[np.ndarray, float]:
+        inst = self.instances[b]
+        inst.reset()
+        t0 = float(self.starts[b].t0)
+        inst.setup_experiment(start_time=t0)
+        inst.set(self.model.start_values_with_parameters())
+        if self.inputs is not None:
+            inst.set_real(self.ev.input_vrs, self._u(b, t0))
+        inst.set(overrides)
+        inst.enter_initialization_mode()
+        inst.exit_initialization_mode()
+        info = inst.update_discrete_states()
+        inst.enter_continuous_time_mode()
+        if info.terminate_simulation:
+            raise FmuBuilderError(f"{self.info.model_name} asked to terminate during initialization")
+        return inst.get_continuous_states(), info.next_event_time_or_inf
+
+    def _init_sensitivity(self, b: int, overrides: dict, x_init: np.ndarray):
+        """Linearisation of the initialization of element b, one re-initialization per known."""
+        names = self.model.state_names()
+        x0 = np.array([overrides.get(name, x_init[i]) for i, name in enumerate(names)], dtype=float)
+        params = self.p.detach().numpy()
+        steps = fd_steps(x0, np.ones(self.n))
+
+        def restart(i):
+            def run():
+                perturbed = dict(overrides)
+                if i < self.n:
+                    perturbed[names[i]] = x0[i] + steps[i]
+                    delta = perturbed[names[i]] - x0[i]
+                else:
+                    name = self.model.config.parameters[i - self.n]
+                    value = params[i - self.n] + 1e-7 * max(abs(params[i - self.n]), 1.0)
+                    perturbed[name] = value
+                    delta = value - params[i - self.n]
+                self._fresh_init(b, perturbed)
+                if i >= self.n:  # back to the nominal parameter: shadows must differ in discrete states only
+                    inst = self.instances[b]
+                    inst.enter_event_mode()
+                    inst.set_real([self.ev.param_vrs[i - self.n]], [params[i - self.n]])
+                    inst.update_discrete_states()
+                    inst.enter_continuous_time_mode()
+                return delta
+            return run
+        outcome = self.ev.init_sensitivity(b, x_init, [restart(i) for i in range(self.n + self.ev.P)])
+        self._fresh_init(b, overrides)
+        return outcome
+
+    def _restore(self, b: int, start: ElementStart, overrides: dict) -> np.ndarray:
+        inst = self.instances[b]
+        if not self.info.capabilities.can_serialize_fmu_state:
+            raise FmuBuilderError(f"{self.info.model_name} cannot serialize its FMU state; start elements fresh instead")
+        state = inst.deserialize_fmu_state(start.fmu_state)
+        try:
+            inst.set_fmu_state(state)
+        finally:
+            inst.free_fmu_state(state)
+        if self.ev.P:
+            inst.enter_event_mode()
+            inst.set_real(self.ev.param_vrs, self.p.detach().tolist())
+            inst.update_discrete_states()
+            inst.enter_continuous_time_mode()
+        self.next_event[b] = start.next_event_time
+        x = inst.get_continuous_states()
+        if overrides:
+            names = self.model.state_names()
+            for name, value in overrides.items():
+                if name not in names:
+                    raise FmuBuilderError(f"'{name}' is not a continuous state of {self.info.model_name}")
+                x[names.index(name)] = float(value)
+            inst.set_continuous_states(x)
+        return x
+
+    def _known_deviation(self, x: torch.Tensor) -> torch.Tensor:
+        """[R, n+P]: the zero-valued carriers of the gradient, (x - x.detach(), p - p.detach())."""
+        dev = x - x.detach()
+        if self.ev.P:
+            dp = (self.p - self.p.detach()).expand(x.shape[0], self.ev.P)
+            dev = torch.cat([dev, dp], dim=1)
+        return dev
+
+    # -- right-hand side and solver steps -----------------------------------------------------
+    def rhs(self, rows, t: np.ndarray, x: torch.Tensor, c):
+        """(hybrid derivatives [R, n], FMU results [R, n + k]) of the elements `rows`."""
+        if self.plan is not None:
+            return hybrid_rhs(self.plan, self.ev, rows, t, x, c, self.theta, self.p, self._inputs_at(t))
+        out = fmu_call(self.ev, rows, t, x, self.p, self._inputs_at(t))
+        if c is not None:
+            out = out + c
+        return out[:, : self.n], out
+
+    def step(self, rows, t: np.ndarray, x: torch.Tensor, h, c):
+        """One step for `rows` from (t, x) over h (numpy [R] or tensor [R, 1]); returns (x_new, dx1, out1)."""
+        if isinstance(h, torch.Tensor):
+            h_np, h_t = h.detach().numpy()[:, 0], h
+        else:
+            h_np, h_t = h, torch.from_numpy(h[:, None])
+        dx1, out1 = self.rhs(rows, t, x, c)
+        if not self.rk4:
+            return x + h_t * dx1, dx1, out1
+        half = 0.5 * h_t
+        k2, _ = self.rhs(rows, t + 0.5 * h_np, x + half * dx1, c)
+        k3, _ = self.rhs(rows, t + 0.5 * h_np, x + half * k2, c)
+        k4, _ = self.rhs(rows, t + h_np, x + h_t * k3, c)
+        return x + h_t / 6.0 * (dx1 + 2.0 * (k2 + k3) + k4), dx1, out1
+
+    # -- main loop ---------------------------------------------------------------------------
+    def run(self) -> Trajectory:
+        started = _time.perf_counter()
+        if self.plan is not None:
+            self.theta = self.plan.pack()  # one node: the topology tensors' gradients gather here
+        x, dd, c = self.initialise()
+        t = self.t0.copy()
+        if self.forcing is not None:
+            x = self._forced(t, x)
+            if self.z is not None:
+                self.z = np.stack([self.ev.indicators(b, t[b], x[b].numpy(), self._u(b, t[b])) for b in range(self.B)])
+        tau, k = 0.0, 0
+        records, captured = [], {}
+        while k < self.K:
+            tau_grid = self.grid[k + 1]
+            active = ~self.done
+            rel_events = np.where(active, self.next_event - self.t0, math.inf)
+            tau_end = min(tau_grid, float(rel_events.min()))
+            tol = time_tolerance(self.t0 + tau_end)
+            hit_grid = tau_end >= tau_grid - tol
+            if hit_grid:
+                tau_end = tau_grid
+            end = self.t0 + tau_end
+            at_event = active & (np.abs(self.next_event - end) <= tol)
+            end = np.where(at_event, self.next_event, end)
+            h = np.where(active, end - t, 0.0)
+            at_grid_start = tau == self.grid[k]
+            if at_grid_start and k in self.capture:
+                captured[k] = self._save_states(t, x)
+            x_new, dx1, out1 = self.step(self.rows, t, x, h, c)
+            if self.forcing is not None:
+                x_new = self._forced(end, x_new)
+            if at_grid_start:
+                records.append(self._record(x, dx1, out1))
+            self.counts["steps"] += 1
+            x_new, dd, c = self._end_of_step(t, x, dx1, h, end, x_new, dd, c, at_event)
+            t, x, tau = end, x_new, tau_end
+            if hit_grid:
+                k += 1
+        if self.K in self.capture:
+            captured[self.K] = self._save_states(t, x)
+        dx, out = self.rhs(self.rows, t, x, c)
+        records.append(self._record(x, dx, out))
+        final_starts = self._save_states(t, x) if self.keep_final_state else None
+        stats = dict(self.counts, seconds=_time.perf_counter() - started,
+                     fmu_evaluations=self.ev.n_evaluations, jacobian_columns=self.ev.n_jacobian_columns)
+        if self.event_grad:
+            stats["event_sensitivity"] = self.sens.stats()
+        values = torch.stack(records) if records else torch.zeros(0, self.B, 0)
+        return Trajectory(self.grid.copy(), self.t0, self.record_names, values, x, final_starts, captured, stats)
+
+    def _forced(self, t: np.ndarray, x: torch.Tensor) -> torch.Tensor:
+        indices, values = self.forcing
+        x = x.clone()
+        x[:, indices] = torch.from_numpy(np.asarray(values(t), dtype=float).reshape(self.B, len(indices)))
+        return x
+
+    def _record(self, x, dx, out) -> torch.Tensor:
+        return torch.cat([x, dx, out[:, self.n:]], dim=1).index_select(1, self.record_index)
+
+    def _save_states(self, t: np.ndarray, x: torch.Tensor) -> list[ElementStart]:
+        saved = []
+        x_np = x.detach().numpy()
+        for b, inst in enumerate(self.instances):
+            self.ev.set_point(b, t[b], x_np[b], self._u(b, t[b]))
+            state = inst.get_fmu_state()
+            try:
+                data = inst.serialize_fmu_state(state)
+            finally:
+                inst.free_fmu_state(state)
+            saved.append(ElementStart(float(t[b]), data, float(self.next_event[b])))
+        return saved
+
+    # -- events ------------------------------------------------------------------------------
+    def _end_of_step(self, t, x, dx1, h, t_new, x_new, dd, c, at_event):
+        """Detect and handle the events of the step just taken; returns the post-event (x, dd, c)."""
+        B = self.B
+        events = at_event.copy()
+        x_np = x_new.detach().numpy()
+        replaced = {}
+        if self.z is not None:
+            for b in range(B):
+                if self.done[b]:
+                    continue
+                z_new = self.ev.indicators(b, t_new[b], x_np[b], self._u(b, t_new[b]))
+                if crossed(self.z[b], z_new).any():
+                    rows = (None if dd is None else dd[b:b + 1], None if c is None else c[b:b + 1])
+                    replaced[b] = self._state_events(b, t[b], x[b], dx1[b], t_new[b], x_new[b], z_new, *rows)
+                else:
+                    self.z[b] = z_new
+        elif self.step_events or events.any():
+            for b in range(B):
+                self.ev.set_point(b, t_new[b], x_np[b], self._u(b, t_new[b]))
+        if replaced:
+            x_new, dd, c = self._replace_rows(replaced, x_new, dd, c)
+        if self.step_events:
+            for b in range(B):
+                if not self.done[b]:
+                    enter, terminate = self.instances[b].completed_integrator_step()
+                    if enter:
+                        self.counts["step_events"] += 1
+                    events[b] |= enter
+                    self.done[b] |= terminate
+        events &= ~self.done
+        if events.any():
+            self.counts["time_events"] += int(at_event.sum())
+            x_new, dd, c = self._handle_events(np.flatnonzero(events), t_new, x_new, dd, c)
+        return x_new, dd, c
+
+    def _replace_rows(self, replaced: dict, x, dd, c):
+        """Put the rows computed separately (state events) into the batch tensors."""
+        index = torch.tensor(list(replaced))
+        x = x.index_put((index,), torch.stack([r[0] for r in replaced.values()]))
+        for slot, width in ((1, self.ev.carrier_width), (2, self.ev.width)):
+            rows = [r[slot] for r in replaced.values()]
+            if all(row is None for row in rows):
+                continue
+            current = dd if slot == 1 else c
+            base = current if current is not None else torch.zeros(self.B, width, dtype=x.dtype)
+            rows = [row if row is not None else base[b:b + 1] for b, row in zip(replaced, rows)]
+            updated = base.index_put((index,), torch.cat(rows))
+            dd, c = (updated, c) if slot == 1 else (dd, updated)
+        return x, dd, c
+
+    def _handle_events(self, rows, t, x, dd, c):
+        """Events of several elements at the end of a step, batched."""
+        x_np = x.detach().numpy()
+        grad = self.event_grad and self.ev.can_snapshot and x.requires_grad
+        outcomes = {}
+        for b in rows:
+            outcome = self.ev.handle_event(b, t[b], x_np[b], self._u(b, t[b]), self.sens if grad else None)
+            outcomes[b] = outcome
+            self.next_event[b] = outcome.next_event_time
+            self.done[b] |= outcome.terminate
+            if self.z is not None:
+                self.z[b] = self.instances[b].get_event_indicators()
+        if not grad:
+            changed = [b for b, o in outcomes.items() if o.values_changed]
+            if changed:  # a constant jump; x + 0 keeps the exact post-event values
+                x_val = x_np.copy()
+                for b in changed:
+                    x_val[b] = outcomes[b].x_plus
+                x = torch.from_numpy(x_val) + (x - x.detach()) if x.requires_grad else torch.from_numpy(x_val)
+            return x, dd, c
+        mask = np.zeros(self.B, dtype=bool)
+        mask[[b for b, o in outcomes.items() if o.B is not None]] = True
+        return self._linearised_event(x, self._known_deviation(x), outcomes, dd, c, mask)
+
+    def _linearised_event(self, x, dev, outcomes: dict, dd, c, mask):
+        """Post-event (x, dd, c) with the event linearisations of the elements in `outcomes`
+        (see EventOutcome): x+ = x+_value + R dev + Rd dd,  dd+ = B dev + A dd,  c = G dd+."""
+        B, n, K, Q = x.shape[0], self.n, self.n + self.ev.P, self.ev.carrier_width
+        memory = self.ev.q > 0
+        x_val = x.detach().numpy().copy()
+        R = np.zeros((B, n, K))
+        R[:, np.arange(n), np.arange(n)] = 1.0
+        history = memory and dd is not None   # a carrier from earlier events exists
+        Rd = np.zeros((B, n, Q)) if history else None
+        A = np.zeros((B, Q, Q)) if history else None
+        Bm = np.zeros((B, Q, K))
+        G = np.zeros((B, self.ev.width, Q)) if memory else None
+        any_reset = any_rd = any_a = False
+        for b, o in outcomes.items():
+            if o.values_changed:
+                x_val[b] = o.x_plus
+                any_reset = True
+                if o.R is not None:
+                    R[b] = o.R
+                if o.Rd is not None and Rd is not None:
+                    Rd[b], any_rd = o.Rd, True
+            if o.B is not None:
+                Bm[b] = o.B
+                if memory:
+                    G[b] = o.G
+                    if o.A is not None and A is not None:
+                        A[b], any_a = o.A, True
+        if any_reset:
+            x = torch.from_numpy(x_val) + batch_matvec(R, dev)
+            if any_rd:
+                x = x + batch_matvec(Rd, dd)
+        if not mask.any():
+            return x, dd, c
+        if memory and not (any_a or self.sens.memory_seen or self.sens.keep_shadows()):
+            # memoryless so far: dd is not needed later, so c = (G B) dev directly
+            c_new, dd_new = batch_matvec(np.matmul(G, Bm), dev), None
+        else:
+            dd_new = batch_matvec(Bm, dev)
+            if any_a:
+                dd_new = dd_new + batch_matvec(A, dd)
+            c_new = batch_matvec(G, dd_new) if memory else dd_new
+        if mask.all():
+            return x, dd_new, c_new
+        # elements without an event keep their carrier and correction (absent ones are zero)
+        keep = torch.from_numpy(mask)[:, None]
+        c = c_new if c is None else torch.where(keep, c_new, c)
+        if dd_new is not None:
+            dd = dd_new if dd is None else torch.where(keep, dd_new, dd)
+        elif dd is not None:
+            dd = dd.masked_fill(keep, 0.0)
+        return x, dd, c
+
+    def _state_events(self, b, t_k, x_k, dx1, t_new, x_new, z_new, dd_row, c_row):
+        """Locate and handle the state events of element b in its step (t_k, t_new]; returns the
+        element's (state at t_new [n], dd row, c row)."""
+        z_k = self.z[b]
+        for _ in range(MAX_EVENTS_PER_STEP):
+            self.counts["state_events"] += 1
+            dense = self._dense_output(b, t_k, x_k, dx1, t_new, x_new, c_row)
+            theta, z_hi, which = self._locate(b, t_k, t_new, dense, z_k, z_new)
+            t_star = t_k + theta * (t_new - t_k)
+            x_minus, t_e, signs = self._pre_event_state(b, dense, theta, t_k, t_new, t_star, z_k, z_hi, which)
+            grad = self.event_grad and self.ev.can_snapshot and x_minus.requires_grad
+            outcome = self.ev.handle_event(b, t_star, x_minus.detach().numpy(), self._u(b, t_star),
+                                           self.sens if grad else None, signs)
+            self.next_event[b] = outcome.next_event_time
+            self.done[b] |= outcome.terminate
+            x_plus, dd_row, c_row = self._apply_event(outcome, x_minus, dd_row, c_row, grad)
+            z_k = self.instances[b].get_event_indicators()
+            if self.done[b]:
+                self.z[b] = z_k
+                return x_plus, dd_row, c_row
+            # the rest of the step, back to the grid
+            h_rest = (t_new - t_e).reshape(1, 1) if isinstance(t_e, torch.Tensor) else np.array([t_new - t_e])
+            t_k, x_k = t_star, x_plus
+            x_new_row, dx1_row, _ = self.step([b], np.array([t_star]), x_plus[None], h_rest, c_row)
+            x_new, dx1 = x_new_row[0], dx1_row[0]
+            z_new = self.ev.indicators(b, t_new, x_new.detach().numpy(), self._u(b, t_new))
+            if not crossed(z_k, z_new).any():
+                self.z[b] = z_new
+                return x_new, dd_row, c_row
+        raise FmuBuilderError(f"more than {MAX_EVENTS_PER_STEP} state events in one step at t={t_new:.6g} "
+                              "(chattering or Zeno behaviour); reduce the step size or fix the model")
+
+    def _dense_output(self, b, t_k, x_k, dx1, t_new, x_new, c_row):
+        """theta -> state at t_k + theta (t_new - t_k), usable with numpy floats and tensors."""
+        if not self.rk4:
+            return lambda theta: x_k + theta * (x_new - x_k)
+        h = t_new - t_k
+        f_new, _ = self.rhs([b], np.array([t_new]), x_new[None], c_row)
+        f_new = f_new[0]
+
+        def hermite(theta):
+            t2 = theta * theta
+            t3 = t2 * theta
+            return ((2 * t3 - 3 * t2 + 1) * x_k + (t3 - 2 * t2 + theta) * h * dx1
+                    + (-2 * t3 + 3 * t2) * x_new + (t3 - t2) * h * f_new)
+        return hermite
+
+    def _locate(self, b, t_k, t_new, dense, z_lo, z_hi):
+        """Secant steps with bisection safeguard on theta in [0, 1]; returns (theta beyond the crossing,
+        indicators there, index of the crossing indicator)."""
+        h = t_new - t_k
+        lo, hi = 0.0, 1.0
+        tol = max(time_tolerance(t_new), 1e-12 * h) / h
+        bisect = False
+        with torch.no_grad():
+            for _ in range(200):
+                if hi - lo <= tol:
+                    break
+                mask = crossed(z_lo, z_hi)
+                if bisect:
+                    theta = 0.5 * (lo + hi)
+                else:
+                    zl, zh = z_lo[mask], z_hi[mask]
+                    theta = float(np.min(lo + (hi - lo) * zl / (zl - zh)))
+                    if not lo < theta < hi:
+                        theta = 0.5 * (lo + hi)
+                width = hi - lo
+                x_theta = dense(theta).detach().numpy()
+                z = self.ev.indicators(b, t_k + theta * h, x_theta, self._u(b, t_k + theta * h))
+                if crossed(z_lo, z).any():
+                    hi, z_hi = theta, z
+                else:
+                    lo, z_lo = theta, z
+                bisect = (hi - lo) > 0.5 * width
+        mask = crossed(z_lo, z_hi)
+        which = int(np.flatnonzero(mask)[np.argmax(np.abs(z_lo[mask] - z_hi[mask]))])
+        return hi, z_hi, which
+
+    def _pre_event_state(self, b, dense, theta, t_k, t_new, t_star, z_k, z_hi, j):
+        """x(t_e) with t_e differentiable through the implicit-function correction (see module doc)."""
+        h = t_new - t_k
+        x_star = dense(theta)
+        if not (self.event_grad and x_star.requires_grad):
+            return x_star.detach(), t_star, None
+        x_np = x_star.detach().numpy()
+        gz, dz_dt = self.ev.indicator_gradient(b, t_star, x_np, j, self._u(b, t_star))
+        eps = 1e-7
+        with torch.no_grad():
+            slope = ((dense(min(theta + eps, 1.0)) - dense(max(theta - eps, 0.0))) /
+                     ((min(theta + eps, 1.0) - max(theta - eps, 0.0)) * h)).numpy()
+        zdot = float(gz @ slope) + dz_dt
+        if zdot == 0.0 or not math.isfinite(zdot):
+            return x_star, t_star, None
+        z_dev = (torch.from_numpy(gz) * (x_star - x_star.detach())).sum()
+        shift = -z_dev / zdot  # zero in value: the dense output is taken at exactly the located theta
+        t_e = t_star + shift
+        x_minus = dense(theta + shift / h)
+        side = np.sign(z_hi[j]) if z_hi[j] != 0 else -np.sign(z_k[j])
+        signs = np.ones(self.n + self.ev.P)
+        signs[: self.n] = np.where(gz != 0, side * np.sign(gz), 1.0)
+        return x_minus, t_e, signs
+
+    def _apply_event(self, outcome, x_minus, dd_row, c_row, grad):
+        """Post-event (state [n], dd row, c row) of one element from its EventOutcome."""
+        if not grad or outcome.B is None:
+            if outcome.values_changed:
+                return torch.from_numpy(outcome.x_plus) + (x_minus - x_minus.detach()), dd_row, c_row
+            return x_minus, dd_row, c_row
+        x_row, dd_row, c_row = self._single_row_event(x_minus, outcome, dd_row, c_row)
+        return x_row, dd_row, c_row
+
+    def _single_row_event(self, x_minus, outcome, dd_row, c_row):
+        dev = self._known_deviation(x_minus[None])
+        x, dd, c = self._linearised_event(x_minus[None], dev, {0: outcome}, dd_row, c_row, np.ones(1, dtype=bool))
+        return x[0], dd, c

@@ -1,0 +1,168 @@
+"""A NeuralFMU as the engine's HybridSystem: forward simulation without torch in the loop.
+
+`NeuralFmuSystem` is an `FmuSystem` whose derivatives pass through the topology, evaluated in numpy
+with weights frozen when the system is built. Pre-processing is folded into the first layer and
+post-processing and the ANN gate into the last, so one evaluation is a few small matrix products:
+
+    z1 = W1' a + b1'        W1' = W1 diag(pre_scale),  b1' = b1 - W1' pre_shift
+    ...
+    r' = WL' h + bL'        WL' = diag(gate_ann post_scale) WL,  bL' = gate_ann (post_scale bL + post_shift)
+    dx_c = r' + gate_fmu der_fmu_c
+
+The untrained hybrid (gate_ann = 0) skips the network and returns the FMU's derivatives exactly.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..errors import FmuBuilderError
+from ..simulation import SimulationResult, make_solver, output_grid, run
+from ..simulation.inputs import InputSignals
+from ..simulation.system import FmuSystem
+from .model import NeuralFMU
+from .topology import Topology
+
+def _sigmoid(z, out):
+    np.multiply(z, 0.5, out=out)
+    np.tanh(out, out=out)
+    np.multiply(out, 0.5, out=out)
+    return np.add(out, 0.5, out=out)
+
+
+_ACTIVATIONS = {nn.Tanh: np.tanh, nn.ReLU: lambda z, out: np.maximum(z, 0.0, out=out), nn.Sigmoid: _sigmoid}
+
+
+_EMPTY = np.zeros(0)
+
+
+class NumpyTopology:
+    """The topology's forward pass in numpy (see the module docstring). The last layer has no
+    activation (build_ann), so it is applied separately."""
+
+    def __init__(self, topology: Topology):
+        self.n = topology.n_states
+        self.channels = np.array(topology.channel_index, dtype=int)
+        self.source = topology.input_source.numpy().copy()
+        with torch.no_grad():
+            gate_ann = topology.gate_ann.detach().numpy().copy()
+            self.gate_fmu = topology.gate_fmu.detach().numpy().copy()
+            self.active = topology.ann is not None and bool(np.any(gate_ann != 0))
+            self.layers = []
+            if not self.active:
+                return
+            modules = list(topology.ann)
+            linears = [m for m in modules if isinstance(m, nn.Linear)]
+            for module in modules:
+                if isinstance(module, nn.Linear):
+                    W, b = module.weight.numpy().copy(), module.bias.numpy().copy()
+                    if module is linears[0]:
+                        scale, shift = topology.pre_scale.numpy(), topology.pre_shift.numpy()
+                        W = W * scale[None, :]
+                        b = b - W @ shift
+                    if module is linears[-1]:
+                        factor = gate_ann * topology.post_scale.numpy()
+                        b = gate_ann * (topology.post_scale.numpy() * b + topology.post_shift.numpy())
+                        W = factor[:, None] * W
+                    self.layers.append((W, b))
+                else:
+                    self.layers.append(_ACTIVATIONS[type(module)])
+
+        # Preallocated buffers; the inputs are gathered one by one (a handful of scalars is faster
+        # than fancy indexing), the last layer of a single channel is a dot product.
+        n = self.n
+        self._gather = [(0, i) if i < n else (1, i - n) if i < 2 * n else (2, i - 2 * n) for i in self.source]
+        self._z = np.empty(len(self.source))
+        self._hidden, last = [], None
+        for i, layer in enumerate(self.layers):
+            if isinstance(layer, tuple):
+                act = self.layers[i + 1] if i + 1 < len(self.layers) and not isinstance(self.layers[i + 1], tuple) else None
+                last = (layer[0], layer[1], act, np.empty(layer[0].shape[0]))
+                self._hidden.append(last)
+        self._hidden.pop()
+        self._last_W, self._last_b = last[0], last[1]
+        single = len(self.channels) == 1
+        self._single_channel = int(self.channels[0]) if single else None
+        self._single_gate = float(self.gate_fmu[0]) if single else None
+        self._single_row = self._last_W[0].copy() if single else None
+
+    def __call__(self, x: np.ndarray, der: np.ndarray, variables: np.ndarray) -> np.ndarray:
+        """Hybrid derivatives from the state, the FMU's derivatives and the FMU variables it needs.
+        `der` is updated in place and returned."""
+        if not self.active:
+            return der
+        z = self._z
+        sources = (x, der, variables)
+        for j, (kind, index) in enumerate(self._gather):
+            z[j] = sources[kind][index]
+        dot, add = np.dot, np.add
+        for W, b, act, out in self._hidden:
+            dot(W, z, out=out)
+            add(out, b, out=out)
+            if act is not None:
+                act(out, out=out)
+            z = out
+        c = self._single_channel
+        if c is not None:
+            der[c] = dot(self._single_row, z) + self._last_b[0] + self._single_gate * der[c]
+        else:
+            der[self.channels] = self._last_W @ z + self._last_b + self.gate_fmu * der[self.channels]
+        return der
+
+
+class NeuralFmuSystem(FmuSystem):
+    """The engine's HybridSystem for a NeuralFMU (see the module docstring). Recorded derivative
+    names (der(x)) report the hybrid derivatives."""
+
+    def __init__(self, model: NeuralFMU, *, variables: Sequence[str], start_values: dict | None = None,
+                 inputs: InputSignals | None = None, tolerance: float | None = None):
+        values = model.start_values_with_parameters()
+        values.update(start_values or {})
+        super().__init__(model.fmu, variables=variables, start_values=values, inputs=inputs, tolerance=tolerance)
+        self.kernel = NumpyTopology(model.topology)
+        info = model.info
+        self._read_variables = self.instance.real_getter(
+            [info.variable(name).value_reference for name in model.topology.fmu_variables])
+        self._has_variables = bool(model.topology.fmu_variables)
+        derivative_names = [v.name for v in info.derivatives]
+        self._derivative_columns = [(j, derivative_names.index(name)) for j, name in enumerate(self.output_names)
+                                    if name in derivative_names]
+
+    def derivatives(self, t: float, x: np.ndarray) -> np.ndarray:
+        der = super().derivatives(t, x)
+        kernel = self.kernel
+        if not kernel.active:
+            return der
+        return kernel(x, der, self._read_variables() if self._has_variables else _EMPTY)
+
+    def outputs(self, times: np.ndarray, states: np.ndarray) -> np.ndarray:
+        table = super().outputs(times, states)
+        if self._derivative_columns and self.kernel.active:
+            for row, t in enumerate(times):
+                dx = self.derivatives(float(t), states[row])
+                for column, i in self._derivative_columns:
+                    table[row, column] = dx[i]
+        return table
+
+
+def simulate_hybrid(model: NeuralFMU, *, start_time: float, stop_time: float, variables: Sequence[str],
+                    solver: str = "euler", step_size: float | None = None, output_interval: float | None = None,
+                    inputs: InputSignals | None = None, rtol: float = 1e-6) -> SimulationResult:
+    """Forward simulation of a NeuralFMU with fmubuilder's engine (numpy, no gradients)."""
+    if not stop_time > start_time:
+        raise FmuBuilderError(f"stop time {stop_time:g} is not after start time {start_time:g}")
+    adaptive = solver == "dopri5"
+    if not adaptive and not step_size:
+        raise FmuBuilderError(f"the fixed-step solver '{solver}' needs a step size")
+    integrator = make_solver(solver, rtol=rtol, atol=1e-8, max_step=step_size or (stop_time - start_time) / 50) \
+        if adaptive else make_solver(solver, step_size=step_size)
+    system = NeuralFmuSystem(model, variables=variables, inputs=inputs, tolerance=rtol if adaptive else None)
+    try:
+        interval = output_interval or step_size or (stop_time - start_time) / 500
+        return run(system, integrator, start_time=start_time, stop_time=stop_time,
+                   output_times=output_grid(start_time, stop_time, interval))
+    finally:
+        system.close()

@@ -1,0 +1,208 @@
+"""NeuralFMU topologies: how a small ANN is wired around the FMU's state derivatives.
+
+The structure follows the NeuralFMU workflow of Thummerer et al.: the FMU computes all state
+derivatives (and any other variable the ANN needs), an ANN corrects a chosen subset of them
+(the *channels*), and learnable pre-/post-processing and gates keep the start of training at the
+first-principle model:
+
+    a     = inputs                                 FMU variables: states, derivatives, outputs, inputs, locals
+    z     = (a - pre_shift) * pre_scale            roughly standard normal on the reference simulation
+    o     = ann(z)                                 Linear + Tanh/Sigmoid/ReLU layers, one output per channel
+    r     = o * post_scale + post_shift            scaled to the channel's magnitude
+    dx_c  = gate_ann * r + gate_fmu * der_fmu_c    for each channel c; other derivatives pass through
+
+Kinds (`TopologyConfig.kind`):
+* "gates"    - gate_ann = 0 and gate_fmu = 1 at the start, both trainable: the untrained hybrid
+               equals the FMU exactly; training blends ANN and FMU per channel. post_shift starts
+               at the channel's mean, so the ANN (after neutral pre-training) predicts the whole
+               derivative.
+* "residual" - gates fixed at 1 and 1 (buffers, not trained), the last Linear starts at zero and
+               post_shift at 0: dx_c = der_fmu_c + correction, zero at the start.
+
+Trained tunable FMU parameters (`parameters`) are part of the topology too (`fmu_parameters`).
+Everything is float64. `config.to_dict()` is JSON-able and, with the state_dict, regenerates the
+module; the export stage reads `ann` (an ONNX-exportable nn.Sequential) and the plain tensors
+pre_shift, pre_scale, post_scale, post_shift, gate_ann, gate_fmu.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from ..errors import FmuBuilderError
+from ..fmi import ModelInfo
+
+KINDS = ("gates", "residual")
+ACTIVATIONS = {"tanh": nn.Tanh, "sigmoid": nn.Sigmoid, "relu": nn.ReLU}
+_ACTIVATION_FN = {nn.Tanh: torch.tanh, nn.Sigmoid: torch.sigmoid, nn.ReLU: torch.relu}
+DTYPE = torch.float64
+
+
+@dataclass
+class TopologyConfig:
+    """A JSON-able description of a NeuralFMU topology."""
+    channels: list[str] = field(default_factory=list)   # derivatives the ANN acts on, e.g. ["der(v)"]
+    inputs: list[str] = field(default_factory=list)     # FMU variables fed to the ANN
+    hidden: list[int] = field(default_factory=lambda: [16, 16])
+    activation: str = "tanh"
+    kind: str = "gates"
+    parameters: list[str] = field(default_factory=list)  # tunable FMU parameters trained as well
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "TopologyConfig":
+        known = {f for f in cls.__dataclass_fields__}
+        unknown = set(data) - known
+        if unknown:
+            raise FmuBuilderError(f"unknown topology fields {sorted(unknown)}; known fields: {sorted(known)}")
+        return cls(**{k: list(v) if isinstance(v, (list, tuple)) else v for k, v in data.items()})
+
+    def validate(self, info: ModelInfo) -> None:
+        if self.kind not in KINDS:
+            raise FmuBuilderError(f"unknown topology '{self.kind}': choose one of {', '.join(KINDS)}")
+        if self.activation not in ACTIVATIONS:
+            raise FmuBuilderError(f"unknown activation '{self.activation}': choose one of {', '.join(ACTIVATIONS)}")
+        if any(not isinstance(h, int) or h < 1 for h in self.hidden):
+            raise FmuBuilderError(f"hidden layer sizes must be positive integers, got {self.hidden}")
+        derivatives = {v.name for v in info.derivatives}
+        for name in self.channels:
+            info.variable(name)
+            if name not in derivatives:
+                raise FmuBuilderError(
+                    f"target '{name}' is not a state derivative of {info.model_name}; "
+                    f"choose among {', '.join(sorted(derivatives)) or '(none)'}")
+        if len(set(self.channels)) != len(self.channels):
+            raise FmuBuilderError(f"duplicate targets in {self.channels}")
+        if self.channels and not self.inputs:
+            raise FmuBuilderError("the ANN needs at least one input: give FMU variable names, e.g. --inputs v,der(v)")
+        for name in self.inputs:
+            var = info.variable(name)
+            if var.type != "Real":
+                raise FmuBuilderError(f"ANN input '{name}' is a {var.type} variable; use Real variables")
+        if self.inputs and not self.channels:
+            raise FmuBuilderError("ANN inputs given but no targets: give at least one derivative, e.g. --target 'der(v)'")
+
+
+class Topology(nn.Module):
+    """The trainable part of a NeuralFMU (see the module docstring)."""
+
+    def __init__(self, config: TopologyConfig, info: ModelInfo, parameter_values: list[float] | None = None):
+        super().__init__()
+        config.validate(info)
+        self.config = config
+        n = info.n_states
+        self.n_states = n
+        state_names = [v.name for v in info.states]
+        derivative_names = [v.name for v in info.derivatives]
+        self.channel_index = [derivative_names.index(c) for c in config.channels]
+        # Variables the FMU must report besides its derivatives, in the order of `out[:, n:]`.
+        self.fmu_variables = [name for name in config.inputs if name not in state_names and name not in derivative_names]
+        # ANN input i is column source[i] of cat([x, out[:, :n + len(fmu_variables)]]).
+        source = []
+        for name in config.inputs:
+            if name in state_names:
+                source.append(state_names.index(name))
+            elif name in derivative_names:
+                source.append(n + derivative_names.index(name))
+            else:
+                source.append(2 * n + self.fmu_variables.index(name))
+        self.register_buffer("input_source", torch.tensor(source, dtype=torch.long), persistent=False)
+        self.register_buffer("channels_t", torch.tensor(self.channel_index, dtype=torch.long), persistent=False)
+        n_in, n_out = len(config.inputs), len(config.channels)
+        self.ann = build_ann(n_in, config.hidden, n_out, config.activation) if n_out else None
+        ones_in, ones_out = torch.ones(n_in, dtype=DTYPE), torch.ones(n_out, dtype=DTYPE)
+        self.pre_shift = nn.Parameter(torch.zeros(n_in, dtype=DTYPE))
+        self.pre_scale = nn.Parameter(ones_in.clone())
+        self.post_scale = nn.Parameter(ones_out.clone())
+        self.post_shift = nn.Parameter(torch.zeros(n_out, dtype=DTYPE))
+        if config.kind == "gates":
+            self.gate_ann = nn.Parameter(torch.zeros(n_out, dtype=DTYPE))
+            self.gate_fmu = nn.Parameter(ones_out.clone())
+        else:
+            self.register_buffer("gate_ann", ones_out.clone())
+            self.register_buffer("gate_fmu", ones_out.clone())
+            if self.ann is not None:
+                last = self.ann[-1]
+                nn.init.zeros_(last.weight)
+                nn.init.zeros_(last.bias)
+        values = parameter_values if parameter_values is not None else [
+            float(info.variable(p).start or 0.0) for p in config.parameters]
+        self.fmu_parameters = nn.Parameter(torch.tensor(values, dtype=DTYPE).reshape(len(config.parameters)),
+                                           requires_grad=bool(config.parameters))
+
+    @property
+    def has_ann(self) -> bool:
+        return self.ann is not None
+
+    def is_neutral(self) -> bool:
+        """Whether the hybrid equals the FMU exactly: no ANN, a zero ANN gate, or (residual) a zero
+        last layer with a zero post-shift."""
+        if self.ann is None or not bool(self.gate_ann.any()):
+            return True
+        last = self.ann[-1]
+        return not (bool(last.weight.any()) or bool(last.bias.any()) or bool(self.post_shift.any()))
+
+    def ann_inputs(self, x: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
+        """The raw ANN inputs [B, n_in] from states x [B, n] and FMU results out [B, n + k]."""
+        width = 2 * self.n_states + len(self.fmu_variables)
+        return torch.cat([x, out[:, : width - self.n_states]], dim=1).index_select(1, self.input_source)
+
+    def correction(self, inputs: torch.Tensor) -> torch.Tensor:
+        """r = post(ann(pre(inputs))) for raw ANN inputs [B, n_in]: the channel values [B, C]."""
+        z = (inputs - self.pre_shift) * self.pre_scale
+        # The layers called directly: nn.Module dispatch costs more than these tiny products.
+        for layer in self.ann:
+            z = F.linear(z, layer.weight, layer.bias) if isinstance(layer, nn.Linear) else _ACTIVATION_FN[type(layer)](z)
+        return z * self.post_scale + self.post_shift
+
+    def forward(self, x: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
+        """Hybrid state derivatives [B, n] from states x and FMU results out = [der | variables]."""
+        derivatives = out[:, : self.n_states]
+        if self.ann is None:
+            return derivatives
+        if not torch.is_grad_enabled() and self.gate_ann.count_nonzero() == 0:
+            return derivatives  # 0 * ann + 1 * der: the FMU's derivatives (the untrained hybrid)
+        fmu_channels = derivatives.index_select(1, self.channels_t)
+        mixed = self.gate_ann * self.correction(self.ann_inputs(x, out)) + self.gate_fmu * fmu_channels
+        return derivatives.index_copy(1, self.channels_t, mixed)
+
+    # -- initialisation from a reference simulation of the plain FMU -------------------------
+    def initialise_scaling(self, inputs: np.ndarray, channels: np.ndarray) -> None:
+        """Set pre-/post-processing from samples of the raw ANN inputs [N, n_in] and of the FMU's
+        channel derivatives [N, C] along a reference simulation of the plain FMU."""
+        if self.ann is None:
+            return
+        with torch.no_grad():
+            mean, std = inputs.mean(axis=0), inputs.std(axis=0)
+            self.pre_shift.copy_(torch.from_numpy(mean))
+            self.pre_scale.copy_(torch.from_numpy(1.0 / _safe_scale(std, mean)))
+            c_mean, c_std = channels.mean(axis=0), channels.std(axis=0)
+            self.post_scale.copy_(torch.from_numpy(_safe_scale(c_std, c_mean)))
+            if self.config.kind == "gates":
+                self.post_shift.copy_(torch.from_numpy(c_mean))
+
+    def neutral_target(self, channels: torch.Tensor) -> torch.Tensor:
+        """What the ANN part r should output to leave the hybrid unchanged whatever the gates:
+        the FMU's channel derivative (gates) or zero (residual)."""
+        return channels if self.config.kind == "gates" else torch.zeros_like(channels)
+
+
+def build_ann(n_in: int, hidden: list[int], n_out: int, activation: str) -> nn.Sequential:
+    layers, width = [], n_in
+    for size in hidden:
+        layers += [nn.Linear(width, size, dtype=DTYPE), ACTIVATIONS[activation]()]
+        width = size
+    layers.append(nn.Linear(width, n_out, dtype=DTYPE))
+    return nn.Sequential(*layers)
+
+
+def _safe_scale(std: np.ndarray, mean: np.ndarray) -> np.ndarray:
+    """A positive scale: the standard deviation, or the magnitude (or 1) for constant signals."""
+    fallback = np.where(np.abs(mean) > 0, np.abs(mean), 1.0)
+    return np.where(std > 1e-12 * np.maximum(np.abs(mean), 1.0), std, fallback)

@@ -1,0 +1,540 @@
+"""Training a NeuralFMU on measured data.
+
+Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
+1. Reference simulation of the plain FMU over the data, with the same fixed-step solver. It gives the
+   pre-/post-processing scales (ANN inputs roughly standard normal, outputs at the channel's
+   magnitude) and the start of every batch element: the measured data hold no controller states, so
+   each element starts from the FMU state saved by the reference (fmi2GetFMUstate, serialized; it
+   carries the discrete states), with the measured states set to their measured values.
+   Unmeasured states of the plain FMU can be far from the truth (a controller integral that
+   compensates an unmodelled load), and their transient at each element start would dominate the
+   loss. So after pre-training the starts are captured again from a simulation of the hybrid, and
+   during training each element's final FMU state becomes the next element's start (carry-over),
+   so the starts follow the model as it learns.
+2. Neutral-initialisation pre-training (NIPT): the ANN part is fitted to leave the hybrid unchanged
+   (the FMU's channel derivative for gates, zero for residual) on inputs from the reference.
+3. Optional collocation pre-training (CCPT) for channels der(s) whose state s is measured: the FMU is
+   run with the measured states forced to the data (its events still happen), the derivative of
+   s is estimated from the data by local linear fits, and the ANN is fitted to the residual without
+   the ODE solver. The ANN gate is set to 1 first if it was 0.
+4. Training: the data are cut into elements (default 100 s) simulated side by side; the loss is the
+   MSE per measured signal divided by the signal's variance (weighted by the uncertainty band when
+   the CSV has <signal>_std columns), averaged over the signals. Adam with exponential step-size
+   decay per epoch; elements in random order, `batch_size` side by side, or sequential (time order,
+   one at a time, each continuing the state just computed). Fixed seeds, a time budget, a
+   checkpoint after every epoch, and resume.
+5. Errors before (plain FMU) and after (trained hybrid) over the whole data, simulated with
+   fmubuilder's engine.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import random
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from ..errors import FmuBuilderError
+from ..export.files import write_atomically
+from .data import MeasuredData, load_data
+from .io import save_neural_fmu
+from .model import NeuralFMU
+from .solve import ElementStart, simulate
+from .system import simulate_hybrid
+from .topology import TopologyConfig
+
+
+@dataclass
+class TrainSettings:
+    epochs: int = 30
+    element_length: float = 100.0     # seconds of data per batch element
+    order: str = "random"             # "random" (from reference snapshots) or "sequential" (carry-over)
+    batch_size: int = 0               # elements per optimizer step; 0: all elements at once
+    step_size: float | None = None    # default: the FMU's DefaultExperiment stepSize
+    solver: str = "euler"
+    learning_rate: float = 3e-3
+    decay: float = 0.95               # step-size factor per epoch
+    nipt_iterations: int = 400
+    ccpt_iterations: int = 0          # 0: no collocation pre-training
+    ccpt_window: float = 1.0          # seconds of data per local derivative fit
+    time_budget: float | None = None  # seconds for the whole training call
+    seed: int = 0
+    loss_signals: list[str] | None = None  # default: every measured signal
+    checkpoint: str | None = None     # default: <output>.ckpt when an output is given
+    resume: bool = False
+    progress: bool = True
+    threads: int | None = 1           # torch intra-op threads (tiny tensors: 1 is fastest)
+
+
+@dataclass
+class TrainingResult:
+    model: NeuralFMU
+    metrics: dict
+    history: list[dict] = field(default_factory=list)
+
+
+# ------------------------------------------------------------------------------------------
+# entry point
+
+def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, targets: Sequence[str],
+                     inputs: Sequence[str], start_values: dict | None = None, topology: str = "residual",
+                     hidden: Sequence[int] = (16, 16), activation: str = "tanh", parameters: Sequence[str] = (),
+                     settings: TrainSettings | None = None, output: str | Path | None = None,
+                     metrics_path: str | Path | None = None, force: bool = False,
+                     test_data: str | Path | MeasuredData | None = None,
+                     test_start_values: dict | None = None, on_epoch=None, **overrides) -> TrainingResult:
+    """Train a NeuralFMU around `fmu` on `data` (see the module docstring).
+
+    targets: derivative channels, e.g. ["der(speed)"]; inputs: FMU variables fed to the ANN;
+    topology: "residual" (default; on the VLDM it learns about ten times faster per epoch) or "gates";
+    settings or keyword overrides of TrainSettings (epochs=...).
+    Writes the trained model to `output` and the errors to `metrics_path` (JSON) when given.
+    on_epoch(epoch, trainer) is called after every epoch; returning True stops the training.
+    """
+    settings = _settings(settings, overrides)
+    started = time.perf_counter()
+    _check_outputs(output, metrics_path, force)
+    _seed(settings.seed)
+    if settings.threads:
+        torch.set_num_threads(settings.threads)
+    config = TopologyConfig(channels=list(targets), inputs=list(inputs), hidden=list(hidden),
+                            activation=activation, kind=topology, parameters=list(parameters))
+    model = NeuralFMU(fmu, config, start_values)
+    try:
+        data = data if isinstance(data, MeasuredData) else load_data(data, model.info)
+        trainer = Trainer(model, data, settings, started)
+        trainer.prepare()
+        before = trainer.evaluate_plain()
+        trainer.fit(checkpoint=_checkpoint_path(settings, output), on_epoch=on_epoch)
+        after = evaluate(model, data, trainer.step, settings.solver)
+        metrics = {"errors": {"before": before, "after": after},
+                   "seconds": time.perf_counter() - started, "epochs": trainer.epochs_done,
+                   "loss": trainer.history[-1]["loss"] if trainer.history else None,
+                   "settings": asdict(settings)}
+        if test_data is not None:
+            test = test_data if isinstance(test_data, MeasuredData) else load_data(test_data, model.info)
+            if test_start_values is None and not isinstance(test_data, MeasuredData):
+                test_start_values = _sidecar_start_values(test_data)
+            metrics["test_errors"] = {
+                "before": evaluate(model, test, trainer.step, settings.solver, start_values=test_start_values, plain=True),
+                "after": evaluate(model, test, trainer.step, settings.solver, start_values=test_start_values)}
+        if output is not None:
+            save_neural_fmu(model, output, metadata={"data": data.source, "metrics": metrics}, force=True)
+        if metrics_path is not None:
+            write_atomically(Path(metrics_path), json.dumps(metrics, indent=2, default=float) + "\n")
+        return TrainingResult(model, metrics, trainer.history)
+    except BaseException:
+        model.close()
+        raise
+
+
+def _settings(settings: TrainSettings | None, overrides: dict) -> TrainSettings:
+    unknown = set(overrides) - set(TrainSettings.__dataclass_fields__)
+    if unknown:
+        raise FmuBuilderError(f"unknown training settings {sorted(unknown)}; known: {sorted(TrainSettings.__dataclass_fields__)}")
+    settings = dataclasses.replace(settings or TrainSettings(), **overrides)
+    if settings.order not in ("random", "sequential"):
+        raise FmuBuilderError(f"unknown element order '{settings.order}': use random or sequential")
+    if settings.epochs < 0:
+        raise FmuBuilderError(f"epochs must be >= 0, got {settings.epochs}")
+    if not settings.element_length > 0:
+        raise FmuBuilderError(f"element length must be positive, got {settings.element_length}")
+    if settings.time_budget is not None and not settings.time_budget > 0:
+        raise FmuBuilderError(f"time budget must be positive seconds, got {settings.time_budget}")
+    return settings
+
+
+def _sidecar_start_values(path) -> dict | None:
+    """Start values recorded next to a data file by `fmubuilder synth` (e.g. the driving cycle)."""
+    from ..synth import read_sidecar
+    meta = read_sidecar(path)
+    return dict(meta.get("start_values") or {}) if meta else None
+
+
+def _check_outputs(output, metrics_path, force: bool) -> None:
+    for path in (output, metrics_path):
+        if path is None:
+            continue
+        path = Path(path)
+        if path.exists() and not force:
+            raise FmuBuilderError(f"{path} exists; choose another output path or pass --force to overwrite it")
+        if not path.parent.is_dir():
+            raise FmuBuilderError(f"cannot write {path}: directory {path.parent} does not exist; create it first")
+
+
+def _checkpoint_path(settings: TrainSettings, output) -> Path | None:
+    if settings.checkpoint:
+        return Path(settings.checkpoint)
+    return Path(str(output) + ".ckpt") if output is not None else None
+
+
+def _seed(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+# ------------------------------------------------------------------------------------------
+# errors of a model on data
+
+def evaluate(model: NeuralFMU, data: MeasuredData, step: float, solver: str = "euler",
+             start_values: dict | None = None, plain: bool = False) -> dict:
+    """{signal: {"mse", "max_abs", "final"}} of the hybrid (or, with plain, of the FMU alone: the ANN
+    gated off, trained FMU parameters kept) over the whole data, simulated from the data's start
+    with the engine; measured states start at their first measured value."""
+    names = list(data.signals)
+    if plain:
+        saved = model.topology.gate_ann.detach().clone(), model.topology.gate_fmu.detach().clone()
+        with torch.no_grad():
+            model.topology.gate_ann.zero_()
+            model.topology.gate_fmu.fill_(1.0)
+    try:
+        result = _simulate_over(model, data, step, solver, names, start_values)
+    finally:
+        if plain:
+            with torch.no_grad():
+                model.topology.gate_ann.copy_(saved[0])
+                model.topology.gate_fmu.copy_(saved[1])
+    errors = {}
+    for name in names:
+        predicted = np.interp(data.time, result.time, result[name])
+        diff = predicted - data.signals[name]
+        errors[name] = {"mse": float(np.mean(diff ** 2)), "max_abs": float(np.max(np.abs(diff))),
+                        "final": float(abs(diff[-1]))}
+    return errors
+
+
+def _simulate_over(model, data, step, solver, names, start_values):
+    original = dict(model.start_values)
+    model.start_values.update(measured_initial_states(model, data))
+    model.start_values.update(start_values or {})
+    try:
+        return simulate_hybrid(model, start_time=data.start, stop_time=data.stop, variables=names,
+                               solver=solver, step_size=step, output_interval=step,
+                               inputs=_engine_inputs(model, data))
+    finally:
+        model.start_values = original
+
+
+def measured_initial_states(model: NeuralFMU, data: MeasuredData) -> dict:
+    """Start values of the measured continuous states: their first measured value."""
+    return {s: float(data.signals[s][0]) for s in model.state_names() if s in data.signals}
+
+
+def _engine_inputs(model, data):
+    if not data.inputs:
+        return None
+    from ..simulation.inputs import input_signals_from
+    return input_signals_from({"time": data.time, **data.inputs}, model.info)
+
+
+# ------------------------------------------------------------------------------------------
+# the trainer
+
+class Trainer:
+    """One training run: reference, pre-training, the epoch loop (see the module docstring)."""
+
+    def __init__(self, model: NeuralFMU, data: MeasuredData, settings: TrainSettings, started: float):
+        self.model, self.data, self.settings, self.started = model, data, settings, started
+        info = model.info
+        self.step = float(settings.step_size or info.default_experiment.step_size or
+                          (data.stop - data.start) / max(10 * data.time.size, 1000))
+        self.loss_signals = list(settings.loss_signals or data.signals)
+        for name in self.loss_signals:
+            if name not in data.signals:
+                raise FmuBuilderError(f"loss signal '{name}' is not a column of {data.source}; "
+                                      f"choose among {', '.join(data.signals)}")
+        self.scale = {name: _variance(data.signals[name]) for name in self.loss_signals}
+        self.inputs = data.input_signals()
+        self.history: list[dict] = []
+        self.epochs_done = 0
+        self.elements: list[_Element] = []
+        self.reference = None
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.started
+
+    def out_of_time(self) -> bool:
+        budget = self.settings.time_budget
+        return budget is not None and self.elapsed() > budget
+
+    # -- preparation --------------------------------------------------------------------------
+    def prepare(self) -> None:
+        starts = plan_elements(self.data.start, self.data.stop, self.settings.element_length, self.step)
+        self.element_duration = min(self.settings.element_length, self.data.stop - self.data.start)
+        self.reference = self._reference(starts)
+        self.model.topology.initialise_scaling(*self._scaling_samples())
+        if self.settings.nipt_iterations and self.model.topology.has_ann and self.model.config.kind == "gates":
+            neutral_pretraining(self.model, *self._scaling_samples(), iterations=self.settings.nipt_iterations)
+        if self.settings.ccpt_iterations and self.model.topology.has_ann:
+            collocation_pretraining(self)
+        if not self.model.topology.is_neutral():
+            self._capture_starts(plain=False)
+
+    def _reference(self, starts: list[float]):
+        """Plain-FMU simulation over the data; FMU states saved at the element starts."""
+        self.start_times = starts
+        ref = self._capture_starts(plain=True)
+        for index, element_start in enumerate(self._captured):
+            self.elements.append(_Element(index, element_start, self._targets(element_start.t0)))
+        return ref
+
+    def _capture_starts(self, plain: bool):
+        """Simulate over the whole data (no gradient) and save the FMU state at each element start;
+        with `plain` the ANN is switched off (gate_ann = 0)."""
+        model, data = self.model, self.data
+        grid_index = [int(round((s - data.start) / self.step)) for s in self.start_times]
+        first = ElementStart(data.start, states=measured_initial_states(model, data))
+        with torch.no_grad():
+            saved = model.topology.gate_ann.detach().clone()
+            if plain:
+                model.topology.gate_ann.zero_()
+            try:
+                run = simulate(model, data.stop - data.start, self.step, starts=[first],
+                               record=self._reference_names(), solver=self.settings.solver, inputs=self.inputs,
+                               capture=grid_index)
+            finally:
+                model.topology.gate_ann.copy_(saved)
+        self._captured = [self._with_measured_states(run.captured[k][0]) for k in grid_index]
+        for element, start in zip(self.elements, self._captured):
+            element.start = start
+        return run
+
+    def _with_measured_states(self, start: ElementStart) -> ElementStart:
+        measured = [s for s in self.model.state_names() if s in self.data.signals]
+        start.states = {s: float(self.data.at(s, start.t0)) for s in measured}
+        return start
+
+    def _reference_names(self) -> list[str]:
+        names = list(dict.fromkeys(self.model.config.inputs + self.model.config.channels + list(self.data.signals)))
+        return names
+
+    def _scaling_samples(self) -> tuple[np.ndarray, np.ndarray]:
+        ref, config = self.reference, self.model.config
+        inputs = np.stack([ref.numpy(name)[:, 0] for name in config.inputs], axis=1) if config.inputs else np.zeros((0, 0))
+        channels = np.stack([ref.numpy(name)[:, 0] for name in config.channels], axis=1) if config.channels else np.zeros((0, 0))
+        return inputs, channels
+
+    def _targets(self, t0: float) -> dict:
+        """Data points of the element starting at t0: grid positions and measured values per signal."""
+        data, h = self.data, self.step
+        t1 = t0 + self.element_duration
+        inside = (data.time >= t0) & (data.time <= t1 + 1e-9 * max(1.0, abs(t1)))
+        times = data.time[inside]
+        position = (times - t0) / h
+        K = int(math.ceil(self.element_duration / h - 1e-9))
+        k0 = np.clip(np.floor(position).astype(int), 0, K - 1)
+        frac = np.clip(position - k0, 0.0, 1.0)
+        targets = {}
+        for name in self.loss_signals:
+            weight = data.weights(name)[inside]
+            targets[name] = (torch.from_numpy(k0), torch.from_numpy(frac),
+                             torch.from_numpy(np.asarray(data.signals[name], dtype=float)[inside]),
+                             torch.from_numpy(weight))
+        return targets
+
+    def evaluate_plain(self) -> dict:
+        return evaluate(self.model, self.data, self.step, self.settings.solver, plain=True)
+
+    # -- the epoch loop -------------------------------------------------------------------------
+    def fit(self, checkpoint: Path | None = None, on_epoch=None) -> None:
+        settings, model = self.settings, self.model
+        parameters = [p for p in model.topology.parameters() if p.requires_grad]
+        if not parameters or settings.epochs == 0:
+            return
+        optimizer = torch.optim.Adam(parameters, lr=settings.learning_rate)
+        scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=settings.decay)
+        first_epoch = 0
+        if settings.resume and checkpoint is not None and checkpoint.is_file():
+            first_epoch = self._load_checkpoint(checkpoint, optimizer, scheduler)
+        batches = self._batches_per_epoch()
+        bar = _progress(settings.progress, total=settings.epochs * batches, initial=first_epoch * batches)
+        rng = np.random.default_rng(settings.seed + first_epoch)
+        try:
+            for epoch in range(first_epoch, settings.epochs):
+                if self.out_of_time():
+                    break
+                losses = []
+                for batch in self._epoch_batches(rng):
+                    if self.out_of_time():
+                        break
+                    optimizer.zero_grad()
+                    loss = self.batch_loss(batch)
+                    loss.backward()
+                    optimizer.step()
+                    losses.append(float(loss.detach()))
+                    if bar is not None:
+                        bar.update(1)
+                        bar.set_postfix(epoch=epoch + 1, loss=f"{losses[-1]:.4g}")
+                if not losses:
+                    break
+                scheduler.step()
+                self.epochs_done = epoch + 1
+                self.history.append({"epoch": epoch + 1, "loss": float(np.mean(losses)),
+                                     "seconds": self.elapsed(), "lr": scheduler.get_last_lr()[0]})
+                if checkpoint is not None:
+                    self._save_checkpoint(checkpoint, optimizer, scheduler, epoch + 1)
+                if on_epoch is not None and on_epoch(epoch + 1, self):
+                    break
+        finally:
+            if bar is not None:
+                bar.close()
+
+    def _batches_per_epoch(self) -> int:
+        if self.settings.order == "sequential":
+            return len(self.elements)
+        size = self.settings.batch_size or len(self.elements)
+        return math.ceil(len(self.elements) / size)
+
+    def _epoch_batches(self, rng):
+        if self.settings.order == "sequential":
+            return [[e] for e in self.elements]
+        order = rng.permutation(len(self.elements))
+        size = self.settings.batch_size or len(self.elements)
+        return [[self.elements[i] for i in order[j:j + size]] for j in range(0, len(order), size)]
+
+    def batch_loss(self, batch: list["_Element"], carry: bool = True) -> torch.Tensor:
+        """Loss of a batch of elements simulated side by side. With `carry`, each element's final FMU
+        state becomes the start of the element after it."""
+        trajectory = simulate(self.model, self.element_duration, self.step, starts=[e.start for e in batch],
+                              record=self.loss_signals, solver=self.settings.solver, inputs=self.inputs,
+                              keep_final_state=carry)
+        if carry:
+            for element, final in zip(batch, trajectory.final_starts):
+                if element.index + 1 < len(self.elements):
+                    following = self.elements[element.index + 1]
+                    if abs(final.t0 - following.start.t0) <= 1e-6 * self.step:
+                        final.t0 = following.start.t0
+                        following.start = self._with_measured_states(final)
+        loss = 0.0
+        for j, name in enumerate(self.loss_signals):
+            values = trajectory.values[:, :, j]
+            squared, weights = [], []
+            for b, element in enumerate(batch):
+                k0, frac, target, weight = element.targets[name]
+                column = values[:, b]
+                predicted = column[k0] * (1.0 - frac) + column[k0 + 1] * frac
+                squared.append(weight * (predicted - target) ** 2)
+            loss = loss + torch.cat(squared).mean() / self.scale[name]
+        return loss / len(self.loss_signals)
+
+    # -- checkpoints --------------------------------------------------------------------------
+    def _save_checkpoint(self, path: Path, optimizer, scheduler, epoch: int) -> None:
+        import io
+        state = {"epoch": epoch, "topology": self.model.topology.state_dict(),
+                 "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+                 "history": self.history, "torch_rng": torch.get_rng_state(),
+                 "config": self.model.config.to_dict()}
+        buffer = io.BytesIO()
+        torch.save(state, buffer)
+        write_atomically(path, buffer.getvalue())
+
+    def _load_checkpoint(self, path: Path, optimizer, scheduler) -> int:
+        try:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:
+            raise FmuBuilderError(f"cannot read the checkpoint {path} ({type(exc).__name__}); delete it to start over") from None
+        if state.get("config") != self.model.config.to_dict():
+            raise FmuBuilderError(f"the checkpoint {path} belongs to another topology; delete it or train without --resume")
+        self.model.topology.load_state_dict(state["topology"])
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        self.history = list(state["history"])
+        torch.set_rng_state(state["torch_rng"])
+        self.epochs_done = int(state["epoch"])
+        return self.epochs_done
+
+
+@dataclass
+class _Element:
+    index: int
+    start: ElementStart
+    targets: dict
+
+
+def plan_elements(start: float, stop: float, length: float, step: float) -> list[float]:
+    """Element start times on the step grid: every `length` seconds while a whole element fits
+    (at least one element; the last one ends at or before the data's end)."""
+    span = stop - start
+    if span <= length:
+        return [start]
+    count = int(math.floor(span / length + 1e-9))
+    steps_per_element = int(round(length / step))
+    return [start + k * steps_per_element * step for k in range(count)]
+
+
+def _variance(values: np.ndarray) -> float:
+    variance = float(np.var(values))
+    return variance if variance > 0 else max(float(np.mean(np.asarray(values) ** 2)), 1.0)
+
+
+def _progress(enabled: bool, total: int, initial: int):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+    return tqdm(total=total, initial=initial, desc="training", unit="batch", file=sys.stderr, leave=False)
+
+
+# ------------------------------------------------------------------------------------------
+# pre-training
+
+def neutral_pretraining(model: NeuralFMU, inputs: np.ndarray, channels: np.ndarray, iterations: int = 400,
+                        batch: int = 512, learning_rate: float = 3e-3) -> float:
+    """NIPT: fit the ANN part so that it leaves the hybrid unchanged on the reference's inputs.
+    Returns the final relative mean squared error."""
+    topology = model.topology
+    x = torch.from_numpy(np.ascontiguousarray(inputs))
+    target = topology.neutral_target(torch.from_numpy(np.ascontiguousarray(channels)))
+    return _fit_ann(topology, x, target, iterations, batch, learning_rate)
+
+
+def _fit_ann(topology, x: torch.Tensor, target: torch.Tensor, iterations: int, batch: int, learning_rate: float,
+             weights: torch.Tensor | None = None) -> float:
+    """Least-squares fit of topology.correction(x) to target, relative to the target's spread."""
+    scale = target.var(dim=0, unbiased=False).clamp_min(1e-12) if len(target) > 1 else torch.ones(target.shape[1])
+    params = [p for p in topology.ann.parameters()]
+    optimizer = torch.optim.Adam(params, lr=learning_rate)
+    generator = torch.Generator().manual_seed(0)
+    n = x.shape[0]
+    loss = torch.tensor(0.0)
+    for _ in range(iterations):
+        index = torch.randint(0, n, (min(batch, n),), generator=generator)
+        error = (topology.correction(x[index]) - target[index]) ** 2 / scale
+        if weights is not None:
+            error = error * weights[index, None]
+        loss = error.mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    optimizer.zero_grad(set_to_none=True)
+    with torch.no_grad():
+        return float(((topology.correction(x) - target) ** 2 / scale).mean())
+
+
+def collocation_pretraining(trainer: Trainer) -> float:
+    """CCPT (see the module docstring); returns the final relative fit error, nan if no channel
+    has a measured state."""
+    from .collocation import collocation_samples
+    model, settings = trainer.model, trainer.settings
+    samples = collocation_samples(model, trainer.data, trainer.step, settings.solver, settings.ccpt_window,
+                                  trainer.inputs)
+    if samples is None:
+        return math.nan
+    inputs, fmu_channels, measured, mask = samples
+    topology = model.topology
+    with torch.no_grad():
+        if topology.config.kind == "gates" and bool((topology.gate_ann == 0).any()):
+            topology.gate_ann.fill_(1.0)
+        gate_ann, gate_fmu = topology.gate_ann.detach(), topology.gate_fmu.detach()
+    # gate_ann * r + gate_fmu * der_fmu = measured  ->  r = (measured - gate_fmu der_fmu) / gate_ann
+    target = (torch.from_numpy(measured) - gate_fmu * torch.from_numpy(fmu_channels)) / gate_ann
+    neutral = topology.neutral_target(torch.from_numpy(fmu_channels))
+    target = torch.where(torch.from_numpy(mask), target, neutral)  # channels without data stay neutral
+    return _fit_ann(topology, torch.from_numpy(inputs), target, settings.ccpt_iterations, 512, 3e-3)
