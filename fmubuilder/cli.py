@@ -99,6 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     from .diagnose.cli import add_diagnose_parser
     from .export.cli import add_export_parsers
+    from .hybridize.cli import add_hybridize_parser
     from .neural.cli import add_train_parser
     from .synth_cli import add_example_parser, add_synth_parser
     add_synth_parser(sub)
@@ -106,6 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_train_parser(sub)
     add_diagnose_parser(sub)
     add_export_parsers(sub)
+    add_hybridize_parser(sub)
 
     p = sub.add_parser("demo", help="run the whole workflow on the bundled example and write a report")
     p.add_argument("--output", "-o", default="fmubuilder-demo", help="output folder (default: ./fmubuilder-demo)")

@@ -10,7 +10,6 @@ misses its tolerances.
 from __future__ import annotations
 
 import contextlib
-import importlib
 import tempfile
 from pathlib import Path
 
@@ -84,8 +83,5 @@ def _looks_like_json(path: Path) -> bool:
 
 
 def _neural_converter():
-    try:
-        module = importlib.import_module("fmubuilder.neural.io")
-    except ImportError:
-        return None
-    return getattr(module, "to_hybrid_spec", None)
+    from fmubuilder.hybridize.terms import to_hybrid_spec
+    return to_hybrid_spec

@@ -30,7 +30,8 @@ from fmubuilder.export.files import write_atomically
 TEMPLATE_DIR = Path(__file__).resolve().parents[2] / "c_templates"
 
 BINARY_OPS = {"Add": "+", "Sub": "-", "Mul": "*", "Div": "/"}
-ACTIVATIONS = {"Tanh": "tanh", "Sigmoid": "sigmoid", "Relu": "relu"}
+# Elementwise unary operations (Abs and Neg appear in fitted symbolic terms such as k*w*|w|).
+ACTIVATIONS = {"Tanh": "tanh", "Sigmoid": "sigmoid", "Relu": "relu", "Abs": "fabs", "Neg": "neg"}
 SHAPE_OPS = ("Identity", "Reshape", "Flatten", "Squeeze", "Unsqueeze")
 SUPPORTED_OPS = tuple(
     sorted({"Gemm", "MatMul", "Constant", "Shape", *BINARY_OPS, *ACTIVATIONS, *SHAPE_OPS})

@@ -1,0 +1,105 @@
+"""Hybrid specs for the two kinds of added effect: a trained NeuralFMU and a fitted symbolic term.
+
+Both become the same thing for export: a network (ONNX) from FMU variables to the correction
+of one derivative channel, plus the gates (see fmubuilder.export.spec).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from ..errors import FmuBuilderError
+from ..export.freeze import freeze
+from ..export.spec import HybridSpec
+
+DTYPE = torch.float64
+
+
+class _Correction(nn.Module):
+    """The ANN part of a NeuralFMU topology, pre- and post-processing included."""
+
+    def __init__(self, topology):
+        super().__init__()
+        self.topology = topology
+
+    def forward(self, inputs):
+        return self.topology.correction(inputs)
+
+
+def spec_from_neural(model, folder: Path) -> HybridSpec:
+    """Freeze a trained NeuralFMU's correction network and describe the hybrid it forms."""
+    topology = model.topology
+    if topology.config.parameters:
+        raise FmuBuilderError("exporting trained FMU parameters is not supported; train without --parameters")
+    if not topology.has_ann:
+        raise FmuBuilderError("the NeuralFMU has no ANN to export; give at least one target derivative")
+    onnx_path = folder / "network.onnx"
+    freeze(_Correction(topology).eval(), len(topology.config.inputs), onnx_path)
+    spec = HybridSpec(original_fmu=model.fmu_path.resolve(), original_guid=model.guid,
+                      channels=list(topology.config.channels), inputs=list(topology.config.inputs),
+                      onnx=onnx_path, p_ann=topology.gate_ann.detach().tolist(),
+                      p_fmu=topology.gate_fmu.detach().tolist())
+    spec.save(folder / "spec.json")
+    return spec
+
+
+def to_hybrid_spec(trained_path: Path, folder: Path) -> HybridSpec:
+    """The spec of a trained NeuralFMU file (`fmubuilder train -o`), for `fmubuilder export`."""
+    from ..neural.io import load_neural_fmu
+    model = load_neural_fmu(trained_path)
+    try:
+        return spec_from_neural(model, folder)
+    finally:
+        model.close()
+
+
+class FittedTerm(nn.Module):
+    """sum_k coefficient_k * basis_k(w_k - center_k) over the terms of a fitted expression,
+    written with ops the C kernel supports (Sub, Abs, Mul, MatMul, Add)."""
+
+    BASES = ("w", "|w|", "w*|w|", "w^2")
+
+    def __init__(self, terms: list[dict], inputs: list[str]):
+        super().__init__()
+        n = len(inputs)
+        self.register_buffer("center", torch.zeros(n, dtype=DTYPE))
+        self.register_buffer("weights", torch.zeros(len(self.BASES), n, 1, dtype=DTYPE))
+        self.register_buffer("bias", torch.zeros(1, dtype=DTYPE))
+        for term in terms:
+            coefficient = float(term["coefficient"])
+            if term["basis"] == "1":
+                self.bias += coefficient
+                continue
+            if term["basis"] not in self.BASES:
+                raise FmuBuilderError(f"cannot export the term form {term['basis']!r}")
+            i = inputs.index(term["variable"])
+            self.center[i] = float(term["center"])
+            self.weights[self.BASES.index(term["basis"]), i, 0] += coefficient
+        self.used = [b for b in range(len(self.BASES)) if bool(self.weights[b].any())]
+
+    def forward(self, u):
+        w = u - self.center
+        out = self.bias
+        for b in self.used:
+            phi = (w, torch.abs(w), w * torch.abs(w), w * w)[b]
+            out = out + phi @ self.weights[b]
+        return out
+
+
+def spec_from_fitted_term(fitted: dict, fmu_path: Path, guid: str, folder: Path) -> HybridSpec | None:
+    """The hybrid of a fitted term from the diagnosis (None when it depends on time itself,
+    which an FMU cannot take as a variable input)."""
+    terms = fitted["terms"]
+    if any(t["variable"] == "time" for t in terms if t["basis"] != "1"):
+        return None
+    inputs = list(dict.fromkeys(t["variable"] for t in terms if t["basis"] != "1"))
+    if not inputs:
+        return None
+    onnx_path = folder / "term.onnx"
+    freeze(FittedTerm(terms, inputs).eval(), len(inputs), onnx_path)
+    spec = HybridSpec(original_fmu=Path(fmu_path).resolve(), original_guid=guid, channels=[fitted["channel"]],
+                      inputs=inputs, onnx=onnx_path, p_ann=[1.0], p_fmu=[1.0])
+    spec.save(folder / "spec.json")
+    return spec
