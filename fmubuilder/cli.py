@@ -66,7 +66,7 @@ def cmd_simulate(args) -> None:
 
 def cmd_demo(args) -> None:
     from .demo import run_demo
-    run_demo(Path(args.output), force=args.force)
+    run_demo(Path(args.output), force=args.force, time_budget=args.time_budget)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -112,6 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="run the whole workflow on the bundled example and write a report")
     p.add_argument("--output", "-o", default="fmubuilder-demo", help="output folder (default: ./fmubuilder-demo)")
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    p.add_argument("--time-budget", type=float, default=300.0, metavar="SECONDS",
+                   help="rough wall-time budget for diagnosis and training (default 300)")
     p.set_defaults(func=cmd_demo)
     return parser
 
