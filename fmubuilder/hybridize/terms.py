@@ -57,30 +57,30 @@ def to_hybrid_spec(trained_path: Path, folder: Path) -> HybridSpec:
 
 class FittedTerm(nn.Module):
     """sum_k coefficient_k * basis_k(w_k - center_k) over the terms of a fitted expression,
-    written with ops the C kernel supports (Sub, Abs, Mul, MatMul, Add)."""
+    written with ops the C kernel supports (MatMul, Sub, Abs, Mul, Add): each term gets its own
+    column w_k = u @ select_k, since one variable may appear with different centers."""
 
     BASES = ("w", "|w|", "w*|w|", "w^2")
 
     def __init__(self, terms: list[dict], inputs: list[str]):
         super().__init__()
-        n = len(inputs)
-        self.register_buffer("center", torch.zeros(n, dtype=DTYPE))
-        self.register_buffer("weights", torch.zeros(len(self.BASES), n, 1, dtype=DTYPE))
-        self.register_buffer("bias", torch.zeros(1, dtype=DTYPE))
-        for term in terms:
-            coefficient = float(term["coefficient"])
-            if term["basis"] == "1":
-                self.bias += coefficient
-                continue
+        variable_terms = [t for t in terms if t["basis"] != "1"]
+        count = max(len(variable_terms), 1)
+        self.register_buffer("select", torch.zeros(len(inputs), count, dtype=DTYPE))
+        self.register_buffer("center", torch.zeros(count, dtype=DTYPE))
+        self.register_buffer("weights", torch.zeros(len(self.BASES), count, 1, dtype=DTYPE))
+        self.register_buffer("bias", torch.tensor([sum(float(t["coefficient"]) for t in terms if t["basis"] == "1")],
+                                                  dtype=DTYPE))
+        for k, term in enumerate(variable_terms):
             if term["basis"] not in self.BASES:
                 raise FmuBuilderError(f"cannot export the term form {term['basis']!r}")
-            i = inputs.index(term["variable"])
-            self.center[i] = float(term["center"])
-            self.weights[self.BASES.index(term["basis"]), i, 0] += coefficient
+            self.select[inputs.index(term["variable"]), k] = 1.0
+            self.center[k] = float(term["center"])
+            self.weights[self.BASES.index(term["basis"]), k, 0] = float(term["coefficient"])
         self.used = [b for b in range(len(self.BASES)) if bool(self.weights[b].any())]
 
     def forward(self, u):
-        w = u - self.center
+        w = u @ self.select - self.center
         out = self.bias
         for b in self.used:
             phi = (w, torch.abs(w), w * torch.abs(w), w * w)[b]

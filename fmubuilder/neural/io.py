@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import warnings
 from pathlib import Path
 
 import torch
@@ -50,7 +51,9 @@ def read_neural_fmu(path: str | Path) -> dict:
     if not path.is_file():
         raise FmuBuilderError(f"{path}: no such file; give the path of a trained NeuralFMU (`fmubuilder train -o`)")
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():  # torch warns about foreign pickles before failing on them
+            warnings.simplefilter("ignore")
+            payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many kinds for a file that is not its format
         raise FmuBuilderError(f"{path} is not a trained NeuralFMU file ({type(exc).__name__}); "
                               "create one with `fmubuilder train`") from None
