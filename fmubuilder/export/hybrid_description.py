@@ -13,7 +13,8 @@ the hybrid. Changed or added:
   ``hybrid.<x>.ann`` (local: the network output before gating);
 * ModelStructure: the dependencies of each channel's derivative gain those of the network
   inputs; where they are not known (e.g. a local variable feeds the network) the attribute is
-  dropped, which per FMI 2.0 means "depends on everything".
+  dropped, which per FMI 2.0 means "depends on everything". An output listed in the spec's
+  ``aliases`` is corrected like its channel's derivative and gains the same dependencies.
 """
 from __future__ import annotations
 
@@ -210,6 +211,13 @@ def _update_structure(root, spec: HybridSpec, info) -> None:
             _merge_dependencies(derivative, network_deps)
         initial = unknowns["InitialUnknowns"].get(channel)
         if initial is not None:  # initial dependencies through the network are not tracked
+            _drop_dependencies(initial)
+    for alias in spec.aliases:
+        output = unknowns["Outputs"].get(alias)
+        if output is not None:   # a local alias has no entry
+            _merge_dependencies(output, network_deps)
+        initial = unknowns["InitialUnknowns"].get(alias)
+        if initial is not None:
             _drop_dependencies(initial)
 
 

@@ -62,7 +62,8 @@ class HybridReference(FmuSystem):
     """The hybrid model as a HybridSystem: the original FMU with corrected derivatives.
 
     `fmu` is the loaded original FMU; `p_ann`/`p_fmu` override the spec's gate values.
-    Recorded `variables` may include the channels' der(x): they are recorded as hybrid values.
+    Recorded `variables` may include the channels' der(x) and the spec's aliases of them: they
+    are recorded as hybrid values.
     """
 
     def __init__(self, fmu: Fmu, spec: HybridSpec, *, variables: Sequence[str], start_values: dict | None = None,
@@ -78,18 +79,25 @@ class HybridReference(FmuSystem):
         self._n_inputs = len(spec.inputs)
         self._channel_columns = [(j, spec.channels.index(name)) for j, name in enumerate(self.output_names)
                                  if name in spec.channels]
+        self._alias_columns = [(j, spec.channels.index(spec.aliases[name])) for j, name in enumerate(self.output_names)
+                               if name in spec.aliases]
 
     def derivatives(self, t: float, x: np.ndarray) -> np.ndarray:
         return self._hybrid(super().derivatives(t, x))
 
     def outputs(self, times: np.ndarray, states: np.ndarray) -> np.ndarray:
         table = super().outputs(times, states)
-        for row, (t, x) in enumerate(zip(times, states)) if self._channel_columns else ():
+        for row, (t, x) in enumerate(zip(times, states)) if self._channel_columns or self._alias_columns else ():
             if self._continuous_mode:   # in event mode the FMU already holds (t, x)
                 self._at(t, x)
-            dx = self._hybrid(self.instance.get_derivatives())
+            ann = self._network_if_gated()
+            dx = self._hybrid(self.instance.get_derivatives(), ann)
             for column, c in self._channel_columns:
                 table[row, column] = dx[self.channel_index[c]]
+            # An alias holds the original's der(x): corrected like der(x), from its own value.
+            for column, c in self._alias_columns:
+                table[row, column] = hybrid_value(self.p_fmu[c], float(table[row, column]), self.p_ann[c],
+                                                  float(ann[c]) if ann is not None else 0.0)
         return table
 
     def network_output(self) -> np.ndarray:
@@ -99,9 +107,14 @@ class HybridReference(FmuSystem):
             values[positions] = read()
         return self.network(values)
 
-    def _hybrid(self, dx: np.ndarray) -> np.ndarray:
+    def _network_if_gated(self) -> np.ndarray | None:
+        return self.network_output() if any(g != 0.0 for g in self.p_ann) else None
+
+    def _hybrid(self, dx: np.ndarray, ann: np.ndarray | None = None) -> np.ndarray:
+        """The corrected derivatives; `ann` is the network output at this point if known."""
         dx = np.array(dx, dtype=float)
-        ann = self.network_output() if any(g != 0.0 for g in self.p_ann) else None
+        if ann is None:
+            ann = self._network_if_gated()
         for c, i in enumerate(self.channel_index):
             dx[i] = hybrid_value(self.p_fmu[c], float(dx[i]), self.p_ann[c], float(ann[c]) if ann is not None else 0.0)
         return dx

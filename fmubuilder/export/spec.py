@@ -14,6 +14,11 @@ switches its term off completely (so p_ann = 0, p_fmu = 1 reproduces the origina
 even if the network returned NaN). The gates are tunable parameters of the exported FMU;
 the values here are their start values.
 
+``aliases`` maps an output of the original that is the same quantity as a channel's
+derivative (e.g. a power whose integral is the energy state) to that channel. The hybrid
+corrects it like the derivative, y = p_fmu_c * y_original + p_ann_c * net(u)_c, so that the
+output stays consistent with the state it is the rate of.
+
 JSON form (paths relative to the JSON file's folder)::
 
     {
@@ -22,8 +27,11 @@ JSON form (paths relative to the JSON file's folder)::
       "channels": ["der(speed)"],
       "inputs": ["speed", "der(speed)", "force"],
       "onnx": "network.onnx",
-      "p_ann": [1.0], "p_fmu": [1.0]
+      "p_ann": [1.0], "p_fmu": [1.0],
+      "aliases": {"acceleration": "der(speed)"}
     }
+
+("aliases" may be left out: no output is corrected besides the derivatives.)
 """
 from __future__ import annotations
 
@@ -39,6 +47,8 @@ FORMAT = "fmubuilder.hybrid_spec"
 VERSION = 1
 # Variable types a network input may have: their values are passed to the network as doubles.
 INPUT_TYPES = ("Real", "Integer", "Enumeration", "Boolean")
+# Causalities an alias of a derivative may have: values computed by the model, not parameters.
+ALIAS_CAUSALITIES = ("output", "local")
 
 
 @dataclass
@@ -52,6 +62,7 @@ class HybridSpec:
     onnx: Path
     p_ann: list[float] = field(default_factory=list)
     p_fmu: list[float] = field(default_factory=list)
+    aliases: dict[str, str] = field(default_factory=dict)   # output name -> channel der(x)
 
     def __post_init__(self):
         self.original_fmu = Path(self.original_fmu)
@@ -68,6 +79,7 @@ class HybridSpec:
             raise FmuBuilderError(f"the hybrid spec lists a channel twice ({self.channels}); list each derivative once")
         if not self.inputs:
             raise FmuBuilderError("the hybrid spec has no network inputs; list the FMU variables fed to the network")
+        self.aliases = _aliases(self.aliases)
 
     # -- JSON ------------------------------------------------------------------------------
     @classmethod
@@ -92,7 +104,8 @@ class HybridSpec:
         return cls(
             original_fmu=base / data["original_fmu"], original_guid=str(data["original_guid"]),
             channels=list(data["channels"]), inputs=list(data["inputs"]), onnx=base / data["onnx"],
-            p_ann=list(data.get("p_ann", [])), p_fmu=list(data.get("p_fmu", [])))
+            p_ann=list(data.get("p_ann", [])), p_fmu=list(data.get("p_fmu", [])),
+            aliases=data.get("aliases", {}))
 
     def to_dict(self, relative_to: str | os.PathLike | None = None) -> dict:
         def where(p: Path) -> str:
@@ -104,7 +117,7 @@ class HybridSpec:
             "format": FORMAT, "version": VERSION,
             "original_fmu": where(self.original_fmu), "original_guid": self.original_guid,
             "channels": list(self.channels), "inputs": list(self.inputs), "onnx": where(self.onnx),
-            "p_ann": list(self.p_ann), "p_fmu": list(self.p_fmu),
+            "p_ann": list(self.p_ann), "p_fmu": list(self.p_fmu), "aliases": dict(self.aliases),
         }
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -135,11 +148,30 @@ class HybridSpec:
                 raise FmuBuilderError(
                     f"network input '{name}' is a {var.type} variable; only {', '.join(INPUT_TYPES)} can feed "
                     "the network")
+        self._check_aliases(info)
         n_in, n_out = onnx_io_sizes(self.onnx)
         if n_in != len(self.inputs) or n_out != len(self.channels):
             raise FmuBuilderError(
                 f"{self.onnx} maps {n_in} inputs to {n_out} outputs, the spec has {len(self.inputs)} inputs and "
                 f"{len(self.channels)} channels; export the network that belongs to this spec")
+
+    def _check_aliases(self, info) -> None:
+        derivative_names = {d.name for d in info.derivatives}
+        state_names = {s.name for s in info.states}
+        for name, channel in self.aliases.items():
+            if channel not in self.channels:
+                raise FmuBuilderError(
+                    f"alias '{name}' refers to '{channel}', which is not a channel of the hybrid spec (channels: "
+                    f"{', '.join(self.channels)}); fix 'aliases' in the spec")
+            var = info.variable(name)   # unknown names fail here with a suggestion
+            if var.type != "Real":
+                raise FmuBuilderError(f"alias '{name}' is a {var.type} variable; only a Real output can equal "
+                                      f"{channel}; fix 'aliases' in the spec")
+            if name in derivative_names or name in state_names or var.causality not in ALIAS_CAUSALITIES \
+                    or var.variability != "continuous":
+                raise FmuBuilderError(
+                    f"alias '{name}' is not a continuous output of {info.model_name} ({var.causality}, "
+                    f"{var.variability}); list only outputs that equal {channel} in 'aliases'")
 
     def channel_states(self, info) -> list[str]:
         """Name of the state x of each channel der(x)."""
@@ -158,6 +190,16 @@ def _gates(values, n: int, default: float, what: str) -> list[float]:
     if not all(math.isfinite(g) for g in gates):
         raise FmuBuilderError(f"the {what} values {gates} are not all finite; give finite gate values")
     return gates
+
+
+def _aliases(aliases) -> dict[str, str]:
+    if aliases is None:
+        return {}
+    if not isinstance(aliases, dict) or not all(isinstance(k, str) and isinstance(v, str)
+                                                for k, v in aliases.items()):
+        raise FmuBuilderError(f"the hybrid spec's aliases {aliases!r} are not a mapping of output name to channel; "
+                              "give e.g. {\"power\": \"der(energy)\"}")
+    return dict(aliases)
 
 
 def onnx_io_sizes(path: str | os.PathLike) -> tuple[int, int]:

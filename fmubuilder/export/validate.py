@@ -253,7 +253,8 @@ def _embedded_spec(hybrid_fmu: Path, folder: Path) -> tuple[HybridSpec, dict[str
                         and name != f"resources/{library}":
                     out.writestr(name, hybrid.read(name))
     spec = HybridSpec(original_fmu=original, original_guid=data["original_guid"], channels=data["channels"],
-                      inputs=data["inputs"], onnx=folder / EMBEDDED_ONNX, p_ann=data["p_ann"], p_fmu=data["p_fmu"])
+                      inputs=data["inputs"], onnx=folder / EMBEDDED_ONNX, p_ann=data["p_ann"], p_fmu=data["p_fmu"],
+                      aliases=data.get("aliases", {}))
     gates = {}
     for c, entry in enumerate(data.get("gates", [])):
         gates[entry["p_ann"]] = (c, "p_ann")

@@ -112,6 +112,8 @@ def render_wrapper(spec: HybridSpec, info, description: HybridDescription) -> st
         "p_ann_vr": c.p_ann_vr, "p_fmu_vr": c.p_fmu_vr, "ann_vr": c.ann_vr,
         "p_ann_start": _c_double(spec.p_ann[i]), "p_fmu_start": _c_double(spec.p_fmu[i]),
     } for i, c in enumerate(description.channels)]
+    aliases = [{"name": name, "vr": info.variable(name).value_reference, "channel": spec.channels.index(channel)}
+               for name, channel in spec.aliases.items()]
     caps = info.capabilities
     return _render("hybrid_wrapper.c.j2", {
         "identifier": description.model_identifier,
@@ -122,6 +124,7 @@ def render_wrapper(spec: HybridSpec, info, description: HybridDescription) -> st
         "n_states": info.n_states,
         "n_ann_inputs": len(spec.inputs),
         "channels": channels,
+        "aliases": aliases,
         "input_groups": list(groups.values()),
         "derivative_inputs": derivative_inputs,
         "inner_log_categories": description.log_categories,
@@ -187,7 +190,7 @@ def _embed_for_validation(spec: HybridSpec, description: HybridDescription, orig
     (folder / EMBEDDED_ORIGINAL_XML).write_bytes(original_xml)
     embedded = HybridSpec(original_fmu=Path("original.fmu"), original_guid=spec.original_guid,
                           channels=spec.channels, inputs=spec.inputs, onnx=Path(EMBEDDED_ONNX),
-                          p_ann=spec.p_ann, p_fmu=spec.p_fmu)
+                          p_ann=spec.p_ann, p_fmu=spec.p_fmu, aliases=spec.aliases)
     data = embedded.to_dict()
     data["gates"] = [{"channel": c.channel, "p_ann": c.p_ann, "p_fmu": c.p_fmu, "ann": c.ann}
                      for c in description.channels]

@@ -116,6 +116,14 @@ def self_calling(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
+def drive(tmp_path_factory):
+    """The DC drive's output `power` is der(energy) in the original: an alias of the channel."""
+    spec, fmu = make_hybrid(tmp_path_factory.mktemp("drive"), example_fmu("dc_drive"), ["der(energy)"],
+                            ["temperature", "speed"], seed=6, p_ann=[40.0], aliases={"power": "der(energy)"})
+    return Hybrid(spec, fmu)
+
+
+@pytest.fixture(scope="module")
 def host(tmp_path_factory):
     if shutil.which("cc") is None:
         pytest.skip("no C compiler")
@@ -539,16 +547,6 @@ def run_cli(*argv):
     args.func(args)
 
 
-def test_cli_export_rejects_a_file_it_cannot_read(tmp_path):
-    from fmubuilder.export.cli import _neural_converter
-    if _neural_converter() is not None:
-        pytest.skip("the neural stage converts trained files here")
-    trained = tmp_path / "model.pt"
-    trained.write_bytes(b"\x80\x04 not a spec")
-    with pytest.raises(FmuBuilderError, match="not a hybrid spec JSON"):
-        run_cli("export", trained, "-o", tmp_path / "out.fmu")
-
-
 def test_cli_export_and_validate(ball, tmp_path, capsys):
     spec_path = ball.spec.save(tmp_path / "spec.json")
     output = tmp_path / "cli_hybrid.fmu"
@@ -565,3 +563,85 @@ def test_cli_export_and_validate(ball, tmp_path, capsys):
     with pytest.raises(FmuBuilderError, match="failed the round-trip"):
         run_cli("validate", output, "--against", other.save(tmp_path / "other.json"), "--stop-time", "1")
     assert "round trip: FAILED" in capsys.readouterr().out
+
+
+# -- an output that equals a channel's derivative (alias) ----------------------------------------
+
+def test_alias_output_is_corrected_like_its_derivative_in_fmpy(drive):
+    assert validate_fmu(str(drive.fmu)) == []
+    # The network reads temperature, on which the original's power does not depend.
+    original = {u.variable.name: u for u in fmpy.read_model_description(str(drive.spec.original_fmu)).outputs}
+    assert "temperature" not in [v.name for v in original["power"].dependencies]
+    md = fmpy.read_model_description(str(drive.fmu))
+    power = next(u for u in md.outputs if u.variable.name == "power")
+    der_energy = next(u for u in md.derivatives if u.variable.name == "der(energy)")
+    assert sorted(v.name for v in power.dependencies) == sorted(v.name for v in der_energy.dependencies)
+    assert "temperature" in [v.name for v in power.dependencies]
+
+    signals = ["power", "der(energy)", "energy"]
+    plain = fmpy.simulate_fmu(str(drive.spec.original_fmu), output=signals)
+    hybrid = fmpy.simulate_fmu(str(drive.fmu), output=signals)
+    gates_off = fmpy.simulate_fmu(str(drive.fmu), output=signals,
+                                  start_values={drive.gate("der(energy)", "p_ann"): 0.0})
+    np.testing.assert_array_equal(plain["power"], plain["der(energy)"])   # an alias in the original
+    np.testing.assert_array_equal(hybrid["power"], hybrid["der(energy)"])
+    np.testing.assert_array_equal(gates_off["power"], plain["power"])
+    # The correction is visible in power, and energy is its integral in the hybrid too.
+    assert np.max(np.abs(hybrid["power"] - plain["power"])) > 1e-2 * np.max(np.abs(plain["power"]))
+    steps = np.diff(hybrid["time"]) * (hybrid["power"][1:] + hybrid["power"][:-1]) / 2
+    integral = np.concatenate([[0.0], np.cumsum(steps)])
+    correction = np.max(np.abs(hybrid["energy"] - plain["energy"]))
+    assert np.max(np.abs(hybrid["energy"] - hybrid["energy"][0] - integral)) < 1e-2 * correction
+
+
+def test_alias_output_in_the_engine_and_the_reference_pointwise(drive):
+    """fmi2GetReal of the alias vs the hybrid's own fmi2GetDerivatives and vs the reference."""
+    rng = np.random.default_rng(1)
+    energy = drive.original_info.state_index("energy")
+    with Fmu(drive.fmu) as hybrid_fmu, Fmu(drive.spec.original_fmu) as original:
+        wrapped = started(hybrid_fmu.instantiate())
+        reference = HybridReference(original, drive.spec, variables=["power", "der(energy)"])
+        reference.initialize(0.0, 1.0)
+        x0 = wrapped.get_continuous_states()
+        for t in rng.uniform(0, 1, 10):
+            x = x0 * rng.uniform(0.5, 1.5, size=x0.size) + rng.normal(size=x0.size)
+            wrapped.set_time(t)
+            wrapped.set_continuous_states(x)
+            power = wrapped.get(["power"])[0]
+            assert power == wrapped.get_derivatives()[energy]
+            expected = reference.outputs(np.array([t]), x[None, :])[0]
+            np.testing.assert_allclose([power, power], expected, rtol=1e-13)
+        wrapped.free()
+        reference.close()
+    from fmubuilder.simulation import simulate
+    result = simulate(drive.fmu, stop_time=2.0, variables=["power", "der(energy)"])
+    np.testing.assert_array_equal(result["power"], result["der(energy)"])
+
+
+def test_alias_round_trip_matches_reference(drive):
+    report = validate_hybrid(drive.fmu, stop_time=5.0)
+    assert report.passed, report.format_table()
+    assert all("power" in [s.name for s in c.signals] for c in report.comparisons if c.error is None)
+
+
+def test_spec_aliases_json_and_checks(drive, tmp_path):
+    spec = drive.spec
+    assert spec.aliases == {"power": "der(energy)"}
+    copy = HybridSpec.load(spec.save(tmp_path / "spec.json"))
+    assert copy.aliases == spec.aliases
+    # Specs written before aliases existed still load.
+    path = tmp_path / "old.json"
+    data = spec.to_dict(relative_to=tmp_path)
+    del data["aliases"]
+    path.write_text(__import__("json").dumps(data))
+    assert HybridSpec.load(path).aliases == {}
+    fields = dict(original_fmu=spec.original_fmu, original_guid=spec.original_guid, channels=spec.channels,
+                  inputs=spec.inputs, onnx=spec.onnx)
+    for aliases, message in [({"powr": "der(energy)"}, "unknown variable"),
+                             ({"power": "der(speed)"}, "not a channel"),
+                             ({"energy": "der(energy)"}, "not a continuous output"),
+                             ({"nominal_resistance": "der(energy)"}, "not a continuous output")]:
+        with pytest.raises(FmuBuilderError, match=message):
+            HybridSpec(**fields, aliases=aliases).check()
+    with pytest.raises(FmuBuilderError, match="mapping"):
+        HybridSpec(**fields, aliases=["power"])
