@@ -12,6 +12,7 @@ import numpy as np
 
 from ..diagnose.data import MeasuredData, load_measurement
 from ..diagnose.runs import ModelRunner
+from ..errors import FmuBuilderError
 from ..fmi import read_model_info
 
 
@@ -24,7 +25,13 @@ class Evaluation:
 
 
 def load_data(path: Path, fmu_path: Path) -> MeasuredData:
-    return load_measurement(path, read_model_info(fmu_path))
+    try:
+        return load_measurement(path, read_model_info(fmu_path))
+    except FmuBuilderError as exc:
+        # Two data files per run: say which one is wrong.
+        if path.name in str(exc):
+            raise
+        raise FmuBuilderError(f"{path}: {exc}") from None
 
 
 def evaluate(fmu_path: Path, data: MeasuredData, start_values: dict) -> Evaluation:

@@ -1,7 +1,9 @@
 """Hybrid specs for the two kinds of added effect: a trained NeuralFMU and a fitted symbolic term.
 
 Both become the same thing for export: a network (ONNX) from FMU variables to the correction
-of one derivative channel, plus the gates (see fmubuilder.export.spec).
+of one derivative channel, plus the gates (see fmubuilder.export.spec). `aliases` names the
+outputs that equal a channel's derivative ({"power": "der(energy)"}): the hybrid corrects them
+with it.
 """
 from __future__ import annotations
 
@@ -28,7 +30,7 @@ class _Correction(nn.Module):
         return self.topology.correction(inputs)
 
 
-def spec_from_neural(model, folder: Path) -> HybridSpec:
+def spec_from_neural(model, folder: Path, aliases: dict[str, str] | None = None) -> HybridSpec:
     """Freeze a trained NeuralFMU's correction network and describe the hybrid it forms."""
     topology = model.topology
     if topology.config.parameters:
@@ -40,7 +42,7 @@ def spec_from_neural(model, folder: Path) -> HybridSpec:
     spec = HybridSpec(original_fmu=model.fmu_path.resolve(), original_guid=model.guid,
                       channels=list(topology.config.channels), inputs=list(topology.config.inputs),
                       onnx=onnx_path, p_ann=topology.gate_ann.detach().tolist(),
-                      p_fmu=topology.gate_fmu.detach().tolist())
+                      p_fmu=topology.gate_fmu.detach().tolist(), aliases=aliases or {})
     spec.save(folder / "spec.json")
     return spec
 
@@ -88,7 +90,8 @@ class FittedTerm(nn.Module):
         return out
 
 
-def spec_from_fitted_term(fitted: dict, fmu_path: Path, guid: str, folder: Path) -> HybridSpec | None:
+def spec_from_fitted_term(fitted: dict, fmu_path: Path, guid: str, folder: Path,
+                          aliases: dict[str, str] | None = None) -> HybridSpec | None:
     """The hybrid of a fitted term from the diagnosis (None when it depends on time itself,
     which an FMU cannot take as a variable input)."""
     terms = fitted["terms"]
@@ -100,6 +103,6 @@ def spec_from_fitted_term(fitted: dict, fmu_path: Path, guid: str, folder: Path)
     onnx_path = folder / "term.onnx"
     freeze(FittedTerm(terms, inputs).eval(), len(inputs), onnx_path)
     spec = HybridSpec(original_fmu=Path(fmu_path).resolve(), original_guid=guid, channels=[fitted["channel"]],
-                      inputs=inputs, onnx=onnx_path, p_ann=[1.0], p_fmu=[1.0])
+                      inputs=inputs, onnx=onnx_path, p_ann=[1.0], p_fmu=[1.0], aliases=aliases or {})
     spec.save(folder / "spec.json")
     return spec

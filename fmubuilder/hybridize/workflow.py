@@ -26,6 +26,8 @@ TRAINING_SHARE = 0.5
 VALIDATION_SPAN = 60.0
 # ANN inputs: the leading traced variables.
 MAX_ANN_INPUTS = 2
+# Seconds of the training data on which outputs equal to the corrected derivative are detected.
+ALIAS_SPAN = 60.0
 
 
 @dataclass
@@ -105,6 +107,7 @@ class _Context:
     test_start: dict
     work: Path
     say: object
+    aliases: dict = field(default_factory=dict)   # channel -> {output: channel}, see channel_aliases
 
 
 def _build_candidates(ctx: _Context, diagnosis, started: float, time_budget: float) -> list[Candidate]:
@@ -112,16 +115,53 @@ def _build_candidates(ctx: _Context, diagnosis, started: float, time_budget: flo
     fitted = diagnosis.fitted_term
     if fitted and fitted.get("offered"):
         ctx.say(f"[2/5] exporting the fitted term: {fitted['expression']}")
-        term = _fitted_term_candidate(ctx, fitted)
+        term = _fitted_term_candidate(ctx, fitted, _aliases_of(ctx, fitted["channel"]))
         if term is not None:
             candidates.append(term)
     inputs = _ann_inputs(diagnosis, ctx.info)
+    aliases = _aliases_of(ctx, diagnosis.channel)
     remaining = time_budget - (time.perf_counter() - started)
     budget = max(30.0, TRAINING_SHARE * remaining)
     ctx.say(f"[3/5] training a NeuralFMU: ANN on {diagnosis.channel} with inputs {', '.join(inputs)} "
             f"(time budget {budget:.0f} s) ...")
-    candidates.append(_neural_candidate(ctx, diagnosis.channel, inputs, budget))
+    candidates.append(_neural_candidate(ctx, diagnosis.channel, inputs, budget, aliases))
     return candidates
+
+
+def _aliases_of(ctx: _Context, channel: str) -> dict[str, str]:
+    if channel not in ctx.aliases:
+        data = ctx.train_data
+        start = float(data.time[0])
+        ctx.aliases[channel] = channel_aliases(ctx.model_fmu, ctx.info, channel, ctx.train_start, data.time,
+                                               start, min(float(data.time[-1]), start + ALIAS_SPAN))
+        if ctx.aliases[channel]:
+            ctx.say(f"      corrected with {channel} too: {', '.join(ctx.aliases[channel])} (equal to it in the model)")
+    return ctx.aliases[channel]
+
+
+def channel_aliases(model_fmu, info, channel: str, start_values: dict, data_time, start: float,
+                    stop: float) -> dict[str, str]:
+    """{output: channel} for the outputs of the plain model equal to `channel` along its run
+    (the diagnosis' test: within 1e-9 relative), e.g. a power whose integral is an energy state.
+    The hybrid must correct them with the derivative, or they contradict the corrected state."""
+    import numpy as np
+    from ..diagnose.diagnosis import derivative_aliases
+    from ..diagnose.runs import ModelRunner
+    states = {s.name for s in info.states}
+    outputs = [v.name for v in info.outputs
+               if v.type == "Real" and v.variability == "continuous" and v.name not in states]
+    if not outputs:
+        return {}
+    runner = ModelRunner(model_fmu, start_values=start_values, data_time=np.asarray(data_time), start=start,
+                         stop=stop, measured=[], recorded=[*outputs, channel])
+    try:
+        run = runner.simulate()
+    finally:
+        runner.close()
+    index = info.state_index(channel)
+    # An output that stays 0 matches any derivative that does: not evidence of an alias.
+    return {name: channel for name, channels in derivative_aliases(info, run, outputs).items()
+            if index in channels and np.any(run.trajectories[name] != 0.0)}
 
 
 def _ann_inputs(diagnosis, info) -> list[str]:
@@ -133,21 +173,22 @@ def _ann_inputs(diagnosis, info) -> list[str]:
     return usable[:MAX_ANN_INPUTS]
 
 
-def _fitted_term_candidate(ctx: _Context, fitted: dict) -> Candidate | None:
+def _fitted_term_candidate(ctx: _Context, fitted: dict, aliases: dict[str, str]) -> Candidate | None:
     from ..export import export_hybrid
     from .terms import spec_from_fitted_term
     folder = ctx.work / "fitted_term"
     folder.mkdir()
-    spec = spec_from_fitted_term(fitted, ctx.model_fmu, ctx.info.guid, folder)
+    spec = spec_from_fitted_term(fitted, ctx.model_fmu, ctx.info.guid, folder, aliases)
     if spec is None:
         return None
     fmu = export_hybrid(spec, folder / "hybrid.fmu")
     return Candidate("fitted term", fitted["expression"], fmu, folder,
                      evaluate(fmu, ctx.train_data, ctx.train_start), evaluate(fmu, ctx.test_data, ctx.test_start),
-                     {"expression": fitted["expression"]})
+                     {"expression": fitted["expression"], "aliases": aliases})
 
 
-def _neural_candidate(ctx: _Context, channel: str, inputs: list[str], budget: float) -> Candidate:
+def _neural_candidate(ctx: _Context, channel: str, inputs: list[str], budget: float,
+                      aliases: dict[str, str]) -> Candidate:
     from ..export import export_hybrid
     from ..neural import train_neural_fmu
     from .terms import spec_from_neural
@@ -157,11 +198,11 @@ def _neural_candidate(ctx: _Context, channel: str, inputs: list[str], budget: fl
                                start_values=ctx.train_start, topology="residual", time_budget=budget,
                                output=folder / "trained.neuralfmu")
     try:
-        spec = spec_from_neural(trained.model, folder)
+        spec = spec_from_neural(trained.model, folder, aliases)
     finally:
         trained.model.close()
     fmu = export_hybrid(spec, folder / "hybrid.fmu")
-    details = {"channel": channel, "inputs": inputs, "epochs": trained.metrics.get("epochs"),
+    details = {"channel": channel, "inputs": inputs, "aliases": aliases, "epochs": trained.metrics.get("epochs"),
                "training_seconds": trained.metrics.get("seconds")}
     return Candidate("neural", f"ANN on {channel} with inputs {', '.join(inputs)}", fmu, folder,
                      evaluate(fmu, ctx.train_data, ctx.train_start), evaluate(fmu, ctx.test_data, ctx.test_start),
