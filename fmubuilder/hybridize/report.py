@@ -11,7 +11,7 @@ from .evaluate import relative_mse
 
 
 def write_report(folder: Path, *, model_fmu, diagnosis, before, candidates, chosen, roundtrip, hybrid_fmu,
-                 train_data, test_data, seconds: float) -> dict:
+                 train_data, test_data, seconds: float, timings: dict | None = None) -> dict:
     before_train, before_test = before
     after_train = chosen.train if chosen else before_train
     after_test = chosen.test if chosen else before_test
@@ -35,7 +35,9 @@ def write_report(folder: Path, *, model_fmu, diagnosis, before, candidates, chos
         },
         "models": [{"name": c.name, "description": c.description,
                     "test_relative_mse": relative_mse(before_test.errors, c.test.errors),
-                    "train_relative_mse": relative_mse(before_train.errors, c.train.errors), **c.details}
+                    "train_relative_mse": relative_mse(before_train.errors, c.train.errors),
+                    "test_mse_factor": _factors(before_test.errors, c.test.errors),
+                    "train_mse_factor": _factors(before_train.errors, c.train.errors), **c.details}
                    for c in candidates],
         "chosen": chosen.name if chosen else None,
         "roundtrip": {"max_rel_error": roundtrip["max_rel_error"] if roundtrip else None,
@@ -45,6 +47,7 @@ def write_report(folder: Path, *, model_fmu, diagnosis, before, candidates, chos
         "model_fmu": str(model_fmu),
         "data": {"train": str(train_data.path), "test": str(test_data.path)},
         "seconds": seconds,
+        "timings": dict(timings or {}),     # wall seconds per stage
     }
     plots = [_plot_signals(folder / f"{name}.png", data, ev_before, ev_after, chosen, name)
              for name, data, ev_before, ev_after in (("train", train_data, before_train, after_train),

@@ -9,6 +9,7 @@
 """
 from __future__ import annotations
 
+import math
 import shutil
 import tempfile
 import time
@@ -19,13 +20,23 @@ from ..errors import FmuBuilderError
 from ..fmi import read_model_info
 from .evaluate import Evaluation, evaluate, load_data, relative_mse
 
-# Share of the time budget for the diagnosis' tracing and for the NeuralFMU's training.
+# Share of the time budget for the diagnosis' tracing. The NeuralFMU's training gets what is left
+# after keeping back, for the steps after it (export, two evaluations, validation, report), twice
+# the plain model's evaluation time plus AFTER_TRAINING seconds; at least MIN_TRAINING seconds.
 DIAGNOSIS_SHARE = 0.2
-TRAINING_SHARE = 0.5
+AFTER_TRAINING = 30.0
+MIN_TRAINING = 30.0
 # Seconds of the test data replayed by the round-trip validation (fmpy Euler and CVode).
 VALIDATION_SPAN = 60.0
-# ANN inputs: the leading traced variables.
-MAX_ANN_INPUTS = 2
+# ANN inputs: the leading traced variable. More (on the VLDM the runner-up, motor_torque_limit, is
+# itself a function of speed) gave the ANN more ways to fit noise and generalised worse.
+MAX_ANN_INPUTS = 1
+# NeuralFMU training: the data cut into elements of at most MAX_ELEMENT_LENGTH seconds (at least
+# MIN_ELEMENTS of them), BATCHES_PER_EPOCH optimizer steps per pass over the data. Short elements in
+# small batches cost about as much per pass as one full batch, but take several steps.
+MAX_ELEMENT_LENGTH = 20.0
+MIN_ELEMENTS = 8
+BATCHES_PER_EPOCH = 5
 # Seconds of the training data on which outputs equal to the corrected derivative are detected.
 ALIAS_SPAN = 60.0
 
@@ -68,28 +79,36 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, train_s
                              time_budget=DIAGNOSIS_SHARE * time_budget)
         train_start = {**train_start, **diagnosis.start_values}
         say(f"      {_diagnosis_line(diagnosis)}")
+        timings = {"diagnosis": time.perf_counter() - started}
+        evaluation_started = time.perf_counter()
         before_train = evaluate(model_fmu, train_data, train_start)
         before_test = evaluate(model_fmu, test_data, test_start)
+        evaluation_seconds = timings["evaluation"] = time.perf_counter() - evaluation_started
         candidates: list[Candidate] = []
         if diagnosis.significant or force:
             if diagnosis.channel is None:
                 raise FmuBuilderError("the diagnosis found an effect but could not trace it to a state derivative; "
                                       "see the diagnosis in the report folder")
             context = _Context(model_fmu, info, train_csv, test_csv, train_data, test_data, train_start, test_start,
-                               work, say)
+                               work, say, evaluation_seconds, progress=progress)
+            candidates_started = time.perf_counter()
             candidates = _build_candidates(context, diagnosis, started, time_budget)
+            timings["candidates"] = time.perf_counter() - candidates_started
         chosen = _choose(candidates, before_test)
         hybrid_path, roundtrip = None, None
         if chosen is not None:
             say(f"[4/5] validating the round trip of the {chosen.name} hybrid ...")
+            validation_started = time.perf_counter()
             roundtrip = _validate(chosen, test_csv, test_start, test_data)
+            timings["validation"] = time.perf_counter() - validation_started
             _publish(chosen.fmu, output_fmu, force)
             hybrid_path = output_fmu
         say("[5/5] writing the report ...")
         from .report import write_report
         report = write_report(report_dir, model_fmu=model_fmu, diagnosis=diagnosis, before=(before_train, before_test),
                               candidates=candidates, chosen=chosen, roundtrip=roundtrip, hybrid_fmu=hybrid_path,
-                              train_data=train_data, test_data=test_data, seconds=time.perf_counter() - started)
+                              train_data=train_data, test_data=test_data, seconds=time.perf_counter() - started,
+                              timings=timings)
         return HybridizeResult(report, report_dir, hybrid_path)
     finally:
         shutil.rmtree(work, ignore_errors=True)
@@ -107,7 +126,9 @@ class _Context:
     test_start: dict
     work: Path
     say: object
+    evaluation_seconds: float      # of the plain model on the training and the held-out data
     aliases: dict = field(default_factory=dict)   # channel -> {output: channel}, see channel_aliases
+    progress: bool = True
 
 
 def _build_candidates(ctx: _Context, diagnosis, started: float, time_budget: float) -> list[Candidate]:
@@ -121,7 +142,7 @@ def _build_candidates(ctx: _Context, diagnosis, started: float, time_budget: flo
     inputs = _ann_inputs(diagnosis, ctx.info)
     aliases = _aliases_of(ctx, diagnosis.channel)
     remaining = time_budget - (time.perf_counter() - started)
-    budget = max(30.0, TRAINING_SHARE * remaining)
+    budget = max(MIN_TRAINING, remaining - 2.0 * ctx.evaluation_seconds - AFTER_TRAINING)
     ctx.say(f"[3/5] training a NeuralFMU: ANN on {diagnosis.channel} with inputs {', '.join(inputs)} "
             f"(time budget {budget:.0f} s) ...")
     candidates.append(_neural_candidate(ctx, diagnosis.channel, inputs, budget, aliases))
@@ -194,9 +215,11 @@ def _neural_candidate(ctx: _Context, channel: str, inputs: list[str], budget: fl
     from .terms import spec_from_neural
     folder = ctx.work / "neural"
     folder.mkdir()
+    # The data's sidecar gives the bench's sensor lag; the training sees the model through it.
     trained = train_neural_fmu(ctx.model_fmu, ctx.train_csv, targets=[channel], inputs=inputs,
                                start_values=ctx.train_start, topology="residual", time_budget=budget,
-                               output=folder / "trained.neuralfmu")
+                               output=folder / "trained.neuralfmu", progress=ctx.progress,
+                               **_training_settings(ctx.train_data))
     try:
         spec = spec_from_neural(trained.model, folder, aliases)
     finally:
@@ -207,6 +230,14 @@ def _neural_candidate(ctx: _Context, channel: str, inputs: list[str], budget: fl
     return Candidate("neural", f"ANN on {channel} with inputs {', '.join(inputs)}", fmu, folder,
                      evaluate(fmu, ctx.train_data, ctx.train_start), evaluate(fmu, ctx.test_data, ctx.test_start),
                      details)
+
+
+def _training_settings(data) -> dict:
+    """Element length and batch size of the NeuralFMU training (see MAX_ELEMENT_LENGTH)."""
+    span = float(data.time[-1] - data.time[0])
+    length = min(MAX_ELEMENT_LENGTH, span / MIN_ELEMENTS)
+    elements = max(1, int(span / length + 1e-9))
+    return {"element_length": length, "batch_size": math.ceil(elements / BATCHES_PER_EPOCH)}
 
 
 def _choose(candidates: list[Candidate], before_test: Evaluation) -> Candidate | None:

@@ -38,6 +38,9 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--nipt", type=int, default=400, metavar="ITERATIONS", help="neutral pre-training iterations (gates)")
     p.add_argument("--ccpt", type=int, default=0, metavar="ITERATIONS", help="collocation pre-training iterations (default off)")
     p.add_argument("--loss", metavar="A,B", help="signals in the loss (default: all measured)")
+    p.add_argument("--sensor-lag", type=float, metavar="SECONDS",
+                   help="time constant of the sensors' first-order lag, applied to the simulated signals before "
+                        "they meet the data (default: the bench's, recorded next to data from `fmubuilder synth`; else 0)")
     p.add_argument("--test-data", metavar="CSV", help="held-out data: its errors are added to the metrics")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint TRAINED.ckpt")
@@ -64,7 +67,7 @@ def cmd_train(args) -> None:
         epochs=args.epochs, element_length=args.element_length, order=args.order, batch_size=args.batch_size,
         step_size=args.step_size, solver=args.solver, learning_rate=args.lr, decay=args.decay,
         nipt_iterations=args.nipt, ccpt_iterations=args.ccpt, time_budget=args.time_budget, seed=args.seed,
-        loss_signals=parse_names(args.loss), resume=args.resume, progress=not args.quiet)
+        loss_signals=parse_names(args.loss), sensor_lag=args.sensor_lag, resume=args.resume, progress=not args.quiet)
     result = train_neural_fmu(
         args.fmu, args.data, targets=args.target, inputs=parse_names(args.inputs),
         start_values=parse_assignments(args.start), topology=args.topology, hidden=hidden,

@@ -136,6 +136,10 @@ class Topology(nn.Module):
         self.fmu_parameters = nn.Parameter(torch.tensor(values, dtype=DTYPE).reshape(len(config.parameters)),
                                            requires_grad=bool(config.parameters))
 
+    def processing_parameters(self) -> list[nn.Parameter]:
+        """The pre-/post-processing scales and shifts (trained at their own step size)."""
+        return [self.pre_shift, self.pre_scale, self.post_scale, self.post_shift]
+
     @property
     def has_ann(self) -> bool:
         return self.ann is not None

@@ -18,16 +18,23 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    s is estimated from the data by local linear fits, and the ANN is fitted to the residual without
    the ODE solver. The ANN gate is set to 1 first if it was 0.
 4. Training: the data are cut into elements (default 100 s) simulated side by side; the loss is the
-   MSE per measured signal divided by the signal's variance (weighted by the uncertainty band when
-   the CSV has <signal>_std columns), averaged over the signals. Adam with exponential step-size
-   decay per epoch; elements in random order, `batch_size` side by side, or sequential (time order,
-   one at a time, each continuing the state just computed). Fixed seeds, a time budget, a
+   MSE per measured signal (weighted by the uncertainty band when the CSV has <signal>_std columns)
+   divided by the plain FMU's MSE on the same elements, averaged over the signals: every signal
+   starts at 1. Scaling by the signal's variance instead lets a cumulative signal (energy, whose
+   variance over a cycle is huge) drown in the noise of the others, and the training then trades a
+   better fit of noisy power transients for a drifting energy. The simulated signals pass through
+   the sensors' first-order lag (`sensor_lag`) first. Adam with exponential step-size decay per
+   epoch, the pre-/post-processing at a tenth of the step size; with one batch per epoch, rewinds
+   after an epoch that made the loss worse (see Trainer._keep_best), and the parameters of the
+   lowest loss at the end. Elements in random order, `batch_size` side by side, or sequential (time
+   order, one at a time, each continuing the state just computed). Fixed seeds, a time budget, a
    checkpoint after every epoch, and resume.
 5. Errors before (plain FMU) and after (trained hybrid) over the whole data, simulated with
    fmubuilder's engine.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import math
@@ -43,6 +50,7 @@ import torch
 
 from ..errors import FmuBuilderError
 from ..export.files import write_atomically
+from ..synth import first_order_lag
 from .data import MeasuredData, load_data
 from .io import save_neural_fmu
 from .model import NeuralFMU
@@ -60,13 +68,19 @@ class TrainSettings:
     step_size: float | None = None    # default: the FMU's DefaultExperiment stepSize
     solver: str = "euler"
     learning_rate: float = 3e-3
+    processing_step_factor: float = 0.1   # step size of the pre-/post-processing relative to the ANN's (0: fixed)
     decay: float = 0.95               # step-size factor per epoch
+    backtrack: bool = True            # an epoch worse than the best: back to the best, half the step size
+    keep_best: bool = True            # end with the parameters of the lowest epoch loss
     nipt_iterations: int = 400
     ccpt_iterations: int = 0          # 0: no collocation pre-training
     ccpt_window: float = 1.0          # seconds of data per local derivative fit
     time_budget: float | None = None  # seconds for the whole training call
     seed: int = 0
     loss_signals: list[str] | None = None  # default: every measured signal
+    loss_scale: str = "reference"     # per-signal MSE divided by: "reference" (the plain FMU's) or "variance"
+    sensor_lag: float | None = None   # s, first-order lag of the sensors, applied to the simulated signals
+                                      # before they meet the data; None: the data's sidecar (synth), else 0
     checkpoint: str | None = None     # default: <output>.ckpt when an output is given
     resume: bool = False
     progress: bool = True
@@ -108,12 +122,15 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
                             activation=activation, kind=topology, parameters=list(parameters))
     model = NeuralFMU(fmu, config, start_values)
     try:
+        if settings.sensor_lag is None:
+            settings.sensor_lag = 0.0 if isinstance(data, MeasuredData) else _sidecar_sensor_lag(data)
         data = data if isinstance(data, MeasuredData) else load_data(data, model.info)
         trainer = Trainer(model, data, settings, started)
         trainer.prepare()
         before = trainer.evaluate_plain()
         trainer.fit(checkpoint=_checkpoint_path(settings, output), on_epoch=on_epoch)
-        after = evaluate(model, data, trainer.step, settings.solver)
+        lag = settings.sensor_lag
+        after = evaluate(model, data, trainer.step, settings.solver, sensor_lag=lag)
         metrics = {"errors": {"before": before, "after": after},
                    "seconds": time.perf_counter() - started, "epochs": trainer.epochs_done,
                    "loss": trainer.history[-1]["loss"] if trainer.history else None,
@@ -123,8 +140,10 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
             if test_start_values is None and not isinstance(test_data, MeasuredData):
                 test_start_values = _sidecar_start_values(test_data)
             metrics["test_errors"] = {
-                "before": evaluate(model, test, trainer.step, settings.solver, start_values=test_start_values, plain=True),
-                "after": evaluate(model, test, trainer.step, settings.solver, start_values=test_start_values)}
+                "before": evaluate(model, test, trainer.step, settings.solver, start_values=test_start_values,
+                                   plain=True, sensor_lag=lag),
+                "after": evaluate(model, test, trainer.step, settings.solver, start_values=test_start_values,
+                                  sensor_lag=lag)}
         if output is not None:
             save_neural_fmu(model, output, metadata={"data": data.source, "metrics": metrics}, force=True)
         if metrics_path is not None:
@@ -140,12 +159,16 @@ def _settings(settings: TrainSettings | None, overrides: dict) -> TrainSettings:
     if unknown:
         raise FmuBuilderError(f"unknown training settings {sorted(unknown)}; known: {sorted(TrainSettings.__dataclass_fields__)}")
     settings = dataclasses.replace(settings or TrainSettings(), **overrides)
+    if settings.loss_scale not in ("reference", "variance"):
+        raise FmuBuilderError(f"unknown loss scale '{settings.loss_scale}': use reference or variance")
     if settings.order not in ("random", "sequential"):
         raise FmuBuilderError(f"unknown element order '{settings.order}': use random or sequential")
     if settings.epochs < 0:
         raise FmuBuilderError(f"epochs must be >= 0, got {settings.epochs}")
     if not settings.element_length > 0:
         raise FmuBuilderError(f"element length must be positive, got {settings.element_length}")
+    if settings.sensor_lag is not None and not settings.sensor_lag >= 0:
+        raise FmuBuilderError(f"sensor lag must be >= 0 seconds, got {settings.sensor_lag}")
     if settings.time_budget is not None and not settings.time_budget > 0:
         raise FmuBuilderError(f"time budget must be positive seconds, got {settings.time_budget}")
     return settings
@@ -156,6 +179,13 @@ def _sidecar_start_values(path) -> dict | None:
     from ..synth import read_sidecar
     meta = read_sidecar(path)
     return dict(meta.get("start_values") or {}) if meta else None
+
+
+def _sidecar_sensor_lag(path) -> float:
+    """The sensor lag of the bench that wrote a data file (`fmubuilder synth`), 0 without a sidecar."""
+    from ..synth import read_sidecar
+    meta = read_sidecar(path)
+    return float(((meta or {}).get("bench") or {}).get("lag") or 0.0)
 
 
 def _check_outputs(output, metrics_path, force: bool) -> None:
@@ -185,42 +215,47 @@ def _seed(seed: int) -> None:
 # errors of a model on data
 
 def evaluate(model: NeuralFMU, data: MeasuredData, step: float, solver: str = "euler",
-             start_values: dict | None = None, plain: bool = False) -> dict:
+             start_values: dict | None = None, plain: bool = False, sensor_lag: float = 0.0) -> dict:
     """{signal: {"mse", "max_abs", "final"}} of the hybrid (or, with plain, of the FMU alone: the ANN
-    gated off, trained FMU parameters kept) over the whole data, simulated from the data's start
-    with the engine; measured states start at their first measured value."""
-    names = list(data.signals)
-    if plain:
-        saved = model.topology.gate_ann.detach().clone(), model.topology.gate_fmu.detach().clone()
-        with torch.no_grad():
-            model.topology.gate_ann.zero_()
-            model.topology.gate_fmu.fill_(1.0)
-    try:
-        result = _simulate_over(model, data, step, solver, names, start_values)
-    finally:
-        if plain:
-            with torch.no_grad():
-                model.topology.gate_ann.copy_(saved[0])
-                model.topology.gate_fmu.copy_(saved[1])
+    gated off, trained FMU parameters kept) over the whole data (see simulate_over), the model seen
+    through sensors with a first-order lag."""
+    result = simulate_over(model, data, step, solver, start_values, plain)
+    return data_errors(data, result, sensor_lag)
+
+
+def data_errors(data: MeasuredData, result, sensor_lag: float = 0.0) -> dict:
+    """{signal: {"mse", "max_abs", "final"}} of an engine result against the data."""
     errors = {}
-    for name in names:
-        predicted = np.interp(data.time, result.time, result[name])
+    for name in data.signals:
+        predicted = np.interp(data.time, result.time, first_order_lag(result.time, result[name], sensor_lag))
         diff = predicted - data.signals[name]
         errors[name] = {"mse": float(np.mean(diff ** 2)), "max_abs": float(np.max(np.abs(diff))),
                         "final": float(abs(diff[-1]))}
     return errors
 
 
-def _simulate_over(model, data, step, solver, names, start_values):
+def simulate_over(model: NeuralFMU, data: MeasuredData, step: float, solver: str = "euler",
+                  start_values: dict | None = None, plain: bool = False):
+    """Engine result (with its statistics) of the hybrid, or with plain of the FMU alone, over the
+    data's span, recording the measured signals; measured states start at their first measured
+    value, the data's inputs drive the FMU."""
+    saved = model.topology.gate_ann.detach().clone(), model.topology.gate_fmu.detach().clone()
     original = dict(model.start_values)
     model.start_values.update(measured_initial_states(model, data))
     model.start_values.update(start_values or {})
     try:
-        return simulate_hybrid(model, start_time=data.start, stop_time=data.stop, variables=names,
+        if plain:
+            with torch.no_grad():
+                model.topology.gate_ann.zero_()
+                model.topology.gate_fmu.fill_(1.0)
+        return simulate_hybrid(model, start_time=data.start, stop_time=data.stop, variables=list(data.signals),
                                solver=solver, step_size=step, output_interval=step,
                                inputs=_engine_inputs(model, data))
     finally:
         model.start_values = original
+        with torch.no_grad():
+            model.topology.gate_ann.copy_(saved[0])
+            model.topology.gate_fmu.copy_(saved[1])
 
 
 def measured_initial_states(model: NeuralFMU, data: MeasuredData) -> dict:
@@ -257,6 +292,7 @@ class Trainer:
         self.epochs_done = 0
         self.elements: list[_Element] = []
         self.reference = None
+        self.best_loss, self.best_state, self._best = math.inf, None, None   # see _keep_best
 
     def elapsed(self) -> float:
         return time.perf_counter() - self.started
@@ -284,7 +320,21 @@ class Trainer:
         ref = self._capture_starts(plain=True)
         for index, element_start in enumerate(self._captured):
             self.elements.append(_Element(index, element_start, self._targets(element_start.t0)))
+        if self.settings.loss_scale == "reference":
+            self.scale = self._reference_scale()
         return ref
+
+    def _reference_scale(self) -> dict:
+        """Per-signal MSE of the plain FMU on the elements, floored at 1e-6 of the signal's variance
+        (a signal the FMU already matches exactly must not dominate the loss)."""
+        with torch.no_grad():
+            saved = self.model.topology.gate_ann.detach().clone()
+            self.model.topology.gate_ann.zero_()
+            try:
+                errors = self._signal_errors(self.elements, keep_final_state=False)
+            finally:
+                self.model.topology.gate_ann.copy_(saved)
+        return {name: max(float(errors[name]), 1e-6 * self.scale[name]) for name in self.loss_signals}
 
     def _capture_starts(self, plain: bool):
         """Simulate over the whole data (no gradient) and save the FMU state at each element start;
@@ -341,7 +391,8 @@ class Trainer:
         return targets
 
     def evaluate_plain(self) -> dict:
-        return evaluate(self.model, self.data, self.step, self.settings.solver, plain=True)
+        return evaluate(self.model, self.data, self.step, self.settings.solver, plain=True,
+                        sensor_lag=self.settings.sensor_lag or 0.0)
 
     # -- the epoch loop -------------------------------------------------------------------------
     def fit(self, checkpoint: Path | None = None, on_epoch=None) -> None:
@@ -349,7 +400,7 @@ class Trainer:
         parameters = [p for p in model.topology.parameters() if p.requires_grad]
         if not parameters or settings.epochs == 0:
             return
-        optimizer = torch.optim.Adam(parameters, lr=settings.learning_rate)
+        optimizer = self._optimizer(parameters)
         scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=settings.decay)
         first_epoch = 0
         if settings.resume and checkpoint is not None and checkpoint.is_file():
@@ -361,24 +412,17 @@ class Trainer:
             for epoch in range(first_epoch, settings.epochs):
                 if self.out_of_time():
                     break
-                losses = []
-                for batch in self._epoch_batches(rng):
-                    if self.out_of_time():
-                        break
-                    optimizer.zero_grad()
-                    loss = self.batch_loss(batch)
-                    loss.backward()
-                    optimizer.step()
-                    losses.append(float(loss.detach()))
-                    if bar is not None:
-                        bar.update(1)
-                        bar.set_postfix(epoch=epoch + 1, loss=f"{losses[-1]:.4g}")
+                before = (_copy_state(model.topology), copy.deepcopy(optimizer.state_dict()),
+                          [element.start for element in self.elements])
+                losses = self._epoch(rng, optimizer, bar, epoch)
                 if not losses:
                     break
                 scheduler.step()
+                loss = float(np.mean(losses))
+                backtracked = self._keep_best(loss, before, optimizer, rewind=batches == 1)
                 self.epochs_done = epoch + 1
-                self.history.append({"epoch": epoch + 1, "loss": float(np.mean(losses)),
-                                     "seconds": self.elapsed(), "lr": scheduler.get_last_lr()[0]})
+                self.history.append({"epoch": epoch + 1, "loss": loss, "seconds": self.elapsed(),
+                                     "lr": optimizer.param_groups[0]["lr"], "backtracked": backtracked})
                 if checkpoint is not None:
                     self._save_checkpoint(checkpoint, optimizer, scheduler, epoch + 1)
                 if on_epoch is not None and on_epoch(epoch + 1, self):
@@ -386,6 +430,68 @@ class Trainer:
         finally:
             if bar is not None:
                 bar.close()
+        self.restore_best()
+
+    def _epoch(self, rng, optimizer, bar, epoch: int) -> list[float]:
+        """One pass over the elements, one optimizer step per batch; the batches' losses."""
+        losses = []
+        for batch in self._epoch_batches(rng):
+            if self.out_of_time():
+                break
+            optimizer.zero_grad()
+            loss = self.batch_loss(batch)
+            loss.backward()
+            optimizer.step()
+            losses.append(float(loss.detach()))
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(epoch=epoch + 1, loss=f"{losses[-1]:.4g}")
+        return losses
+
+    def _optimizer(self, parameters):
+        """Adam; the pre-/post-processing at processing_step_factor times the step size. Adam moves
+        every parameter by about the step size whatever its units, and a shift in the channel's
+        units (m/s² for a speed) moved by 3e-3 per epoch outruns the network: the correction turns
+        into a constant offset, wrong at standstill, before the network has shaped it."""
+        processing = {id(p) for p in self.model.topology.processing_parameters()}
+        network = [p for p in parameters if id(p) not in processing]
+        slow = [p for p in parameters if id(p) in processing]
+        groups = [{"params": network}]
+        if slow and self.settings.processing_step_factor > 0:
+            groups.append({"params": slow, "lr": self.settings.learning_rate * self.settings.processing_step_factor})
+        return torch.optim.Adam(groups, lr=self.settings.learning_rate)
+
+    def _keep_best(self, loss: float, before: tuple, optimizer, rewind: bool) -> bool:
+        """Track the parameters with the lowest epoch loss: those at the epoch's start, which with one
+        batch per epoch are exactly the parameters the loss was measured on. There, with `backtrack`,
+        an epoch worse than the best rewinds to the best epoch (parameters, Adam's moments and the
+        element starts, which carry-over moves on) and halves the step size: Adam's steps do not
+        shrink near a minimum, so with one step per epoch it overshoots and oscillates. The epoch after
+        a rewind measures the best parameters again, on the same starts, and takes the smaller step.
+        (With several batches the epoch loss mixes parameters and elements; a rise there is no proof
+        of overshoot.) Returns whether it rewound."""
+        if loss <= self.best_loss:     # equal: the best parameters measured again after a rewind
+            self.best_loss, self._best = loss, before
+            self.best_state = before[0]
+            return False
+        if loss <= self.best_loss * (1.0 + REWIND_TOLERANCE):
+            return False
+        if not (self.settings.backtrack and rewind) or self._best is None:
+            return False
+        parameters, optimizer_state, starts = self._best
+        learning_rates = [group["lr"] * 0.5 for group in optimizer.param_groups]
+        self.model.topology.load_state_dict(parameters)
+        optimizer.load_state_dict(optimizer_state)
+        for group, learning_rate in zip(optimizer.param_groups, learning_rates):
+            group["lr"] = learning_rate
+        for element, start in zip(self.elements, starts):
+            element.start = start
+        return True
+
+    def restore_best(self) -> None:
+        """Put back the parameters with the lowest epoch loss (see _keep_best)."""
+        if self.settings.keep_best and self.best_state is not None:
+            self.model.topology.load_state_dict(self.best_state)
 
     def _batches_per_epoch(self) -> int:
         if self.settings.order == "sequential":
@@ -403,27 +509,43 @@ class Trainer:
     def batch_loss(self, batch: list["_Element"], carry: bool = True) -> torch.Tensor:
         """Loss of a batch of elements simulated side by side. With `carry`, each element's final FMU
         state becomes the start of the element after it."""
+        errors = self._signal_errors(batch, keep_final_state=carry)
+        return sum(errors[name] / self.scale[name] for name in self.loss_signals) / len(self.loss_signals)
+
+    def _signal_errors(self, batch: list["_Element"], keep_final_state: bool) -> dict:
+        """{signal: weighted MSE over the batch's data points} (tensors)."""
         trajectory = simulate(self.model, self.element_duration, self.step, starts=[e.start for e in batch],
                               record=self.loss_signals, solver=self.settings.solver, inputs=self.inputs,
-                              keep_final_state=carry)
-        if carry:
+                              keep_final_state=keep_final_state)
+        if keep_final_state:
             for element, final in zip(batch, trajectory.final_starts):
                 if element.index + 1 < len(self.elements):
                     following = self.elements[element.index + 1]
                     if abs(final.t0 - following.start.t0) <= 1e-6 * self.step:
                         final.t0 = following.start.t0
                         following.start = self._with_measured_states(final)
-        loss = 0.0
+        errors = {}
         for j, name in enumerate(self.loss_signals):
-            values = trajectory.values[:, :, j]
-            squared, weights = [], []
+            values = self._through_sensor(trajectory.values[:, :, j])
+            squared = []
             for b, element in enumerate(batch):
                 k0, frac, target, weight = element.targets[name]
                 column = values[:, b]
                 predicted = column[k0] * (1.0 - frac) + column[k0 + 1] * frac
                 squared.append(weight * (predicted - target) ** 2)
-            loss = loss + torch.cat(squared).mean() / self.scale[name]
-        return loss / len(self.loss_signals)
+            errors[name] = torch.cat(squared).mean()
+        return errors
+
+    def _through_sensor(self, values: torch.Tensor) -> torch.Tensor:
+        """[K+1, B] simulated values seen through the sensors' first-order lag, settled at each
+        element's start (as `synth` does at the start of a run)."""
+        lag = self.settings.sensor_lag or 0.0
+        if lag <= 0.0:
+            return values
+        weights = torch.from_numpy(sensor_kernel(self.step, lag))
+        padded = torch.cat([values[:1].expand(len(weights) - 1, -1), values], dim=0)
+        lagged = torch.nn.functional.conv1d(padded.T.unsqueeze(1), weights.flip(0).view(1, 1, -1))
+        return lagged.squeeze(1).T
 
     # -- checkpoints --------------------------------------------------------------------------
     def _save_checkpoint(self, path: Path, optimizer, scheduler, epoch: int) -> None:
@@ -431,6 +553,7 @@ class Trainer:
         state = {"epoch": epoch, "topology": self.model.topology.state_dict(),
                  "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
                  "history": self.history, "torch_rng": torch.get_rng_state(),
+                 "best_loss": self.best_loss, "best_state": self.best_state,
                  "config": self.model.config.to_dict()}
         buffer = io.BytesIO()
         torch.save(state, buffer)
@@ -447,6 +570,7 @@ class Trainer:
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
         self.history = list(state["history"])
+        self.best_loss, self.best_state = float(state.get("best_loss", math.inf)), state.get("best_state")
         torch.set_rng_state(state["torch_rng"])
         self.epochs_done = int(state["epoch"])
         return self.epochs_done
@@ -459,6 +583,11 @@ class _Element:
     targets: dict
 
 
+# A rise of the epoch loss up to this fraction is no overshoot: carried-over element starts move the
+# loss a little even where the parameters barely do.
+REWIND_TOLERANCE = 0.01
+
+
 def plan_elements(start: float, stop: float, length: float, step: float) -> list[float]:
     """Element start times on the step grid: every `length` seconds while a whole element fits
     (at least one element; the last one ends at or before the data's end)."""
@@ -468,6 +597,23 @@ def plan_elements(start: float, stop: float, length: float, step: float) -> list
     count = int(math.floor(span / length + 1e-9))
     steps_per_element = int(round(length / step))
     return [start + k * steps_per_element * step for k in range(count)]
+
+
+def sensor_kernel(step: float, lag: float, tolerance: float = 1e-12) -> np.ndarray:
+    """Weights w[m] of u[k - m] in the output y[k] of `lag * dy/dt = u - y` for an input linear
+    between grid points `step` apart (synth.first_order_lag's discretisation), cut where the memory
+    falls below `tolerance` and rescaled to a static gain of 1."""
+    a = math.exp(-step / lag)
+    c = 1.0 - lag / step * -math.expm1(-step / lag)     # weight of the current input
+    p = (1.0 - a) - c                                   # weight of the previous input
+    taps = int(math.ceil(math.log(tolerance) / math.log(a))) + 1
+    m = np.arange(1, taps)
+    weights = np.concatenate([[c], p * a ** (m - 1) + c * a ** m])
+    return weights / weights.sum()
+
+
+def _copy_state(module: torch.nn.Module) -> dict:
+    return {name: value.detach().clone() for name, value in module.state_dict().items()}
 
 
 def _variance(values: np.ndarray) -> float:

@@ -75,3 +75,14 @@ def test_train_command_errors_are_one_line(plant_fmu, tmp_path):
     done = subprocess.run(command, capture_output=True, text=True)
     assert done.returncode == 1
     assert done.stderr.startswith("error: unknown variable 'bogus'") and done.stderr.count("\n") == 1
+
+
+def test_negative_sensor_lag_is_a_one_line_error(plant_fmu, tmp_path, capsys):
+    data, _ = plant_data(plant_fmu, [0, 1], [1, 1], 1.0, seed=0)
+    csv = tmp_path / "train.csv"
+    write_csv(csv, data)
+    args = [str(plant_fmu), "--data", str(csv), "--target", "der(w)", "--inputs", "w", "--sensor-lag", "-0.1",
+            "--quiet", "-o", str(tmp_path / "x.nfmu")]
+    assert train_main(["train", *args]) == 1
+    assert capsys.readouterr().err == "error: sensor lag must be >= 0 seconds, got -0.1\n"
+    assert not (tmp_path / "x.nfmu").exists()

@@ -105,3 +105,46 @@ def test_sequential_elements_with_carry_over(plant_fmu):
     assert len(result.history) == 6
     assert factor(result.metrics, "errors", "w") > 2
     result.model.close()
+
+
+def test_sensor_lag_of_the_loss_matches_the_analytic_ramp_response():
+    """The loss sees the simulated signals through the sensors' first-order lag: for a ramp u = t
+    from a settled start the output is t - lag (1 - exp(-t/lag)), exactly, on any grid."""
+    import torch
+    from fmubuilder.neural.train import Trainer, TrainSettings
+
+    class Grid:
+        step = 0.01
+        settings = TrainSettings(sensor_lag=0.1)
+
+    t = np.arange(0.0, 3.0, Grid.step)
+    ramp = np.stack([t, 3.0 * t], axis=1)
+    seen = Trainer._through_sensor(Grid(), torch.from_numpy(ramp)).numpy()
+    analytic = t - 0.1 * (1.0 - np.exp(-t / 0.1))
+    np.testing.assert_allclose(seen[:, 0], analytic, atol=1e-10)
+    np.testing.assert_allclose(seen[:, 1], 3.0 * analytic, atol=1e-10)
+
+
+def test_losses_are_relative_to_the_plain_fmu(plant_fmu):
+    """With loss_scale="reference" every signal's MSE is divided by the plain FMU's on the same
+    elements, so the first epoch of a residual hybrid (which starts as the plain FMU) has loss 1."""
+    train, _ = plant_data(plant_fmu, [0, 1, 1.001, 2], [1, 1, 2, 2], 2.0, seed=0)
+    result = train_neural_fmu(plant_fmu, train, targets=["der(w)"], inputs=["w"], hidden=[4], epochs=1,
+                              element_length=0.5, step_size=0.004, progress=False)
+    assert result.history[0]["loss"] == pytest.approx(1.0, rel=1e-9)
+    result.model.close()
+
+
+def test_an_overshooting_step_size_is_rewound(plant_fmu):
+    """A step size far too large for the problem: with backtracking and keep_best the trained hybrid
+    is no worse than the plain FMU on its training data; without them it is."""
+    train, _ = plant_data(plant_fmu, [0, 1, 1.001, 2], [1, 1, 2, 2], 2.0, seed=0)
+    common = dict(targets=["der(w)"], inputs=["w"], hidden=[8], epochs=8, element_length=0.5, step_size=0.004,
+                  learning_rate=1.0, decay=1.0, processing_step_factor=1.0, progress=False)
+    guarded = train_neural_fmu(plant_fmu, train, **common)
+    reckless = train_neural_fmu(plant_fmu, train, backtrack=False, keep_best=False, **common)
+    assert any(h["backtracked"] for h in guarded.history)
+    before = guarded.metrics["errors"]["before"]["w"]["mse"]
+    assert guarded.metrics["errors"]["after"]["w"]["mse"] <= before
+    assert reckless.metrics["errors"]["after"]["w"]["mse"] > 2 * before
+    guarded.model.close(), reckless.model.close()
