@@ -9,7 +9,6 @@
 """
 from __future__ import annotations
 
-import math
 import shutil
 import tempfile
 import time
@@ -32,11 +31,10 @@ VALIDATION_SPAN = 60.0
 # itself a function of speed) gave the ANN more ways to fit noise and generalised worse.
 MAX_ANN_INPUTS = 1
 # NeuralFMU training: the data cut into elements of at most MAX_ELEMENT_LENGTH seconds (at least
-# MIN_ELEMENTS of them), BATCHES_PER_EPOCH optimizer steps per pass over the data. Short elements in
-# small batches cost about as much per pass as one full batch, but take several steps.
-MAX_ELEMENT_LENGTH = 20.0
+# MIN_ELEMENTS of them), all simulated side by side in one batch: one optimizer step per epoch, which
+# lets the training rewind an epoch that made the loss worse (see neural.train.Trainer._keep_best).
+MAX_ELEMENT_LENGTH = 100.0
 MIN_ELEMENTS = 8
-BATCHES_PER_EPOCH = 5
 # Seconds of the training data on which outputs equal to the corrected derivative are detected.
 ALIAS_SPAN = 60.0
 
@@ -145,7 +143,8 @@ def _build_candidates(ctx: _Context, diagnosis, started: float, time_budget: flo
     budget = max(MIN_TRAINING, remaining - 2.0 * ctx.evaluation_seconds - AFTER_TRAINING)
     ctx.say(f"[3/5] training a NeuralFMU: ANN on {diagnosis.channel} with inputs {', '.join(inputs)} "
             f"(time budget {budget:.0f} s) ...")
-    candidates.append(_neural_candidate(ctx, diagnosis.channel, inputs, budget, aliases))
+    settings = _training_settings(ctx.train_data, diagnosis)
+    candidates.append(_neural_candidate(ctx, diagnosis.channel, inputs, budget, aliases, settings))
     return candidates
 
 
@@ -209,7 +208,7 @@ def _fitted_term_candidate(ctx: _Context, fitted: dict, aliases: dict[str, str])
 
 
 def _neural_candidate(ctx: _Context, channel: str, inputs: list[str], budget: float,
-                      aliases: dict[str, str]) -> Candidate:
+                      aliases: dict[str, str], settings: dict) -> Candidate:
     from ..export import export_hybrid
     from ..neural import train_neural_fmu
     from .terms import spec_from_neural
@@ -219,25 +218,26 @@ def _neural_candidate(ctx: _Context, channel: str, inputs: list[str], budget: fl
     trained = train_neural_fmu(ctx.model_fmu, ctx.train_csv, targets=[channel], inputs=inputs,
                                start_values=ctx.train_start, topology="residual", time_budget=budget,
                                output=folder / "trained.neuralfmu", progress=ctx.progress,
-                               **_training_settings(ctx.train_data))
+                               **settings)
     try:
         spec = spec_from_neural(trained.model, folder, aliases)
     finally:
         trained.model.close()
     fmu = export_hybrid(spec, folder / "hybrid.fmu")
     details = {"channel": channel, "inputs": inputs, "aliases": aliases, "epochs": trained.metrics.get("epochs"),
-               "training_seconds": trained.metrics.get("seconds")}
+               "training_seconds": trained.metrics.get("seconds"), "loss_signals": settings["loss_signals"]}
     return Candidate("neural", f"ANN on {channel} with inputs {', '.join(inputs)}", fmu, folder,
                      evaluate(fmu, ctx.train_data, ctx.train_start), evaluate(fmu, ctx.test_data, ctx.test_start),
                      details)
 
 
-def _training_settings(data) -> dict:
-    """Element length and batch size of the NeuralFMU training (see MAX_ELEMENT_LENGTH)."""
+def _training_settings(data, diagnosis) -> dict:
+    """Element length and loss signals of the NeuralFMU training: the loss is on the signals in
+    which the diagnosis found the effect (all of them if it found it in none alone). The others sit
+    at the noise level and their fit to noise pulls the ANN away from the effect."""
     span = float(data.time[-1] - data.time[0])
-    length = min(MAX_ELEMENT_LENGTH, span / MIN_ELEMENTS)
-    elements = max(1, int(span / length + 1e-9))
-    return {"element_length": length, "batch_size": math.ceil(elements / BATCHES_PER_EPOCH)}
+    showing = [e.signal for e in diagnosis.errors if e.significant]
+    return {"element_length": min(MAX_ELEMENT_LENGTH, span / MIN_ELEMENTS), "loss_signals": showing or None}
 
 
 def _choose(candidates: list[Candidate], before_test: Evaluation) -> Candidate | None:
