@@ -160,7 +160,7 @@ def main() -> None:
     parser.add_argument("--part", choices=["a", "b", "all"], default="all")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--budget", type=float, default=900.0, help="time budget of the training run (s)")
-    parser.add_argument("--epochs", type=int, default=30, help="epochs of the training run")
+    parser.add_argument("--epochs", type=int, default=20, help="epochs of the training run")
     args = parser.parse_args()
     torch.set_num_threads(1)
     if args.part in ("a", "all"):

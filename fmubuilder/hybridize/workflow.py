@@ -27,8 +27,8 @@ AFTER_TRAINING = 30.0
 MIN_TRAINING = 30.0
 # Seconds of the test data replayed by the round-trip validation (fmpy Euler and CVode).
 VALIDATION_SPAN = 60.0
-# ANN inputs: the leading traced variable. More (on the VLDM the runner-up, motor_torque_limit, is
-# itself a function of speed) gave the ANN more ways to fit noise and generalised worse.
+# ANN inputs: the leading traced variable. Each further input is another way to fit noise, and the
+# runners-up often carry little new (on the VLDM, motor_torque_limit is a function of speed).
 MAX_ANN_INPUTS = 1
 # NeuralFMU training: the data cut into elements of at most MAX_ELEMENT_LENGTH seconds (at least
 # MIN_ELEMENTS of them), all simulated side by side in one batch: one optimizer step per epoch, which
