@@ -33,15 +33,10 @@ def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solve
         return np.stack([np.interp(t, data.time, data.signals[s]) for s in forced], axis=1)
 
     names = list(dict.fromkeys(config.inputs + config.channels))
-    with torch.no_grad():
-        saved = model.topology.gate_ann.detach().clone()
-        model.topology.gate_ann.zero_()
-        try:
-            run = simulate(model, data.stop - data.start, step, starts=[ElementStart(data.start, states=dict(
-                zip(forced, values(np.array([data.start]))[0])))], record=names, solver=solver, inputs=inputs,
-                forcing=(indices, values))
-        finally:
-            model.topology.gate_ann.copy_(saved)
+    with torch.no_grad(), model.topology.ann_off():
+        run = simulate(model, data.stop - data.start, step, starts=[ElementStart(data.start, states=dict(
+            zip(forced, values(np.array([data.start]))[0])))], record=names, solver=solver, inputs=inputs,
+            forcing=(indices, values))
     times = data.start + run.times
     every = max(1, len(times) // MAX_SAMPLES)
     keep = slice(0, len(times), every)

@@ -26,6 +26,7 @@ pre_shift, pre_scale, post_scale, post_shift, gate_ann, gate_fmu.
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -135,6 +136,22 @@ class Topology(nn.Module):
             float(info.variable(p).start or 0.0) for p in config.parameters]
         self.fmu_parameters = nn.Parameter(torch.tensor(values, dtype=DTYPE).reshape(len(config.parameters)),
                                            requires_grad=bool(config.parameters))
+
+    @contextmanager
+    def ann_off(self, fmu_gate_one: bool = False):
+        """Within the block the hybrid is the plain FMU: gate_ann = 0 (and, with fmu_gate_one,
+        gate_fmu = 1, for a gates hybrid whose trained FMU gate is not 1); restored after."""
+        saved = self.gate_ann.detach().clone(), self.gate_fmu.detach().clone()
+        with torch.no_grad():
+            self.gate_ann.zero_()
+            if fmu_gate_one:
+                self.gate_fmu.fill_(1.0)
+        try:
+            yield
+        finally:
+            with torch.no_grad():
+                self.gate_ann.copy_(saved[0])
+                self.gate_fmu.copy_(saved[1])
 
     def processing_parameters(self) -> list[nn.Parameter]:
         """The pre-/post-processing scales and shifts (trained at their own step size)."""

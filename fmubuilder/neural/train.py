@@ -34,6 +34,7 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import json
@@ -239,23 +240,16 @@ def simulate_over(model: NeuralFMU, data: MeasuredData, step: float, solver: str
     """Engine result (with its statistics) of the hybrid, or with plain of the FMU alone, over the
     data's span, recording the measured signals; measured states start at their first measured
     value, the data's inputs drive the FMU."""
-    saved = model.topology.gate_ann.detach().clone(), model.topology.gate_fmu.detach().clone()
     original = dict(model.start_values)
     model.start_values.update(measured_initial_states(model, data))
     model.start_values.update(start_values or {})
     try:
-        if plain:
-            with torch.no_grad():
-                model.topology.gate_ann.zero_()
-                model.topology.gate_fmu.fill_(1.0)
-        return simulate_hybrid(model, start_time=data.start, stop_time=data.stop, variables=list(data.signals),
-                               solver=solver, step_size=step, output_interval=step,
-                               inputs=_engine_inputs(model, data))
+        with (model.topology.ann_off(fmu_gate_one=True) if plain else contextlib.nullcontext()):
+            return simulate_hybrid(model, start_time=data.start, stop_time=data.stop, variables=list(data.signals),
+                                   solver=solver, step_size=step, output_interval=step,
+                                   inputs=_engine_inputs(model, data))
     finally:
         model.start_values = original
-        with torch.no_grad():
-            model.topology.gate_ann.copy_(saved[0])
-            model.topology.gate_fmu.copy_(saved[1])
 
 
 def measured_initial_states(model: NeuralFMU, data: MeasuredData) -> dict:
@@ -327,13 +321,8 @@ class Trainer:
     def _reference_scale(self) -> dict:
         """Per-signal MSE of the plain FMU on the elements, floored at 1e-6 of the signal's variance
         (a signal the FMU already matches exactly must not dominate the loss)."""
-        with torch.no_grad():
-            saved = self.model.topology.gate_ann.detach().clone()
-            self.model.topology.gate_ann.zero_()
-            try:
-                errors = self._signal_errors(self.elements, keep_final_state=False)
-            finally:
-                self.model.topology.gate_ann.copy_(saved)
+        with torch.no_grad(), self.model.topology.ann_off():
+            errors = self._signal_errors(self.elements, keep_final_state=False)
         return {name: max(float(errors[name]), 1e-6 * self.scale[name]) for name in self.loss_signals}
 
     def _capture_starts(self, plain: bool):
@@ -342,16 +331,10 @@ class Trainer:
         model, data = self.model, self.data
         grid_index = [int(round((s - data.start) / self.step)) for s in self.start_times]
         first = ElementStart(data.start, states=measured_initial_states(model, data))
-        with torch.no_grad():
-            saved = model.topology.gate_ann.detach().clone()
-            if plain:
-                model.topology.gate_ann.zero_()
-            try:
-                run = simulate(model, data.stop - data.start, self.step, starts=[first],
-                               record=self._reference_names(), solver=self.settings.solver, inputs=self.inputs,
-                               capture=grid_index)
-            finally:
-                model.topology.gate_ann.copy_(saved)
+        with torch.no_grad(), (model.topology.ann_off() if plain else contextlib.nullcontext()):
+            run = simulate(model, data.stop - data.start, self.step, starts=[first],
+                           record=self._reference_names(), solver=self.settings.solver, inputs=self.inputs,
+                           capture=grid_index)
         self._captured = [self._with_measured_states(run.captured[k][0]) for k in grid_index]
         for element, start in zip(self.elements, self._captured):
             element.start = start
