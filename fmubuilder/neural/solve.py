@@ -11,7 +11,7 @@ Events (one call of the FMU's own event iteration, FmuInstance.update_discrete_s
   fmi2CompletedIntegratorStep after each step, state events where an event indicator changes sign
   within a step (the engine's convention, simulation/events.py: reaching zero fires, leaving it does not).
 * State events are located without gradients on the step's dense output (Euler: linear; RK4:
-  cubic Hermite) by secant steps safeguarded with bisection, to the side beyond the crossing.
+  cubic Hermite) by the engine's root finder (simulation/events.locate), to the side beyond the crossing.
 
 Gradients across events:
 1. Event time. With t* the located time and z the crossing indicator,
@@ -67,7 +67,7 @@ import numpy as np
 import torch
 
 from ..errors import FmuBuilderError
-from ..simulation.events import crossed
+from ..simulation.events import crossed, locate
 from .layer import EventSensitivity, FmuEvaluator, fd_steps, fmu_call
 from .model import NeuralFMU, as_float_array
 from .rhs import RhsPlan, hybrid_rhs
@@ -618,35 +618,19 @@ class _Run:
         return hermite
 
     def _locate(self, b, t_k, t_new, dense, z_lo, z_hi):
-        """Secant steps with bisection safeguard on theta in [0, 1]; returns (theta beyond the crossing,
+        """The engine's root finder on the step's dense output; returns (theta beyond the crossing,
         indicators there, index of the crossing indicator)."""
         h = t_new - t_k
-        lo, hi = 0.0, 1.0
-        tol = max(time_tolerance(t_new), 1e-12 * h) / h
-        bisect = False
+
+        def indicators_at(t):
+            return self.ev.indicators(b, t, dense((t - t_k) / h).detach().numpy(), self._u(b, t))
+
         with torch.no_grad():
-            for _ in range(200):
-                if hi - lo <= tol:
-                    break
-                mask = crossed(z_lo, z_hi)
-                if bisect:
-                    theta = 0.5 * (lo + hi)
-                else:
-                    zl, zh = z_lo[mask], z_hi[mask]
-                    theta = float(np.min(lo + (hi - lo) * zl / (zl - zh)))
-                    if not lo < theta < hi:
-                        theta = 0.5 * (lo + hi)
-                width = hi - lo
-                x_theta = dense(theta).detach().numpy()
-                z = self.ev.indicators(b, t_k + theta * h, x_theta, self._u(b, t_k + theta * h))
-                if crossed(z_lo, z).any():
-                    hi, z_hi = theta, z
-                else:
-                    lo, z_lo = theta, z
-                bisect = (hi - lo) > 0.5 * width
-        mask = crossed(z_lo, z_hi)
-        which = int(np.flatnonzero(mask)[np.argmax(np.abs(z_lo[mask] - z_hi[mask]))])
-        return hi, z_hi, which
+            t_hi, z_hi, fired, _ = locate(indicators_at, t_k, z_lo, t_new, z_hi,
+                                          max(time_tolerance(t_new), 1e-12 * h))
+        # of several indicators firing at once, the steepest over the step carries the event time
+        which = int(np.flatnonzero(fired)[np.argmax(np.abs(z_hi[fired] - z_lo[fired]))])
+        return (t_hi - t_k) / h, z_hi, which
 
     def _pre_event_state(self, b, dense, theta, t_k, t_new, t_star, z_k, z_hi, j):
         """x(t_e) with t_e differentiable through the implicit-function correction (see module doc)."""
