@@ -14,9 +14,8 @@ import numpy as np
 
 from ..errors import FmuBuilderError
 from ..fmi import ModelInfo
-from ..simulation.inputs import read_csv_signals
+from ..simulation.inputs import InputSignals, input_signals_from, read_csv_signals
 from ..synth import split_uncertainty_columns
-from .solve import InputSignals
 
 
 @dataclass
@@ -35,8 +34,8 @@ class MeasuredData:
     def stop(self) -> float:
         return float(self.time[-1])
 
-    def input_signals(self) -> InputSignals | None:
-        return InputSignals(self.time, self.inputs) if self.inputs else None
+    def input_signals(self, info: ModelInfo) -> InputSignals | None:
+        return input_signals_from({"time": self.time, **self.inputs}, info) if self.inputs else None
 
     def at(self, name: str, t) -> np.ndarray:
         return np.interp(t, self.time, self.signals[name])

@@ -3,8 +3,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-import torch
 from torch import nn
 
 from ..errors import FmuBuilderError
@@ -75,18 +73,3 @@ class NeuralFMU(nn.Module):
 
     def __exit__(self, *exc):
         self.close()
-
-    def simulate(self, *args, **kwargs):
-        """Shortcut for fmubuilder.neural.solve.simulate(self, ...)."""
-        from .solve import simulate
-        return simulate(self, *args, **kwargs)
-
-    def forward(self, *args, **kwargs):  # an nn.Module needs one; the solver is the forward pass
-        return self.simulate(*args, **kwargs)
-
-
-def as_float_array(values, n: int, what: str) -> np.ndarray:
-    array = np.asarray(values.detach().numpy() if isinstance(values, torch.Tensor) else values, dtype=float)
-    if array.shape != (n,):
-        raise FmuBuilderError(f"{what} needs {n} values, got shape {array.shape}")
-    return array

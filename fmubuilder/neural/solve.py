@@ -68,8 +68,9 @@ import torch
 
 from ..errors import FmuBuilderError
 from ..simulation.events import crossed, locate
+from ..simulation.inputs import InputSignals
 from .layer import EventSensitivity, FmuEvaluator, fd_steps, fmu_call
-from .model import NeuralFMU, as_float_array
+from .model import NeuralFMU
 from .rhs import RhsPlan, hybrid_rhs
 
 SOLVERS = ("euler", "rk4")
@@ -88,22 +89,6 @@ class ElementStart:
     fmu_state: bytes | None = None            # serialized FMU state (continuous-time mode) at t0
     next_event_time: float = math.inf         # the FMU's time event pending at the saved state
     states: dict[str, float] | None = None    # continuous states to override (e.g. measured values)
-
-
-class InputSignals:
-    """FMU inputs from data, linearly interpolated (held constant outside the data)."""
-
-    def __init__(self, times: np.ndarray, columns: dict[str, np.ndarray]):
-        self.times = np.asarray(times, dtype=float)
-        self.names = list(columns)
-        self.values = [np.asarray(columns[n], dtype=float) for n in self.names]
-
-    def at(self, t: np.ndarray) -> np.ndarray:
-        t = np.atleast_1d(t)
-        out = np.empty((len(t), len(self.names)))
-        for j, v in enumerate(self.values):
-            out[:, j] = np.interp(t, self.times, v)
-        return out
 
 
 @dataclass
@@ -150,6 +135,12 @@ def simulate(model: NeuralFMU, duration: float, step_size: float, *, starts: Seq
         return run.run()
     finally:
         run.ev.free()
+
+
+def _x0_values(x0: torch.Tensor, B: int, n: int) -> np.ndarray:
+    if x0.numel() != B * n:
+        raise FmuBuilderError(f"x0 needs {B * n} values ({B} elements of {n} states), got shape {tuple(x0.shape)}")
+    return x0.detach().numpy().reshape(B, n).astype(float)
 
 
 def batch_matvec(matrices: np.ndarray, vectors: torch.Tensor) -> torch.Tensor:
@@ -221,16 +212,16 @@ class _Run:
 
     # -- set-up ------------------------------------------------------------------------------
     def _inputs_at(self, t) -> np.ndarray | None:
-        return None if self.inputs is None else self.inputs.at(np.atleast_1d(t))
+        return None if self.inputs is None else self.inputs.table(t)
 
     def _u(self, b: int, t: float):
-        return None if self.inputs is None else self.inputs.at(np.array([t]))[0]
+        return None if self.inputs is None else self.inputs.table(t)[0]
 
     def initialise(self):
         """Start every element; returns (x [B, n], dd carrier or None, correction c or None)."""
         n, B = self.n, self.B
         self.t0 = np.array([s.t0 for s in self.starts], dtype=float)
-        x0_values = None if self.x0 is None else as_float_array(self.x0.detach().reshape(-1), B * n, "x0").reshape(B, n)
+        x0_values = None if self.x0 is None else _x0_values(self.x0, B, n)
         x = np.empty((B, n))
         init_outcomes = {}
         init_sens = self.grad and self.ev.can_snapshot and (

@@ -247,7 +247,7 @@ def simulate_over(model: NeuralFMU, data: MeasuredData, step: float, solver: str
         with (model.topology.ann_off(fmu_gate_one=True) if plain else contextlib.nullcontext()):
             return simulate_hybrid(model, start_time=data.start, stop_time=data.stop, variables=list(data.signals),
                                    solver=solver, step_size=step, output_interval=step,
-                                   inputs=_engine_inputs(model, data))
+                                   inputs=data.input_signals(model.info))
     finally:
         model.start_values = original
 
@@ -255,13 +255,6 @@ def simulate_over(model: NeuralFMU, data: MeasuredData, step: float, solver: str
 def measured_initial_states(model: NeuralFMU, data: MeasuredData) -> dict:
     """Start values of the measured continuous states: their first measured value."""
     return {s: float(data.signals[s][0]) for s in model.state_names() if s in data.signals}
-
-
-def _engine_inputs(model, data):
-    if not data.inputs:
-        return None
-    from ..simulation.inputs import input_signals_from
-    return input_signals_from({"time": data.time, **data.inputs}, model.info)
 
 
 # ------------------------------------------------------------------------------------------
@@ -281,7 +274,7 @@ class Trainer:
                 raise FmuBuilderError(f"loss signal '{name}' is not a column of {data.source}; "
                                       f"choose among {', '.join(data.signals)}")
         self.scale = {name: _variance(data.signals[name]) for name in self.loss_signals}
-        self.inputs = data.input_signals()
+        self.inputs = data.input_signals(self.model.info)
         self.history: list[dict] = []
         self.epochs_done = 0
         self.elements: list[_Element] = []

@@ -127,6 +127,11 @@ class InputSignals:
         self._segment = 0
 
     @property
+    def names(self) -> list[str]:
+        """The input variables' names, continuous ones first."""
+        return [v.name for v in self.continuous + self.discrete]
+
+    @property
     def breakpoints(self) -> np.ndarray:
         """Sample times of continuous inputs: their derivative jumps there."""
         return self.time if self.continuous else np.zeros(0)
@@ -142,6 +147,14 @@ class InputSignals:
                 return self._cont[-1]
             i = self._segment = bisect.bisect_right(times, t) - 1
         return self._cont[i] + (t - times[i]) * self._slope[i]
+
+    def table(self, times) -> np.ndarray:
+        """Values of the continuous inputs at several times: [len(times), continuous inputs]."""
+        times = np.atleast_1d(np.asarray(times, dtype=float))
+        out = np.empty((times.size, len(self.continuous)))
+        for k in range(len(self.continuous)):
+            out[:, k] = np.interp(times, self.time, self._cont[:, k])
+        return out
 
     def discrete_at(self, t: float) -> dict[str, object]:
         """Values of the discrete inputs at t (the last sample at or before t)."""

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from fmubuilder.neural import InputSignals, NeuralFMU, TopologyConfig, simulate
+from fmubuilder.neural import NeuralFMU, TopologyConfig, simulate
+from fmubuilder.simulation import input_signals_from
 
 STEP = 1e-6  # relative step of the central differences of the whole simulation
 
@@ -51,7 +52,7 @@ def test_sampled_controller_with_discrete_integrator(plant_fmu):
     """Across 50 controller samples: gradients w.r.t. the initial state and the tunable gain Kp.
     The controller's integral is a discrete state with memory, so this needs the shadow states."""
     model = NeuralFMU(plant_fmu, TopologyConfig(parameters=["Kp"]))
-    inputs = InputSignals(np.array([0.0, 10.0]), {"setpoint": np.array([1.0, 1.0])})
+    inputs = input_signals_from({"time": [0.0, 10.0], "setpoint": [1.0, 1.0]}, model.info)
     x0 = torch.tensor([[0.0, 0.2]], dtype=torch.float64, requires_grad=True)
     kp = model.topology.fmu_parameters
 
@@ -79,7 +80,7 @@ def test_ann_weights_in_a_batch(plant_fmu):
     with torch.no_grad():
         for p in model.topology.ann.parameters():
             p.copy_(0.3 * torch.randn_like(p))
-    inputs = InputSignals(np.array([0.0, 0.6, 0.601, 3.0]), {"setpoint": np.array([1.0, 1.0, 2.0, 2.0])})
+    inputs = input_signals_from({"time": [0.0, 0.6, 0.601, 3.0], "setpoint": [1.0, 1.0, 2.0, 2.0]}, model.info)
     with torch.no_grad():
         reference = simulate(model, 1.0, 0.002, record=["w"], inputs=inputs, capture=[100, 300])
     starts = [reference.captured[100][0], reference.captured[300][0]]

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from fmubuilder.neural import InputSignals, NeuralFMU, TopologyConfig, simulate
+from fmubuilder.neural import NeuralFMU, TopologyConfig, simulate
+from fmubuilder.simulation import input_signals_from
 from fmubuilder.neural.system import NumpyTopology, simulate_hybrid
 from fmubuilder.simulation import simulate as engine_simulate
 
@@ -49,8 +50,8 @@ def random_gated_hybrid(path, channels, inputs, **kwargs):
 def test_untrained_hybrid_equals_the_fmu_exactly(plant_fmu, grad):
     """Gates at (0, 1): bit-identical to the plain FMU in the same solver, with and without autograd,
     and equal to the engine's simulation of the FMU to round-off."""
-    inputs = InputSignals(np.array([0.0, 0.3, 0.301, 1.0]), {"setpoint": np.array([1.0, 1.0, 2.0, 2.0])})
     hybrid = random_gated_hybrid(plant_fmu, ["der(w)"], ["w", "der(w)", "u"])
+    inputs = input_signals_from({"time": [0.0, 0.3, 0.301, 1.0], "setpoint": [1.0, 1.0, 2.0, 2.0]}, hybrid.info)
     plain = NeuralFMU(plant_fmu, TopologyConfig())
     with torch.set_grad_enabled(grad):
         a = simulate(hybrid, 1.0, 0.001, record=["w", "i", "u"], inputs=inputs, solver="rk4")
@@ -90,8 +91,7 @@ def test_engine_and_torch_solver_agree_on_an_active_hybrid(plant_fmu):
     with torch.no_grad():
         hybrid.topology.gate_ann.fill_(0.3)
         ours = simulate(hybrid, 1.0, 0.001, record=["w", "i", "der(w)"], solver="rk4",
-                        inputs=InputSignals(np.array([0.0, 1.0]), {"setpoint": np.array([1.0, 1.0])}))
-    from fmubuilder.simulation import input_signals_from
+                        inputs=input_signals_from({"time": [0.0, 1.0], "setpoint": [1.0, 1.0]}, hybrid.info))
     engine = simulate_hybrid(hybrid, start_time=0.0, stop_time=1.0, variables=["w", "i", "der(w)"], solver="rk4",
                              step_size=0.001, inputs=input_signals_from({"time": [0.0, 1.0], "setpoint": [1.0, 1.0]},
                                                                        hybrid.info))
