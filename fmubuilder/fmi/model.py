@@ -68,6 +68,8 @@ class ModelInfo:
     capabilities: Capabilities
     default_experiment: DefaultExperiment
     outputs: list[Variable] = field(default_factory=list)
+    # ModelStructure: the knowns each derivative and output depends on (None: not declared)
+    dependencies: dict[str, tuple[str, ...] | None] = field(default_factory=dict)
 
     @property
     def n_states(self) -> int:
@@ -144,4 +146,6 @@ def model_info_from_fmpy(md) -> ModelInfo:
         n_event_indicators=int(md.numberOfEventIndicators or 0), capabilities=caps,
         default_experiment=experiment,
         outputs=[by_fmpy_var[id(u.variable)] for u in md.outputs],
+        dependencies={u.variable.name: None if u.dependencies is None else tuple(d.name for d in u.dependencies)
+                      for u in md.derivatives + md.outputs},
     )

@@ -12,7 +12,8 @@ continuous states x and to chosen tunable parameters p:
 
 `fmu_call` wraps this in a torch.autograd.Function: the Jacobian is computed in the forward pass
 (the FMU's discrete state has moved on by the time backward runs) and applied in backward.
-`ColumnSparsity` learns which columns are structurally zero and skips them.
+`JacobianSparsity` skips the columns the FMU's ModelStructure declares zero and, where it declares
+nothing, the columns that a combined probe shows zero at the evaluated point.
 
 At events (see solve.py for the whole design) `FmuEvaluator.handle_event` runs the FMU's own event
 iteration and, when asked, its linearisation (`EventOutcome`): the Jacobian R of the reset map
@@ -63,43 +64,59 @@ class EventOutcome:
     G: np.ndarray | None = None  # [n+k, q]  d(derivatives, variables) / d d+
 
 
-class ColumnSparsity:
-    """Learned sparsity of one Jacobian: which knowns (columns) have ever had an effect.
+class JacobianSparsity:
+    """Which columns (continuous states) of the Jacobian d(unknowns)/dx can be non-zero.
 
-    All columns are computed in the first `warmup` uses and every `recheck`-th use after; in
-    between, columns never seen non-zero are skipped (treated as exactly zero). A column seen
-    non-zero once is always computed. Kept on the NeuralFMU, so it persists across runs."""
+    The FMU's ModelStructure declares the states each derivative and output depends on; a column
+    no unknown depends on is skipped. Where some unknown declares nothing (no `dependencies`
+    attribute, or a local variable), any column may be non-zero: the columns not yet seen non-zero
+    are then probed together at every evaluation, by one perturbation of all of them at once with
+    distinct weights (`probe_weights`); if it changes anything, they are computed one by one and
+    those found non-zero join the computed columns for good. A column is thus skipped only where
+    the FMU declares it zero or where it is zero at that very point, never on an earlier guess."""
 
-    def __init__(self, n_knowns: int, warmup: int = 4, recheck: int = 100):
+    def __init__(self, info: ModelInfo, unknowns: Sequence[str]):
+        n = info.n_states
+        declared = [info.dependencies.get(name) for name in unknowns]
+        self.complete = all(deps is not None for deps in declared)
+        index = {v.name: i for i, v in enumerate(info.states)}
+        self.computed = np.zeros(n, dtype=bool)
+        for deps in declared:
+            if deps is None:
+                continue
+            self.computed[[index[d] for d in deps if d in index]] = True
+        self.probe_weights = 1.0 + np.modf(np.arange(1, n + 1) * 0.6180339887498949)[0]
+
+    def columns(self) -> np.ndarray:
+        """The columns computed one by one."""
+        return np.flatnonzero(self.computed)
+
+    def unchecked(self) -> np.ndarray:
+        """The columns to probe together (empty when the ModelStructure declares every unknown)."""
+        return np.zeros(0, dtype=int) if self.complete else np.flatnonzero(~self.computed)
+
+    def found(self, columns: np.ndarray) -> None:
+        self.computed[columns] = True
+
+    @property
+    def skipped(self) -> list[int]:
+        return np.flatnonzero(~self.computed).tolist()
+
+
+class EventSensitivity:
+    """Per-event perturbation bookkeeping, shared by all elements and kept across runs.
+
+    A column (known) is non-trivial when its perturbation changed the discrete states, the
+    derivatives or variables, or the reset map beyond identity. All columns are perturbed in the
+    first `warmup` events and every `recheck`-th event after; in between, columns never seen
+    non-trivial are skipped. Shadows (discrete states with memory, see solve.py) are kept while
+    any propagated shadow has shown an effect, during the warmup and around each recheck."""
+
+    def __init__(self, n_knowns: int, warmup: int = 4, recheck: int = 500):
         self.n_knowns, self.warmup, self.recheck = n_knowns, warmup, recheck
         self.seen = np.zeros(n_knowns, dtype=bool)
         self.uses = 0
         self._all = np.arange(n_knowns)
-
-    def columns(self) -> np.ndarray:
-        if self.uses < self.warmup or self.uses % self.recheck == 0:
-            return self._all
-        return np.flatnonzero(self.seen)
-
-    def observe(self, columns: np.ndarray, nonzero: np.ndarray) -> None:
-        self.uses += 1
-        self.seen[columns[nonzero]] = True
-
-    @property
-    def skipped(self) -> list[int]:
-        return np.flatnonzero(~self.seen).tolist()
-
-
-class EventSensitivity(ColumnSparsity):
-    """Per-event perturbation bookkeeping, shared by all elements and kept across runs.
-
-    A column is non-trivial when its perturbation changed the discrete states, the derivatives
-    or variables, or the reset map beyond identity. Shadows (discrete states with memory, see
-    solve.py) are kept while any propagated shadow has shown an effect, during the warmup and
-    around each recheck."""
-
-    def __init__(self, n_knowns: int, warmup: int = 4, recheck: int = 500):
-        super().__init__(n_knowns, warmup, recheck)
         self.memory_seen = False
         self.perturbations = 0
         self.propagations = 0
@@ -117,8 +134,18 @@ class EventSensitivity(ColumnSparsity):
         self.perturbations = self.propagations = self._run_events = 0
         self.seconds = 0.0
 
+    def columns(self) -> np.ndarray:
+        if self.uses < self.warmup or self.uses % self.recheck == 0:
+            return self._all
+        return np.flatnonzero(self.seen)
+
+    @property
+    def skipped(self) -> list[int]:
+        return np.flatnonzero(~self.seen).tolist()
+
     def observe(self, columns: np.ndarray, nonzero: np.ndarray) -> None:
-        super().observe(columns, nonzero)
+        self.uses += 1
+        self.seen[columns[nonzero]] = True
         self._run_events += 1
         self.perturbations += len(columns)
 
@@ -159,7 +186,7 @@ class FmuEvaluator:
 
     def __init__(self, instances: Sequence[FmuInstance], info: ModelInfo, variables: Sequence[str] = (),
                  inputs: Sequence[str] = (), parameters: Sequence[str] = (), jacobian: str = "auto",
-                 discrete_states: Sequence[str] | str = "auto", jacobian_sparsity: ColumnSparsity | None = None):
+                 discrete_states: Sequence[str] | str = "auto"):
         self.instances = list(instances)
         self.info = info
         self.n = info.n_states
@@ -201,7 +228,7 @@ class FmuEvaluator:
         self._directional_x = provides and jacobian != "fd"
         self._directional_p = provides and jacobian != "fd"
         self._param_mode: str | None = None  # how the CT-mode parameter columns are found (probed)
-        self.jacobian_sparsity = jacobian_sparsity or ColumnSparsity(self.n)
+        self.sparsity = JacobianSparsity(info, [v.name for v in info.derivatives] + self.variables)
         self.discrete = discrete_state_names(info) if discrete_states == "auto" else list(discrete_states)
         self.q = len(self.discrete)
         self._d_getters = [inst.real_getter([info.variable(v).value_reference for v in self.discrete])
@@ -270,55 +297,77 @@ class FmuEvaluator:
         out = np.empty((R, w))
         Jx = np.empty((R, w, n)) if jac_x else None
         Jp = np.empty((R, w, self.P)) if jac_p and self.P else None
-        columns = self.jacobian_sparsity.columns() if jac_x else None
         for r, b in enumerate(rows):
             ur = None if u is None else u[r]
             self.set_point(b, float(t[r]), x[r], ur)
             self.read(b, out[r])
             if jac_x:
-                self._jacobian_x(b, x[r], out[r], Jx[r], columns)
+                self._jacobian_x(b, x[r], out[r], Jx[r])
             if Jp is not None:
                 self._jacobian_p(b, x[r], out[r], Jp[r])
-        if jac_x:
-            self.jacobian_sparsity.observe(columns, (Jx[:, :, columns] != 0).any(axis=(0, 1)))
         self.n_evaluations += R
         return out, Jx, Jp
 
-    def _jacobian_x(self, b: int, x: np.ndarray, base: np.ndarray, J: np.ndarray, columns: np.ndarray) -> None:
+    def _jacobian_x(self, b: int, x: np.ndarray, base: np.ndarray, J: np.ndarray) -> None:
+        """J = d out / dx at instance b's current point, the columns JacobianSparsity skips zero."""
+        J[:] = 0.0
+        sparsity = self.sparsity
+        unchecked = sparsity.unchecked()
+        if unchecked.size and self._probe(b, x, base, unchecked, sparsity.probe_weights[unchecked]):
+            sparsity.found(unchecked[self._state_columns(b, x, base, unchecked).any(axis=0)])
+        columns = sparsity.columns()
+        if columns.size:
+            J[:, columns] = self._state_columns(b, x, base, columns)
         self.n_jacobian_columns += len(columns)
+
+    def _state_columns(self, b: int, x: np.ndarray, base: np.ndarray, columns: np.ndarray) -> np.ndarray:
+        """The Jacobian columns d out / dx_i, i in columns: [n+k, len(columns)]."""
         if self._directional_x:
             try:
-                self._directional(b, self.state_vrs, J)
-                return
+                return self._directional(b, [self.state_vrs[i] for i in columns], np.eye(len(columns)))
             except FmuCallError:
                 self._directional_x = False  # the FMU rejects some pair: use finite differences from now on
         inst = self.instances[b]
         steps = fd_steps(x, self.nominal)
         xp = x.copy()
         row = np.empty(self.width)
-        J[:] = 0.0
-        for i in columns:
+        result = np.empty((self.width, len(columns)))
+        for j, i in enumerate(columns):
             xp[i] = x[i] + steps[i]
-            delta = xp[i] - x[i]
             inst.set_continuous_states(xp)
             self.read(b, row)
-            J[:, i] = (row - base) / delta
+            result[:, j] = (row - base) / (xp[i] - x[i])
             xp[i] = x[i]
         inst.set_continuous_states(x)
+        return result
 
-    def _directional(self, b: int, knowns: Sequence[int], J: np.ndarray) -> None:
+    def _probe(self, b: int, x: np.ndarray, base: np.ndarray, columns: np.ndarray, weights: np.ndarray) -> bool:
+        """Whether perturbing the states `columns` together (distinct weights, so that exact
+        cancellation of their effects is not to be expected) changes any unknown."""
+        if self._directional_x:
+            try:
+                return bool(self._directional(b, [self.state_vrs[i] for i in columns], weights[None, :]).any())
+            except FmuCallError:
+                self._directional_x = False
         inst = self.instances[b]
-        seed = np.zeros(len(knowns))
-        for j in range(len(knowns)):
-            seed[j] = 1.0
-            J[:, j] = inst.get_directional_derivative(self.unknown_vrs, knowns, seed)
-            seed[j] = 0.0
+        xp = x.copy()
+        xp[columns] += weights * fd_steps(x, self.nominal)[columns]
+        inst.set_continuous_states(xp)
+        row = np.empty(self.width)
+        self.read(b, row)
+        inst.set_continuous_states(x)
+        return bool((row != base).any())
+
+    def _directional(self, b: int, knowns: Sequence[int], seeds: np.ndarray) -> np.ndarray:
+        """One directional derivative of the unknowns per seed row: [n+k, len(seeds)]."""
+        inst = self.instances[b]
+        return np.stack([inst.get_directional_derivative(self.unknown_vrs, knowns, seed) for seed in seeds], axis=1)
 
     def _jacobian_p(self, b: int, x: np.ndarray, base: np.ndarray, J: np.ndarray) -> None:
         """Columns for the tunable parameters in continuous-time mode."""
         if self._directional_p:
             try:
-                self._directional(b, self.param_vrs, J)
+                J[:] = self._directional(b, self.param_vrs, np.eye(self.P))
                 return
             except FmuCallError:
                 self._directional_p = False

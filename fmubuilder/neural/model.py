@@ -7,7 +7,7 @@ from torch import nn
 
 from ..errors import FmuBuilderError
 from ..fmi import Fmu, FmuInstance, convert_value
-from .layer import ColumnSparsity, EventSensitivity
+from .layer import EventSensitivity
 from .topology import Topology, TopologyConfig
 
 
@@ -34,9 +34,7 @@ class NeuralFMU(nn.Module):
         parameter_values = [float(self.start_values.get(p, self.info.variable(p).start or 0.0)) for p in config.parameters]
         self.topology = Topology(config, self.info, parameter_values)
         self._instances: list[FmuInstance] = []
-        # Learned sparsity of the FMU's Jacobians, kept across simulations (see layer.ColumnSparsity).
         n_knowns = self.info.n_states + len(config.parameters)
-        self.jacobian_sparsity = ColumnSparsity(self.info.n_states)
         self.event_sensitivity = EventSensitivity(n_knowns)
 
     @property

@@ -188,7 +188,7 @@ class _Run:
         self.record_names = list(record)
         self.record_index = torch.tensor(self.record_source, dtype=torch.long)
         self.ev = FmuEvaluator(self.instances, self.info, variables, inputs.names if inputs else (),
-                               model.config.parameters, jacobian_sparsity=model.jacobian_sparsity)
+                               model.config.parameters)
         self.p = self.topology.fmu_parameters
         self.plan = RhsPlan(self.topology) if self.topology.has_ann else None
         self.theta = None

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from fmubuilder.fmi import Fmu
+from fmubuilder.fmi import Fmu, read_model_info
 from fmubuilder.neural.layer import FmuEvaluator, fmu_call
 
 
@@ -147,3 +147,62 @@ def test_fused_rhs_matches_autograd_of_the_topology(vldm_fmu, kind, activation):
     for a, b in zip(fused, reference):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
     model.close()
+
+
+class _SwitchingInstance:
+    """A stand-in FMU instance with der = [x1 if x0 > 0 else 0, -x0]: the first derivative's
+    dependence on x1 appears only when x0 turns positive (a regime change)."""
+
+    def __init__(self):
+        self.x = np.zeros(2)
+
+    def real_getter(self, vrs):
+        return lambda: np.zeros(len(vrs))
+
+    def real_setter(self, vrs):
+        return lambda values: None
+
+    def set_time(self, t):
+        pass
+
+    def set_continuous_states(self, x):
+        self.x = np.array(x, dtype=float)
+
+    def get_derivatives(self):
+        return np.array([self.x[1] if self.x[0] > 0 else 0.0, -self.x[0]])
+
+
+@pytest.mark.parametrize("declared", [False, True])
+def test_a_column_zero_at_first_is_computed_after_a_regime_change(ball_fmu, declared):
+    """Without a ModelStructure, the column of x1 is zero while x0 < 0 and must be non-zero at once
+    when x0 > 0; with one (der 0 depends on x1, der 1 on x0) nothing needs probing."""
+    import dataclasses
+    info = read_model_info(ball_fmu)   # two states; the instance below replaces its binary
+    names = [v.name for v in info.states]
+    dependencies = {d.name: (names[1],) if i == 0 else (names[0],) for i, d in enumerate(info.derivatives)}
+    info = dataclasses.replace(info, dependencies=dependencies if declared else {},
+                               capabilities=dataclasses.replace(info.capabilities,
+                                                                provides_directional_derivative=False))
+    ev = FmuEvaluator([_SwitchingInstance()], info)
+    for x0 in [-1.0, -0.5, -0.2, -0.1, -0.05, 0.5]:
+        x = np.array([x0, 2.0])
+        _, J, _ = ev.evaluate([0], np.array([0.0]), x[None], jac_x=True)
+        expected = [[0.0, 1.0 if x0 > 0 else 0.0], [-1.0, 0.0]]
+        np.testing.assert_allclose(J[0], expected, atol=1e-6)
+    assert ev.sparsity.skipped == []
+    assert ev.sparsity.complete == declared
+
+
+def test_model_structure_columns_are_skipped(ball_fmu):
+    """The ball declares der(h) on v and der(v) on nothing: the column of h is never computed."""
+    with Fmu(ball_fmu) as fmu:
+        inst = initialized(fmu)
+        try:
+            ev = FmuEvaluator([inst], fmu.info, jacobian="fd")
+            assert ev.sparsity.complete and ev.sparsity.skipped == [0]
+            x = np.array([0.4, 1.1])
+            _, J, _ = ev.evaluate([0], np.array([0.0]), x[None], jac_x=True)
+            assert ev.n_jacobian_columns == 1
+            np.testing.assert_allclose(J[0], central_jacobian(ev, 0.0, x), atol=1e-7)
+        finally:
+            inst.free()
