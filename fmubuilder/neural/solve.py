@@ -71,7 +71,6 @@ from ..simulation.events import crossed, locate
 from ..simulation.inputs import InputSignals
 from .layer import EventSensitivity, FmuEvaluator, fd_steps, fmu_call
 from .model import NeuralFMU
-from .rhs import RhsPlan, hybrid_rhs
 
 SOLVERS = ("euler", "rk4")
 MAX_EVENTS_PER_STEP = 100
@@ -190,8 +189,6 @@ class _Run:
         self.ev = FmuEvaluator(self.instances, self.info, variables, inputs.names if inputs else (),
                                model.config.parameters)
         self.p = self.topology.fmu_parameters
-        self.plan = RhsPlan(self.topology) if self.topology.has_ann else None
-        self.theta = None
         self.x0 = x0
         self.grad = torch.is_grad_enabled() and (
             (x0 is not None and x0.requires_grad) or any(q.requires_grad for q in model.parameters()))
@@ -338,12 +335,12 @@ class _Run:
     # -- right-hand side and solver steps -----------------------------------------------------
     def rhs(self, rows, t: np.ndarray, x: torch.Tensor, c):
         """(hybrid derivatives [R, n], FMU results [R, n + k]) of the elements `rows`."""
-        if self.plan is not None:
-            return hybrid_rhs(self.plan, self.ev, rows, t, x, c, self.theta, self.p, self._inputs_at(t))
         out = fmu_call(self.ev, rows, t, x, self.p, self._inputs_at(t))
         if c is not None:
             out = out + c
-        return out[:, : self.n], out
+        if self.ann is None:
+            return out[:, : self.n], out
+        return self.topology.mix(self.ann, x, out), out
 
     def step(self, rows, t: np.ndarray, x: torch.Tensor, h, c):
         """One step for `rows` from (t, x) over h (numpy [R] or tensor [R, 1]); returns (x_new, dx1, out1)."""
@@ -363,8 +360,9 @@ class _Run:
     # -- main loop ---------------------------------------------------------------------------
     def run(self) -> Trajectory:
         started = _time.perf_counter()
-        if self.plan is not None:
-            self.theta = self.plan.pack()  # one node: the topology tensors' gradients gather here
+        # the ANN folded once per run (its gradient gathers here); none when it cannot act
+        self.ann = self.topology.folded() if self.topology.has_ann and (
+            self.grad or bool(self.topology.gate_ann.count_nonzero())) else None
         x, dd, c = self.initialise()
         t = self.t0.copy()
         if self.forcing is not None:

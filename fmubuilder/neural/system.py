@@ -1,14 +1,9 @@
 """A NeuralFMU as the engine's HybridSystem: forward simulation without torch in the loop.
 
 `NeuralFmuSystem` is an `FmuSystem` whose derivatives pass through the topology, evaluated in numpy
-with weights frozen when the system is built. Pre-processing is folded into the first layer and
-post-processing and the ANN gate into the last, so one evaluation is a few small matrix products:
-
-    z1 = W1' a + b1'        W1' = W1 diag(pre_scale),  b1' = b1 - W1' pre_shift
-    ...
-    r' = WL' h + bL'        WL' = diag(gate_ann post_scale) WL,  bL' = gate_ann (post_scale bL + post_shift)
-    dx_c = r' + gate_fmu der_fmu_c
-
+with the weights of the torch topology's fold (`Topology.folded`: pre-processing in the first
+layer, post-processing and the ANN gate in the last), frozen when the system is built, so one
+evaluation is a few small matrix products; dx_c = ANN'(inputs) + gate_fmu der_fmu_c.
 The untrained hybrid (gate_ann = 0) skips the network and returns the FMU's derivatives exactly.
 """
 from __future__ import annotations
@@ -17,7 +12,6 @@ from typing import Sequence
 
 import numpy as np
 import torch
-from torch import nn
 
 from ..errors import FmuBuilderError
 from ..simulation import SimulationResult, make_solver, output_grid, run
@@ -26,6 +20,7 @@ from ..simulation.system import FmuSystem
 from .model import NeuralFMU
 from .topology import Topology
 
+
 def _sigmoid(z, out):
     np.multiply(z, 0.5, out=out)
     np.tanh(out, out=out)
@@ -33,7 +28,7 @@ def _sigmoid(z, out):
     return np.add(out, 0.5, out=out)
 
 
-_ACTIVATIONS = {nn.Tanh: np.tanh, nn.ReLU: lambda z, out: np.maximum(z, 0.0, out=out), nn.Sigmoid: _sigmoid}
+_ACTIVATIONS = {torch.tanh: np.tanh, torch.relu: lambda z, out: np.maximum(z, 0.0, out=out), torch.sigmoid: _sigmoid}
 
 
 _EMPTY = np.zeros(0)
@@ -47,29 +42,15 @@ class NumpyTopology:
         self.n = topology.n_states
         self.channels = np.array(topology.channel_index, dtype=int)
         self.source = topology.input_source.numpy().copy()
+        self.gate_fmu = topology.gate_fmu.detach().numpy().copy()
+        self.active = topology.ann is not None and bool(topology.gate_ann.count_nonzero())
+        self.layers = []
+        if not self.active:
+            return
         with torch.no_grad():
-            gate_ann = topology.gate_ann.detach().numpy().copy()
-            self.gate_fmu = topology.gate_fmu.detach().numpy().copy()
-            self.active = topology.ann is not None and bool(np.any(gate_ann != 0))
-            self.layers = []
-            if not self.active:
-                return
-            modules = list(topology.ann)
-            linears = [m for m in modules if isinstance(m, nn.Linear)]
-            for module in modules:
-                if isinstance(module, nn.Linear):
-                    W, b = module.weight.numpy().copy(), module.bias.numpy().copy()
-                    if module is linears[0]:
-                        scale, shift = topology.pre_scale.numpy(), topology.pre_shift.numpy()
-                        W = W * scale[None, :]
-                        b = b - W @ shift
-                    if module is linears[-1]:
-                        factor = gate_ann * topology.post_scale.numpy()
-                        b = gate_ann * (topology.post_scale.numpy() * b + topology.post_shift.numpy())
-                        W = factor[:, None] * W
-                    self.layers.append((W, b))
-                else:
-                    self.layers.append(_ACTIVATIONS[type(module)])
+            for layer in topology.folded():   # the torch topology's own fold, as numpy arrays
+                self.layers.append(tuple(a.numpy().copy() for a in layer) if isinstance(layer, tuple)
+                                   else _ACTIVATIONS[layer])
 
         # Preallocated buffers; the inputs are gathered one by one (a handful of scalars is faster
         # than fancy indexing), the last layer of a single channel is a dot product.

@@ -114,6 +114,7 @@ class Topology(nn.Module):
             else:
                 source.append(2 * n + self.fmu_variables.index(name))
         self.register_buffer("input_source", torch.tensor(source, dtype=torch.long), persistent=False)
+        self._inputs_from_states = all(i < n for i in source)
         self.register_buffer("channels_t", torch.tensor(self.channel_index, dtype=torch.long), persistent=False)
         n_in, n_out = len(config.inputs), len(config.channels)
         self.ann = build_ann(n_in, config.hidden, n_out, config.activation) if n_out else None
@@ -171,6 +172,8 @@ class Topology(nn.Module):
 
     def ann_inputs(self, x: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
         """The raw ANN inputs [B, n_in] from states x [B, n] and FMU results out [B, n + k]."""
+        if self._inputs_from_states:
+            return x.index_select(1, self.input_source)
         width = 2 * self.n_states + len(self.fmu_variables)
         return torch.cat([x, out[:, : width - self.n_states]], dim=1).index_select(1, self.input_source)
 
@@ -182,6 +185,40 @@ class Topology(nn.Module):
             z = F.linear(z, layer.weight, layer.bias) if isinstance(layer, nn.Linear) else _ACTIVATION_FN[type(layer)](z)
         return z * self.post_scale + self.post_shift
 
+    def folded(self) -> list:
+        """The ANN with the pre-processing folded into its first Linear layer and the post-processing
+        and the ANN gate into its last: [(W, b) or activation, ...], differentiable; with it a hybrid
+        evaluation is a few matrix products (`mix`). Fold once per simulation, not per step.
+
+            W1' = W1 diag(pre_scale)                b1' = b1 - W1' pre_shift
+            WL' = diag(gate_ann post_scale) WL      bL' = gate_ann (post_scale bL + post_shift)
+        """
+        linears = [i for i, layer in enumerate(self.ann) if isinstance(layer, nn.Linear)]
+        layers = []
+        for i, layer in enumerate(self.ann):
+            if not isinstance(layer, nn.Linear):
+                layers.append(_ACTIVATION_FN[type(layer)])
+                continue
+            W, b = layer.weight, layer.bias
+            if i == linears[0]:
+                W = W * self.pre_scale
+                b = b - W @ self.pre_shift
+            if i == linears[-1]:
+                W = (self.gate_ann * self.post_scale)[:, None] * W
+                b = self.gate_ann * (self.post_scale * b + self.post_shift)
+            layers.append((W, b))
+        return layers
+
+    def mix(self, layers: list, x: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
+        """Hybrid state derivatives [B, n] from states x, FMU results out = [der | variables] and
+        the folded ANN `layers`: dx_c = ANN'(inputs) + gate_fmu der_fmu_c (see the module docstring)."""
+        z = self.ann_inputs(x, out)
+        for layer in layers:
+            z = F.linear(z, *layer) if isinstance(layer, tuple) else layer(z)
+        derivatives = out[:, : self.n_states]
+        mixed = torch.addcmul(z, self.gate_fmu, derivatives.index_select(1, self.channels_t))
+        return derivatives.index_copy(1, self.channels_t, mixed)
+
     def forward(self, x: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
         """Hybrid state derivatives [B, n] from states x and FMU results out = [der | variables]."""
         derivatives = out[:, : self.n_states]
@@ -189,9 +226,7 @@ class Topology(nn.Module):
             return derivatives
         if not torch.is_grad_enabled() and self.gate_ann.count_nonzero() == 0:
             return derivatives  # 0 * ann + 1 * der: the FMU's derivatives (the untrained hybrid)
-        fmu_channels = derivatives.index_select(1, self.channels_t)
-        mixed = self.gate_ann * self.correction(self.ann_inputs(x, out)) + self.gate_fmu * fmu_channels
-        return derivatives.index_copy(1, self.channels_t, mixed)
+        return self.mix(self.folded(), x, out)
 
     # -- initialisation from a reference simulation of the plain FMU -------------------------
     def initialise_scaling(self, inputs: np.ndarray, channels: np.ndarray) -> None:
