@@ -69,6 +69,7 @@ import torch
 from ..errors import FmuBuilderError
 from ..simulation.events import crossed, locate
 from ..simulation.inputs import InputSignals
+from ..simulation.solvers import hermite, rk4_step
 from .layer import EventSensitivity, FmuEvaluator, fd_steps, fmu_call
 from .model import NeuralFMU
 
@@ -351,11 +352,7 @@ class _Run:
         dx1, out1 = self.rhs(rows, t, x, c)
         if not self.rk4:
             return x + h_t * dx1, dx1, out1
-        half = 0.5 * h_t
-        k2, _ = self.rhs(rows, t + 0.5 * h_np, x + half * dx1, c)
-        k3, _ = self.rhs(rows, t + 0.5 * h_np, x + half * k2, c)
-        k4, _ = self.rhs(rows, t + h_np, x + h_t * k3, c)
-        return x + h_t / 6.0 * (dx1 + 2.0 * (k2 + k3) + k4), dx1, out1
+        return rk4_step(lambda t, x: self.rhs(rows, t, x, c)[0], t, x, dx1, h_t, h_np), dx1, out1
 
     # -- main loop ---------------------------------------------------------------------------
     def run(self) -> Trajectory:
@@ -598,13 +595,7 @@ class _Run:
         h = t_new - t_k
         f_new, _ = self.rhs([b], np.array([t_new]), x_new[None], c_row)
         f_new = f_new[0]
-
-        def hermite(theta):
-            t2 = theta * theta
-            t3 = t2 * theta
-            return ((2 * t3 - 3 * t2 + 1) * x_k + (t3 - 2 * t2 + theta) * h * dx1
-                    + (-2 * t3 + 3 * t2) * x_new + (t3 - t2) * h * f_new)
-        return hermite
+        return lambda theta: hermite(theta, h, x_k, dx1, x_new, f_new)
 
     def _locate(self, b, t_k, t_new, dense, z_lo, z_hi):
         """The engine's root finder on the step's dense output; returns (theta beyond the crossing,

@@ -149,12 +149,8 @@ class RK4(FixedStepSolver):
 
     def _advance(self, t, x, k1, h):
         f = self._f
-        half = 0.5 * h
-        k2 = np.array(f(t + half, x + half * k1), dtype=float)
-        k3 = np.array(f(t + half, x + half * k2), dtype=float)
-        k4 = np.array(f(t + h, x + h * k3), dtype=float)
         self.n_rhs += 3
-        return x + (h / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
+        return rk4_step(lambda t, x: np.array(f(t, x), dtype=float), t, x, k1, h)
 
     def interpolate(self, t: float) -> np.ndarray:
         if self.t == self.t_prev:       # no step since the last reset
@@ -165,7 +161,25 @@ class RK4(FixedStepSolver):
 
 def _hermite(solver: Solver, t: float) -> np.ndarray:
     theta, h = solver._theta(t)
-    x0, x1, d0, d1 = solver.x_prev, solver.x, solver.dx_prev, solver.dx
+    return hermite(theta, h, solver.x_prev, solver.dx_prev, solver.x, solver.dx)
+
+
+# The step and the dense output of the fixed-step solvers as plain arithmetic, so that numpy
+# arrays (this module) and torch tensors (the NeuralFMU's differentiable solver) share them.
+
+def rk4_step(f: Rhs, t, x, k1, h, t_step=None):
+    """x + h/6 (k1 + 2 k2 + 2 k3 + k4), given k1 = f(t, x). `h` scales the stages (a tensor
+    where the step length carries a gradient); `t_step` (default h) advances the time."""
+    t_step = h if t_step is None else t_step
+    half = 0.5 * h
+    k2 = f(t + 0.5 * t_step, x + half * k1)
+    k3 = f(t + 0.5 * t_step, x + half * k2)
+    k4 = f(t + t_step, x + h * k3)
+    return x + h / 6.0 * (k1 + 2.0 * (k2 + k3) + k4)
+
+
+def hermite(theta, h, x0, d0, x1, d1):
+    """Cubic Hermite interpolation at t0 + theta h between (x0, d0) and (x1, d1)."""
     t2 = theta * theta
     t3 = t2 * theta
     return ((2 * t3 - 3 * t2 + 1) * x0 + (t3 - 2 * t2 + theta) * h * d0
