@@ -21,7 +21,7 @@ x+(x-, p) and the effect of (x-, p) *through the discrete states only* - by rest
 snapshot taken before the event and redoing the event iteration with one known perturbed - plus,
 for discrete states with memory, their dependence on the previous event's discrete states, found
 by redoing the event on "shadow" snapshots that carry perturbed discrete states.
-`EventSensitivity` skips columns found exactly zero and re-checks them periodically.
+`EventSensitivity` perturbs the knowns seen to matter one by one and probes the others together.
 """
 from __future__ import annotations
 
@@ -85,7 +85,7 @@ class JacobianSparsity:
             if deps is None:
                 continue
             self.computed[[index[d] for d in deps if d in index]] = True
-        self.probe_weights = 1.0 + np.modf(np.arange(1, n + 1) * 0.6180339887498949)[0]
+        self.probe_weights = _probe_weights(n)
 
     def columns(self) -> np.ndarray:
         """The columns computed one by one."""
@@ -103,20 +103,28 @@ class JacobianSparsity:
         return np.flatnonzero(~self.computed).tolist()
 
 
+def _probe_weights(count: int) -> np.ndarray:
+    """Distinct weights in [1, 2) for a combined perturbation (golden-ratio sequence), so that the
+    effects of several knowns do not cancel exactly."""
+    return 1.0 + np.modf(np.arange(1, count + 1) * 0.6180339887498949)[0]
+
+
 class EventSensitivity:
     """Per-event perturbation bookkeeping, shared by all elements and kept across runs.
 
     A column (known) is non-trivial when its perturbation changed the discrete states, the
-    derivatives or variables, or the reset map beyond identity. All columns are perturbed in the
-    first `warmup` events and every `recheck`-th event after; in between, columns never seen
-    non-trivial are skipped. Shadows (discrete states with memory, see solve.py) are kept while
-    any propagated shadow has shown an effect, during the warmup and around each recheck."""
+    derivatives or variables, or the reset map beyond identity. The columns non-trivial at the
+    previous event are perturbed one by one; the others are probed together by one combined
+    perturbation (distinct weights), and perturbed one by one only where the probe shows an
+    effect, so a known that acts only at some events (a relay switching) is never missed. Shadows (discrete states with memory, see solve.py) are kept while any propagated
+    shadow has shown an effect, during the first `warmup` events and around every `recheck`-th."""
 
     def __init__(self, n_knowns: int, warmup: int = 4, recheck: int = 500):
         self.n_knowns, self.warmup, self.recheck = n_knowns, warmup, recheck
-        self.seen = np.zeros(n_knowns, dtype=bool)
+        self.recent = np.zeros(n_knowns, dtype=bool)   # non-trivial at the previous event
+        self.seen = np.zeros(n_knowns, dtype=bool)     # ever non-trivial
         self.uses = 0
-        self._all = np.arange(n_knowns)
+        self.probe_weights = _probe_weights(n_knowns)
         self.memory_seen = False
         self.perturbations = 0
         self.propagations = 0
@@ -135,19 +143,24 @@ class EventSensitivity:
         self.seconds = 0.0
 
     def columns(self) -> np.ndarray:
-        if self.uses < self.warmup or self.uses % self.recheck == 0:
-            return self._all
-        return np.flatnonzero(self.seen)
+        """The knowns perturbed one by one."""
+        return np.flatnonzero(self.recent)
+
+    def unchecked(self) -> np.ndarray:
+        """The knowns probed together."""
+        return np.flatnonzero(~self.recent)
 
     @property
     def skipped(self) -> list[int]:
         return np.flatnonzero(~self.seen).tolist()
 
-    def observe(self, columns: np.ndarray, nonzero: np.ndarray) -> None:
+    def observe(self, columns: np.ndarray, nonzero: np.ndarray, probes: int) -> None:
         self.uses += 1
-        self.seen[columns[nonzero]] = True
+        self.recent[:] = False
+        self.recent[columns[nonzero]] = True
+        self.seen |= self.recent
         self._run_events += 1
-        self.perturbations += len(columns)
+        self.perturbations += len(columns) + probes
 
     def stats(self) -> dict:
         events = max(self._run_events, 1)
@@ -471,29 +484,25 @@ class FmuEvaluator:
         R = _identity_reset(n, knowns) if changed else None
         B = np.zeros((self.carrier_width, knowns))
         pool, candidates = self._next_pool(b), _Candidates()
-        columns = sensitivity.columns()
-        nonzero = np.zeros(len(columns), dtype=bool)
         shadows = sensitivity.keep_shadows()
         steps = fd_steps(x_minus, self.nominal)
-        params = inst.get_real(self.param_vrs) if self.P else None
+        params = inst.get_real(self.param_vrs) if self.P else np.zeros(0)
+        signs = np.ones(knowns) if signs is None else signs
+        amounts = signs * np.concatenate([steps, FD_RELATIVE_STEP * np.maximum(np.abs(params), 1.0)])
+        columns, unchecked = sensitivity.columns(), sensitivity.unchecked()
+        if unchecked.size:
+            probe = np.zeros(knowns)
+            probe[unchecked] = sensitivity.probe_weights[unchecked] * amounts[unchecked]
+            x_probe = self._redo_event(b, x_minus, params, probe)
+            dd, df, dx = self._measure(b, x_plus, base, d0, changed)
+            if df.any() or (self.q and dd.any()) or (changed and not np.array_equal(dx, x_probe - x_minus)):
+                columns = np.arange(knowns)   # some unchecked known acts: perturb each this time
+        nonzero = np.zeros(len(columns), dtype=bool)
         for c, i in enumerate(columns):
-            sign = 1.0 if signs is None else signs[i]
-            inst.set_fmu_state(self._pre[b])
-            if i < n:
-                xp = np.array(x_minus, dtype=float)
-                xp[i] = x_minus[i] + sign * steps[i]
-                delta = xp[i] - x_minus[i]
-                inst.set_continuous_states(xp)
-                inst.enter_event_mode()
-            else:
-                value = params[i - n] + sign * FD_RELATIVE_STEP * max(abs(params[i - n]), 1.0)
-                delta = value - params[i - n]
-                inst.enter_event_mode()
-                inst.set_real([self.param_vrs[i - n]], [value])
-            inst.update_discrete_states()
-            if i >= n:  # the perturbation acted through the event; shadows must carry nominal parameters
-                inst.set_real([self.param_vrs[i - n]], [params[i - n]])
-            inst.enter_continuous_time_mode()
+            perturbation = np.zeros(knowns)
+            perturbation[i] = amounts[i]
+            x_perturbed = self._redo_event(b, x_minus, params, perturbation)
+            delta = x_perturbed[i] - x_minus[i] if i < n else (params[i - n] + amounts[i]) - params[i - n]
             dd, df, dx = self._measure(b, x_plus, base, d0, changed)
             if R is not None:
                 R[:, i] = dx / delta
@@ -502,10 +511,29 @@ class FmuEvaluator:
                 handle = self._snapshot(b, pool, len(candidates.handles)) if shadows else None
                 candidates.add(dd, df, dx, handle)
             nonzero[c] = df.any() or (self.q and dd.any()) or not (R is None or _identity_column(R, i, n))
-        sensitivity.observe(columns, nonzero)
+        sensitivity.observe(columns, nonzero, probes=int(unchecked.size > 0))
         outcome.R, outcome.B = R, B
         if self.q:
             self._propagate_shadows(b, t, x_minus, u, outcome, base, d0, candidates, pool, sensitivity, shadows)
+
+    def _redo_event(self, b, x_minus, params, perturbation) -> np.ndarray:
+        """The event iteration of instance b again, from the snapshot before the event, with the
+        knowns (x-, p) perturbed; the parameters are set back after it (shadows must carry nominal
+        parameters: the perturbation acted through the event). Returns the perturbed x-."""
+        inst, n = self.instances[b], self.n
+        inst.set_fmu_state(self._pre[b])
+        x_perturbed = x_minus + perturbation[:n]
+        if perturbation[:n].any():
+            inst.set_continuous_states(x_perturbed)
+        changed_params = perturbation[n:].any()
+        inst.enter_event_mode()
+        if changed_params:
+            inst.set_real(self.param_vrs, params + perturbation[n:])
+        inst.update_discrete_states()
+        if changed_params:
+            inst.set_real(self.param_vrs, params)
+        inst.enter_continuous_time_mode()
+        return x_perturbed
 
     def _measure(self, b, x_plus, base, d0, changed):
         """After a perturbed event iteration: (discrete, output, reset) deviations from nominal, read

@@ -43,10 +43,10 @@ Gradients across events:
       iterations per event, and is exact to first order as long as the exposed discrete variables
       are the FMU's discrete state.
    Trained tunable FMU parameters are perturbed like states (set in event mode). Perturbations at
-   state events are oriented so that the perturbed state stays beyond the crossing. Columns found
-   exactly zero (no discrete, output or reset change) over the first events of a run are skipped
-   and re-checked periodically (layer.EventSensitivity); Trajectory.stats["event_sensitivity"]
-   reports the count and time. Limits: an event of an element restarts its memoryless M (case a);
+   state events are oriented so that the perturbed state stays beyond the crossing. The knowns
+   without effect (no discrete, output or reset change) at the previous event are probed together by
+   one combined perturbation and perturbed one by one only where it shows an effect
+   (layer.EventSensitivity); Trajectory.stats["event_sensitivity"] reports the count and time. Limits: an event of an element restarts its memoryless M (case a);
    an FMU that cannot save its state gets no discrete-state path (a warning says so).
 4. Initial state. For a fresh initialization with x0 or FMU parameters requiring grad, the same is
    done for the initialization: one re-initialization per perturbed start value (needs fmi2Reset);

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from fmubuilder.neural import NeuralFMU, TopologyConfig, simulate
+from fmubuilder.neural.layer import EventSensitivity
 from fmubuilder.simulation import input_signals_from
 
 STEP = 1e-6  # relative step of the central differences of the whole simulation
@@ -123,4 +124,40 @@ def test_closed_loop_energy_through_the_driver(vldm_fmu):
     bias.grad = None
     objective(event_gradients=False).backward()
     assert bias.grad[0].item() > 0  # the open-loop path alone says the opposite
+    model.close()
+
+
+class _EveryKnownAtEveryEvent(EventSensitivity):
+    """The reference: every known perturbed on its own at every event, none probed or skipped."""
+
+    def columns(self):
+        return np.arange(self.n_knowns)
+
+    def unchecked(self):
+        return np.zeros(0, dtype=int)
+
+
+def test_knowns_acting_only_at_some_events_are_not_dropped(vldm_fmu):
+    """In the VLDM the driver's integrators change the discrete states only at some events (the
+    state events of its relays), not at the first ones: the event linearisation with probing
+    equals the one perturbing every known at every event."""
+    model = NeuralFMU(vldm_fmu, TopologyConfig(channels=["der(speed)"], inputs=["speed"], hidden=[4],
+                                               kind="residual"), start_values={"cycle": 1})
+    torch.manual_seed(0)
+    with torch.no_grad():
+        for p in model.topology.ann.parameters():
+            p.copy_(0.01 * torch.randn_like(p))
+
+    def gradient(sensitivity):
+        model.zero_grad()
+        run = simulate(model, 12.0, 0.01, record=["energy"], sensitivity=sensitivity)
+        run.signal("energy").pow(2).mean().backward()
+        return model.topology.ann[0].weight.grad.clone(), run.stats
+
+    n_knowns = model.info.n_states
+    probed, stats = gradient(EventSensitivity(n_knowns))
+    reference, _ = gradient(_EveryKnownAtEveryEvent(n_knowns))
+    assert stats["state_events"] > 0
+    assert stats["event_sensitivity"]["event_iterations_per_event"] < n_knowns / 2   # the probing saves work
+    torch.testing.assert_close(probed, reference, rtol=1e-12, atol=0.0)
     model.close()
