@@ -116,8 +116,9 @@ class EventSensitivity:
     derivatives or variables, or the reset map beyond identity. The columns non-trivial at the
     previous event are perturbed one by one; the others are probed together by one combined
     perturbation (distinct weights), and perturbed one by one only where the probe shows an
-    effect, so a known that acts only at some events (a relay switching) is never missed. Shadows (discrete states with memory, see solve.py) are kept while any propagated
-    shadow has shown an effect, during the first `warmup` events and around every `recheck`-th."""
+    effect, so a known that acts only at some events (a relay switching) is never missed.
+    Shadows (discrete states with memory, see solve.py) are kept while any propagated shadow has
+    shown an effect, during the first `warmup` events and around every `recheck`-th."""
 
     def __init__(self, n_knowns: int, warmup: int = 4, recheck: int = 500):
         self.n_knowns, self.warmup, self.recheck = n_knowns, warmup, recheck

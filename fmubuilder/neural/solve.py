@@ -44,10 +44,11 @@ Gradients across events:
       are the FMU's discrete state.
    Trained tunable FMU parameters are perturbed like states (set in event mode). Perturbations at
    state events are oriented so that the perturbed state stays beyond the crossing. The knowns
-   without effect (no discrete, output or reset change) at the previous event are probed together by
-   one combined perturbation and perturbed one by one only where it shows an effect
-   (layer.EventSensitivity); Trajectory.stats["event_sensitivity"] reports the count and time. Limits: an event of an element restarts its memoryless M (case a);
-   an FMU that cannot save its state gets no discrete-state path (a warning says so).
+   without effect (no discrete, output or reset change) at the previous event are probed together
+   by one combined perturbation, and perturbed one by one only where it shows an effect
+   (layer.EventSensitivity); Trajectory.stats["event_sensitivity"] reports the count and time.
+   Limits: an event of an element restarts its memoryless M (case a); an FMU that cannot save its
+   state gets no discrete-state path (a warning says so).
 4. Initial state. For a fresh initialization with x0 or FMU parameters requiring grad, the same is
    done for the initialization: one re-initialization per perturbed start value (needs fmi2Reset);
    its perturbed states seed the shadows.
@@ -190,6 +191,7 @@ class _Run:
         self.ev = FmuEvaluator(self.instances, self.info, variables, inputs.names if inputs else (),
                                model.config.parameters)
         self.p = self.topology.fmu_parameters
+        self.ann = None   # the folded ANN (Topology.folded) during run()
         self.x0 = x0
         self.grad = torch.is_grad_enabled() and (
             (x0 is not None and x0.requires_grad) or any(q.requires_grad for q in model.parameters()))
