@@ -57,6 +57,10 @@ def test_interpolation_matches_numpy_interp():
         expected = [np.interp(t, time, values[:, k]) for k in range(2)]
         np.testing.assert_allclose(signals.at(t), expected, rtol=1e-13, atol=1e-13)
     np.testing.assert_array_equal(signals.breakpoints, time)
+    # several times at once (the NeuralFMU's batched solver): the values of at(t) one by one
+    expected = np.stack([signals.at(t) for t in queries])
+    np.testing.assert_allclose(signals.table(queries), expected, rtol=1e-13, atol=1e-13)
+    assert signals.names == ["u1", "u2"]
 
 
 def _plant_info_stub():
