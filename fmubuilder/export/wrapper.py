@@ -2,8 +2,9 @@
 
     export_hybrid("hybrid_spec.json", "plant_hybrid.fmu")
 
-Steps, all inside a temporary folder: render the wrapper C file (c_templates/
-hybrid_wrapper.c.j2) and the network kernel, derive modelDescription.xml, stage the
+Steps, all inside a temporary folder: render the wrapper's configuration header
+(c_templates/hybrid_config.h.j2, the tables the static c_templates/hybrid_wrapper.c reads) and
+the network kernel, derive modelDescription.xml, stage the
 resources (the original's binary as resources/<id>.so, its own resources, and under
 resources/fmubuilder_hybrid/ the spec, the network and the original modelDescription.xml so
 the FMU can be validated on its own), build with CMake's add_fmu() (cmake/fmu.cmake), check
@@ -29,6 +30,9 @@ TEMPLATE_DIR = Path(__file__).resolve().parents[2] / "c_templates"
 FMU_CMAKE = Path(__file__).resolve().parents[2] / "cmake" / "fmu.cmake"
 KERNEL_PREFIX = "hybrid_ann"
 WRAPPER_SOURCE = "hybrid_wrapper.c"
+# The wrapper's static files, copied as they are, and its generated configuration.
+STATIC_HEADERS = ("hybrid_tables.h",)
+CONFIG_HEADER = "hybrid_config.h"
 # Inside resources/: what validation needs to rebuild the reference without the spec file.
 EMBEDDED_DIR = "fmubuilder_hybrid"
 EMBEDDED_SPEC = "hybrid_spec.json"
@@ -79,12 +83,14 @@ def _build(spec: HybridSpec, info, scratch: Path) -> Path:
 
     kernel = generate_kernel(spec.onnx, prefix=KERNEL_PREFIX)
     kernel.write(project / "sources")
-    (project / "sources" / WRAPPER_SOURCE).write_text(render_wrapper(spec, info, description))
+    for name in (WRAPPER_SOURCE, *STATIC_HEADERS):
+        shutil.copyfile(TEMPLATE_DIR / name, project / "sources" / name)
+    (project / "sources" / CONFIG_HEADER).write_text(render_config(spec, info, description))
     (project / "CMakeLists.txt").write_text(_render("hybrid_CMakeLists.txt.j2", {
         "identifier": description.model_identifier,
         "fmu_cmake": FMU_CMAKE.as_posix(),
         "sources": [f"sources/{WRAPPER_SOURCE}", f"sources/{kernel.source_name}"],
-        "headers": [f"sources/{kernel.header_name}"],
+        "headers": [f"sources/{name}" for name in (kernel.header_name, CONFIG_HEADER, *STATIC_HEADERS)],
     }))
     build = build_cmake_project(project, scratch / "build")
     fmu = build.build_dir / "fmus" / f"{description.model_identifier}.fmu"
@@ -93,8 +99,8 @@ def _build(spec: HybridSpec, info, scratch: Path) -> Path:
     return fmu
 
 
-def render_wrapper(spec: HybridSpec, info, description: HybridDescription) -> str:
-    """The wrapper C source for `spec` on the original FMU `info`."""
+def render_config(spec: HybridSpec, info, description: HybridDescription) -> str:
+    """The wrapper's configuration header for `spec` on the original FMU `info`."""
     groups = {name: {"type": name, "vrs": [], "positions": []} for name in ("real", "integer", "boolean")}
     derivative_inputs = {"states": [], "positions": []}
     derivative_names = {d.name for d in info.derivatives}
@@ -115,13 +121,14 @@ def render_wrapper(spec: HybridSpec, info, description: HybridDescription) -> st
     aliases = [{"name": name, "vr": info.variable(name).value_reference, "channel": spec.channels.index(channel)}
                for name, channel in spec.aliases.items()]
     caps = info.capabilities
-    return _render("hybrid_wrapper.c.j2", {
+    return _render("hybrid_config.h.j2", {
         "identifier": description.model_identifier,
         "guid": description.guid,
         "inner_identifier": info.model_identifier,
         "inner_guid": info.guid,
         "inner_library": f"{info.model_identifier}.so",
         "n_states": info.n_states,
+        "n_event_indicators": info.n_event_indicators,
         "n_ann_inputs": len(spec.inputs),
         "channels": channels,
         "aliases": aliases,
@@ -139,6 +146,7 @@ def _render(template: str, context: dict) -> str:
     env = jinja2.Environment(loader=jinja2.FileSystemLoader(TEMPLATE_DIR), undefined=jinja2.StrictUndefined,
                              trim_blocks=True, lstrip_blocks=True, keep_trailing_newline=True)
     env.filters["c_string"] = c_string
+    env.filters["c_comment"] = c_comment
     return env.get_template(template).render(context)
 
 
@@ -153,6 +161,11 @@ def c_string(text: str) -> str:
         else:
             out.append(char)
     return '"' + "".join(out) + '"'
+
+
+def c_comment(text: str) -> str:
+    """Any text made safe inside a C block comment: no comment end, no line breaks."""
+    return "".join(ch if ch.isprintable() else "?" for ch in str(text)).replace("*/", "* /")
 
 
 def _c_double(value: float) -> str:
