@@ -149,3 +149,30 @@ def test_exported_sources_under_sanitizers_match_the_exported_binary(hosts, tmp_
     library, resources = sanitized_build_of(fmu, tmp_path / "sanitized")
     arguments[1] = resources
     assert run([hosts["sanitized"], library, *arguments], sanitized=True).stdout == expected
+
+
+# -- the exported FMU under attack ------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def attacked_ball(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("attacked")
+    spec, fmu = make_hybrid(folder / "ball", example_fmu("bouncing_ball"), ["der(v)"], ["h", "v", "der(v)"], seed=5)
+    info = read_model_info(fmu)
+    arguments = [info.guid, info.n_states, info.n_event_indicators, info.variable("h").value_reference,
+                 info.variable("g").value_reference, info.variable("hybrid.v.p_ann").value_reference]
+    assert info.variable("g").variability == "fixed"
+    return fmu, arguments
+
+
+@pytest.mark.parametrize("sanitized", [False, True], ids=["production", "sanitized"])
+def test_exported_fmu_under_attack(attacked_ball, sanitized, tmp_path):
+    """Wrong-state calls, bad arguments, forged FMU states, double free, 20 instances, 2 threads."""
+    fmu, (guid, *sizes_and_vrs) = attacked_ball
+    flags = SANITIZE if sanitized else []
+    attack = compile_host(tmp_path / "fmu_attack", HERE / "host" / "fmu_attack.c", *flags)
+    if sanitized:
+        library, resources = sanitized_build_of(fmu, tmp_path / "fmu")
+    else:
+        library, resources = extracted(fmu, tmp_path / "fmu")
+    result = run([attack, library, guid, resources, *sizes_and_vrs], sanitized)
+    assert result.stdout.startswith("passed ") and int(result.stdout.split()[1]) > 500, result.stdout
