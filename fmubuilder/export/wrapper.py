@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import tempfile
 import zipfile
@@ -39,6 +40,11 @@ EMBEDDED_SPEC = "hybrid_spec.json"
 EMBEDDED_ONNX = "network.onnx"
 EMBEDDED_ORIGINAL_XML = "original_modelDescription.xml"
 _INPUT_GROUPS = {"Real": "real", "Integer": "integer", "Enumeration": "integer", "Boolean": "boolean"}
+_C_IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
+_C_KEYWORDS = frozenset(
+    "auto break case char const continue default do double else enum extern float for goto if inline int long "
+    "register restrict return short signed sizeof static struct switch typedef union unsigned void volatile while "
+    "_Alignas _Alignof _Atomic _Bool _Complex _Generic _Imaginary _Noreturn _Static_assert _Thread_local".split())
 
 
 def export_hybrid(spec_or_path: HybridSpec | str | os.PathLike, output_fmu: str | os.PathLike,
@@ -58,13 +64,22 @@ def export_hybrid(spec_or_path: HybridSpec | str | os.PathLike, output_fmu: str 
 
     from fmubuilder.fmi import read_model_info
     info = read_model_info(spec.original_fmu)
+    check_model_identifier(info.model_identifier, spec.original_fmu)
     spec.check(info)
     with tempfile.TemporaryDirectory(prefix="fmubuilder-export-") as scratch:
         scratch = Path(scratch)
         built = _build(spec, info, scratch)
-        _check_with_fmpy(built)
+        _check_with_fmpy(built, spec.original_fmu)
         _move_into_place(built, output)
     return output
+
+
+def check_model_identifier(identifier: str, fmu) -> None:
+    """FMI 2.0 requires the modelIdentifier to be a C identifier; the hybrid's is derived from it."""
+    if not _C_IDENTIFIER.match(identifier) or identifier in _C_KEYWORDS:
+        raise FmuBuilderError(
+            f"{fmu}: the modelIdentifier {identifier!r} is not a C identifier (FMI 2.0 requires letters, digits and "
+            "'_', not starting with a digit, and no C keyword); re-export the original FMU with a valid one")
 
 
 def _build(spec: HybridSpec, info, scratch: Path) -> Path:
@@ -101,7 +116,7 @@ def _build(spec: HybridSpec, info, scratch: Path) -> Path:
 
 def render_config(spec: HybridSpec, info, description: HybridDescription) -> str:
     """The wrapper's configuration header for `spec` on the original FMU `info`."""
-    groups = {name: {"type": name, "vrs": [], "positions": []} for name in ("real", "integer", "boolean")}
+    groups = {name: {"type": name, "vrs": [], "positions": [], "names": []} for name in ("real", "integer", "boolean")}
     derivative_inputs = {"states": [], "positions": []}
     derivative_names = {d.name for d in info.derivatives}
     for position, name in enumerate(spec.inputs):
@@ -112,6 +127,7 @@ def render_config(spec: HybridSpec, info, description: HybridDescription) -> str
         var = info.variable(name)
         group = groups[_INPUT_GROUPS[var.type]]
         group["vrs"].append(var.value_reference)
+        group["names"].append(name)
         group["positions"].append(position)
     channels = [{
         "name": c.channel, "der_vr": c.der_vr, "state_index": c.state_index,
@@ -210,13 +226,22 @@ def _embed_for_validation(spec: HybridSpec, description: HybridDescription, orig
     (folder / EMBEDDED_SPEC).write_text(json.dumps(data, indent=2) + "\n")
 
 
-def _check_with_fmpy(fmu: Path) -> None:
+def _check_with_fmpy(fmu: Path, original: Path) -> None:
+    """fmpy's validation of the hybrid, except for problems the original has as well (the hybrid
+    keeps the original's variables as they are)."""
     from fmpy.validation import validate_fmu
     problems = validate_fmu(str(fmu))
+    if problems:
+        inherited = {_without_line_numbers(p) for p in validate_fmu(str(original))}
+        problems = [p for p in problems if _without_line_numbers(p) not in inherited]
     if problems:
         raise FmuBuilderError(
             "the generated hybrid FMU fails fmpy's validation (a bug in fmubuilder's export, please report it): "
             + "; ".join(problems))
+
+
+def _without_line_numbers(problem: str) -> str:
+    return re.sub(r"\(line \d+\)|line \d+", "", problem)
 
 
 def _move_into_place(built: Path, output: Path) -> None:
