@@ -166,12 +166,30 @@ static const char *state_name(WrapperState state) {
     return "Unknown";
 }
 
-static void *allocate(const Hybrid *h, size_t size) { return h->callbacks.allocateMemory(1, size); }
+/* Zeroed memory from the importer's allocateMemory, or from the C library when the original
+ * (and so the hybrid) declares canNotUseMemoryManagementFunctions: then the importer's memory
+ * functions are ignored and may be NULL. */
+static void *allocate_with(const fmi2CallbackFunctions *callbacks, size_t size) {
+#if CAN_NOT_USE_MEMORY_MANAGEMENT_FUNCTIONS
+    (void)callbacks;
+    return calloc(1, size);
+#else
+    return callbacks->allocateMemory(1, size);
+#endif
+}
+
+static void *allocate(const Hybrid *h, size_t size) { return allocate_with(&h->callbacks, size); }
 
 static void release(const Hybrid *h, void *pointer) {
-    if (pointer != NULL) {
-        h->callbacks.freeMemory(pointer);
+    if (pointer == NULL) {
+        return;
     }
+#if CAN_NOT_USE_MEMORY_MANAGEMENT_FUNCTIONS
+    (void)h;
+    free(pointer);
+#else
+    h->callbacks.freeMemory(pointer);
+#endif
 }
 
 /* The instance behind `c` if `function` may be called in its current state, else NULL
@@ -519,7 +537,8 @@ fmi2Component fmi2Instantiate(fmi2String instanceName, fmi2Type fmuType, fmi2Str
     const char *missing;
     Hybrid *h;
 
-    if (functions == NULL || functions->allocateMemory == NULL || functions->freeMemory == NULL) {
+    if (functions == NULL ||
+        (!CAN_NOT_USE_MEMORY_MANAGEMENT_FUNCTIONS && (functions->allocateMemory == NULL || functions->freeMemory == NULL))) {
         log_message(functions, name, true, fmi2Error,
                     "fmi2Instantiate: the callbacks allocateMemory and freeMemory are required.");
         return NULL;
@@ -535,7 +554,7 @@ fmi2Component fmi2Instantiate(fmi2String instanceName, fmi2Type fmuType, fmi2Str
                     HYBRID_GUID);
         return NULL;
     }
-    h = functions->allocateMemory(1, sizeof(Hybrid));
+    h = allocate_with(functions, sizeof(Hybrid));
     if (h == NULL) {
         log_message(functions, name, true, fmi2Error, "fmi2Instantiate: out of memory.");
         return NULL;

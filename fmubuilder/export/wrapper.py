@@ -5,10 +5,12 @@
 Steps, all inside a temporary folder: render the wrapper's configuration header
 (c_templates/hybrid_config.h.j2, the tables the static c_templates/hybrid_wrapper.c reads) and
 the network kernel, derive modelDescription.xml, stage the
-resources (the original's binary as resources/<id>.so, its own resources, and under
-resources/fmubuilder_hybrid/ the spec, the network and the original modelDescription.xml so
-the FMU can be validated on its own), build with CMake's add_fmu() (cmake/fmu.cmake), check
-the result with fmpy's validation, and only then move it to the output path.
+resources (the original's binary as resources/<id>.so with every other file of its
+binaries/<platform>/ folder beside it, so that libraries it loads from its own folder are
+found; its own resources; and under resources/fmubuilder_hybrid/ the spec, the network and the
+original modelDescription.xml so the FMU can be validated on its own), build with CMake's
+add_fmu() (cmake/fmu.cmake), add the original's documentation/ and extra/ folders as they are,
+check the result with fmpy's validation, and only then move it to the output path.
 """
 from __future__ import annotations
 
@@ -39,6 +41,8 @@ EMBEDDED_DIR = "fmubuilder_hybrid"
 EMBEDDED_SPEC = "hybrid_spec.json"
 EMBEDDED_ONNX = "network.onnx"
 EMBEDDED_ORIGINAL_XML = "original_modelDescription.xml"
+# Folders of the original FMU the hybrid carries unchanged.
+CARRIED_FOLDERS = ("documentation", "extra")
 _INPUT_GROUPS = {"Real": "real", "Integer": "integer", "Enumeration": "integer", "Boolean": "boolean"}
 _C_IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
 _C_KEYWORDS = frozenset(
@@ -111,7 +115,18 @@ def _build(spec: HybridSpec, info, scratch: Path) -> Path:
     fmu = build.build_dir / "fmus" / f"{description.model_identifier}.fmu"
     if not fmu.is_file():
         raise FmuBuilderError(f"the build produced no {fmu.name}; see the CMake output:\n{build.output[-2000:]}")
+    _carry_folders(spec.original_fmu, fmu)
     return fmu
+
+
+def _carry_folders(original_fmu: Path, hybrid_fmu: Path) -> None:
+    """The original's documentation/ (with its licences) and extra/ into the hybrid, as they are."""
+    with zipfile.ZipFile(original_fmu) as original, zipfile.ZipFile(hybrid_fmu, "a", zipfile.ZIP_DEFLATED) as hybrid:
+        present = set(hybrid.namelist())
+        for member in original.infolist():
+            if member.filename.split("/")[0] in CARRIED_FOLDERS and not member.is_dir() \
+                    and member.filename not in present:
+                hybrid.writestr(member, original.read(member))
 
 
 def render_config(spec: HybridSpec, info, description: HybridDescription) -> str:
@@ -153,9 +168,17 @@ def render_config(spec: HybridSpec, info, description: HybridDescription) -> str
         "inner_log_categories": description.log_categories,
         "can_get_and_set_fmu_state": caps.can_get_and_set_fmu_state,
         "can_serialize_fmu_state": caps.can_get_and_set_fmu_state and caps.can_serialize_fmu_state,
+        "can_not_use_memory_management_functions": _declares(spec.original_fmu, "canNotUseMemoryManagementFunctions"),
         "kernel_prefix": KERNEL_PREFIX,
         "kernel_header": f"{KERNEL_PREFIX}.h",
     })
+
+
+def _declares(fmu: Path, capability: str) -> bool:
+    """Whether the original's ModelExchange element sets a boolean capability flag to true."""
+    import fmpy
+    model_exchange = fmpy.read_model_description(str(fmu), validate=False).modelExchange
+    return bool(getattr(model_exchange, capability, False))
 
 
 def _render(template: str, context: dict) -> str:
@@ -190,26 +213,43 @@ def _c_double(value: float) -> str:
 
 
 def _stage_resources(original: zipfile.ZipFile, info, resources: Path) -> None:
-    """resources/ = the original's resources + its binary as <id>.so."""
+    """resources/ = the original's resources + its binaries/<platform>/ folder, the binary as <id>.so."""
     from fmubuilder.fmi.archive import binary_platform
     resources.mkdir(parents=True)
     library = f"{info.model_identifier}.so"
+    binaries = f"binaries/{binary_platform()}/"
+    if binaries + library not in original.namelist():
+        raise FmuBuilderError(f"the original FMU has no {binaries}{library}; export it for {binary_platform()}")
+    staged = {}
     for member in original.infolist():
-        if not member.filename.startswith("resources/") or member.is_dir():
+        if member.is_dir():
             continue
-        relative = member.filename[len("resources/"):]
-        if relative == library or relative.split("/")[0] == EMBEDDED_DIR:
-            raise FmuBuilderError(
-                f"the original FMU has resources/{relative}, which the hybrid FMU needs for itself; "
-                "rename that resource in the original FMU")
+        for folder in ("resources/", binaries):
+            if member.filename.startswith(folder):
+                relative = member.filename[len(folder):]
+                _check_resource_name(relative, member.filename, library, staged)
+                staged[relative] = member
+    for relative, member in staged.items():
         target = (resources / relative).resolve()
         if resources.resolve() not in target.parents:
-            raise FmuBuilderError(f"the original FMU's entry {member.filename} points outside resources/; "
+            raise FmuBuilderError(f"the original FMU's entry {member.filename} points outside its folder; "
                                   "the FMU is corrupt")
         target.parent.mkdir(parents=True, exist_ok=True)
         target.write_bytes(original.read(member))
-    binary = f"binaries/{binary_platform()}/{library}"
-    (resources / library).write_bytes(original.read(binary))
+        if member.filename.startswith(binaries):
+            target.chmod(0o755)
+
+
+def _check_resource_name(relative: str, entry: str, library: str, staged: dict) -> None:
+    """The hybrid's resources/ holds the original's resources and binaries side by side: no clashes."""
+    if relative.split("/")[0] == EMBEDDED_DIR or (relative == library and entry.startswith("resources/")):
+        raise FmuBuilderError(
+            f"the original FMU has {entry}, a name the hybrid FMU needs for itself in resources/; "
+            "rename that resource in the original FMU")
+    if relative in staged:
+        raise FmuBuilderError(
+            f"the original FMU has both {staged[relative].filename} and {entry}, which the hybrid FMU keeps side by "
+            "side in resources/; rename one of them in the original FMU")
 
 
 def _embed_for_validation(spec: HybridSpec, description: HybridDescription, original_xml: bytes,

@@ -18,6 +18,7 @@
 #define N_ANN_INPUTS 4
 #define CAN_GET_AND_SET_FMU_STATE 1
 #define CAN_SERIALIZE_FMU_STATE 1
+#define CAN_NOT_USE_MEMORY_MANAGEMENT_FUNCTIONS 0
 #define RUN_NETWORK sample_network
 
 static void sample_network(const double *input, double *output) {
