@@ -5,8 +5,8 @@ log categories, default experiment), so tools and scripts written for the origin
 the hybrid. Changed or added:
 
 * a new GUID and modelIdentifier (``<original>_hybrid``), generationTool "fmubuilder";
-* Model Exchange only; FMU state capabilities as the original; no directional derivatives
-  (the network part has no derivative code);
+* Model Exchange only; no directional derivatives (the network part has no derivative code);
+  every other capability flag as the original's;
 * per channel der(x), three Real variables appended after the original's (so the original's
   indices in ModelStructure stay valid), with value references beyond all of the original's:
   ``hybrid.<x>.p_ann`` and ``hybrid.<x>.p_fmu`` (tunable parameters, the gates) and
@@ -102,9 +102,9 @@ def _set_model_exchange(root, identifier: str) -> None:
     me = root.find("ModelExchange")
     me.set("modelIdentifier", identifier)
     me.set("providesDirectionalDerivative", "false")
-    # The wrapper allocates through the importer's callbacks.
-    if "canNotUseMemoryManagementFunctions" in me.attrib:
-        del me.attrib["canNotUseMemoryManagementFunctions"]
+    # Other capability flags hold for the hybrid as for the original: the wrapper forwards those
+    # calls, keeps the FMU state capabilities, and with canNotUseMemoryManagementFunctions it
+    # allocates through the C library as the original does.
     for source_files in me.findall("SourceFiles"):
         me.remove(source_files)
 

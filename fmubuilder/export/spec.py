@@ -43,6 +43,8 @@ from pathlib import Path
 
 from fmubuilder.errors import FmuBuilderError
 
+from .network import onnx_io_sizes
+
 FORMAT = "fmubuilder.hybrid_spec"
 VERSION = 1
 # Variable types a network input may have: their values are passed to the network as doubles.
@@ -200,14 +202,3 @@ def _aliases(aliases) -> dict[str, str]:
         raise FmuBuilderError(f"the hybrid spec's aliases {aliases!r} are not a mapping of output name to channel; "
                               "give e.g. {\"power\": \"der(energy)\"}")
     return dict(aliases)
-
-
-def onnx_io_sizes(path: str | os.PathLike) -> tuple[int, int]:
-    """(number of input values, number of output values) of a one-sample ONNX network.
-
-    The output size is found by running the network once on zeros, since exporters do not
-    always record the output shape in the graph.
-    """
-    from fmubuilder.export.reference import OnnxNetwork
-    network = OnnxNetwork(path)
-    return network.n_inputs, network.n_outputs

@@ -2,17 +2,21 @@
 
     export_hybrid("hybrid_spec.json", "plant_hybrid.fmu")
 
-Steps, all inside a temporary folder: render the wrapper C file (c_templates/
-hybrid_wrapper.c.j2) and the network kernel, derive modelDescription.xml, stage the
-resources (the original's binary as resources/<id>.so, its own resources, and under
-resources/fmubuilder_hybrid/ the spec, the network and the original modelDescription.xml so
-the FMU can be validated on its own), build with CMake's add_fmu() (cmake/fmu.cmake), check
-the result with fmpy's validation, and only then move it to the output path.
+Steps, all inside a temporary folder: render the wrapper's configuration header
+(c_templates/hybrid_config.h.j2, the tables the static c_templates/hybrid_wrapper.c reads) and
+the network kernel, derive modelDescription.xml, stage the
+resources (the original's binary as resources/<id>.so with every other file of its
+binaries/<platform>/ folder beside it, so that libraries it loads from its own folder are
+found; its own resources; and under resources/fmubuilder_hybrid/ the spec, the network and the
+original modelDescription.xml so the FMU can be validated on its own), build with CMake's
+add_fmu() (cmake/fmu.cmake), add the original's documentation/ and extra/ folders as they are,
+check the result with fmpy's validation, and only then move it to the output path.
 """
 from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import tempfile
 import zipfile
@@ -29,12 +33,22 @@ TEMPLATE_DIR = Path(__file__).resolve().parents[2] / "c_templates"
 FMU_CMAKE = Path(__file__).resolve().parents[2] / "cmake" / "fmu.cmake"
 KERNEL_PREFIX = "hybrid_ann"
 WRAPPER_SOURCE = "hybrid_wrapper.c"
+# The wrapper's static files, copied as they are, and its generated configuration.
+STATIC_HEADERS = ("hybrid_tables.h",)
+CONFIG_HEADER = "hybrid_config.h"
 # Inside resources/: what validation needs to rebuild the reference without the spec file.
 EMBEDDED_DIR = "fmubuilder_hybrid"
 EMBEDDED_SPEC = "hybrid_spec.json"
 EMBEDDED_ONNX = "network.onnx"
 EMBEDDED_ORIGINAL_XML = "original_modelDescription.xml"
+# Folders of the original FMU the hybrid carries unchanged.
+CARRIED_FOLDERS = ("documentation", "extra")
 _INPUT_GROUPS = {"Real": "real", "Integer": "integer", "Enumeration": "integer", "Boolean": "boolean"}
+_C_IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
+_C_KEYWORDS = frozenset(
+    "auto break case char const continue default do double else enum extern float for goto if inline int long "
+    "register restrict return short signed sizeof static struct switch typedef union unsigned void volatile while "
+    "_Alignas _Alignof _Atomic _Bool _Complex _Generic _Imaginary _Noreturn _Static_assert _Thread_local".split())
 
 
 def export_hybrid(spec_or_path: HybridSpec | str | os.PathLike, output_fmu: str | os.PathLike,
@@ -54,13 +68,22 @@ def export_hybrid(spec_or_path: HybridSpec | str | os.PathLike, output_fmu: str 
 
     from fmubuilder.fmi import read_model_info
     info = read_model_info(spec.original_fmu)
+    check_model_identifier(info.model_identifier, spec.original_fmu)
     spec.check(info)
     with tempfile.TemporaryDirectory(prefix="fmubuilder-export-") as scratch:
         scratch = Path(scratch)
         built = _build(spec, info, scratch)
-        _check_with_fmpy(built)
+        _check_with_fmpy(built, spec.original_fmu)
         _move_into_place(built, output)
     return output
+
+
+def check_model_identifier(identifier: str, fmu) -> None:
+    """FMI 2.0 requires the modelIdentifier to be a C identifier; the hybrid's is derived from it."""
+    if not _C_IDENTIFIER.match(identifier) or identifier in _C_KEYWORDS:
+        raise FmuBuilderError(
+            f"{fmu}: the modelIdentifier {identifier!r} is not a C identifier (FMI 2.0 requires letters, digits and "
+            "'_', not starting with a digit, and no C keyword); re-export the original FMU with a valid one")
 
 
 def _build(spec: HybridSpec, info, scratch: Path) -> Path:
@@ -79,23 +102,36 @@ def _build(spec: HybridSpec, info, scratch: Path) -> Path:
 
     kernel = generate_kernel(spec.onnx, prefix=KERNEL_PREFIX)
     kernel.write(project / "sources")
-    (project / "sources" / WRAPPER_SOURCE).write_text(render_wrapper(spec, info, description))
+    for name in (WRAPPER_SOURCE, *STATIC_HEADERS):
+        shutil.copyfile(TEMPLATE_DIR / name, project / "sources" / name)
+    (project / "sources" / CONFIG_HEADER).write_text(render_config(spec, info, description))
     (project / "CMakeLists.txt").write_text(_render("hybrid_CMakeLists.txt.j2", {
         "identifier": description.model_identifier,
         "fmu_cmake": FMU_CMAKE.as_posix(),
         "sources": [f"sources/{WRAPPER_SOURCE}", f"sources/{kernel.source_name}"],
-        "headers": [f"sources/{kernel.header_name}"],
+        "headers": [f"sources/{name}" for name in (kernel.header_name, CONFIG_HEADER, *STATIC_HEADERS)],
     }))
     build = build_cmake_project(project, scratch / "build")
     fmu = build.build_dir / "fmus" / f"{description.model_identifier}.fmu"
     if not fmu.is_file():
         raise FmuBuilderError(f"the build produced no {fmu.name}; see the CMake output:\n{build.output[-2000:]}")
+    _carry_folders(spec.original_fmu, fmu)
     return fmu
 
 
-def render_wrapper(spec: HybridSpec, info, description: HybridDescription) -> str:
-    """The wrapper C source for `spec` on the original FMU `info`."""
-    groups = {name: {"type": name, "vrs": [], "positions": []} for name in ("real", "integer", "boolean")}
+def _carry_folders(original_fmu: Path, hybrid_fmu: Path) -> None:
+    """The original's documentation/ (with its licences) and extra/ into the hybrid, as they are."""
+    with zipfile.ZipFile(original_fmu) as original, zipfile.ZipFile(hybrid_fmu, "a", zipfile.ZIP_DEFLATED) as hybrid:
+        present = set(hybrid.namelist())
+        for member in original.infolist():
+            if member.filename.split("/")[0] in CARRIED_FOLDERS and not member.is_dir() \
+                    and member.filename not in present:
+                hybrid.writestr(member, original.read(member))
+
+
+def render_config(spec: HybridSpec, info, description: HybridDescription) -> str:
+    """The wrapper's configuration header for `spec` on the original FMU `info`."""
+    groups = {name: {"type": name, "vrs": [], "positions": [], "names": []} for name in ("real", "integer", "boolean")}
     derivative_inputs = {"states": [], "positions": []}
     derivative_names = {d.name for d in info.derivatives}
     for position, name in enumerate(spec.inputs):
@@ -106,6 +142,7 @@ def render_wrapper(spec: HybridSpec, info, description: HybridDescription) -> st
         var = info.variable(name)
         group = groups[_INPUT_GROUPS[var.type]]
         group["vrs"].append(var.value_reference)
+        group["names"].append(name)
         group["positions"].append(position)
     channels = [{
         "name": c.channel, "der_vr": c.der_vr, "state_index": c.state_index,
@@ -115,13 +152,14 @@ def render_wrapper(spec: HybridSpec, info, description: HybridDescription) -> st
     aliases = [{"name": name, "vr": info.variable(name).value_reference, "channel": spec.channels.index(channel)}
                for name, channel in spec.aliases.items()]
     caps = info.capabilities
-    return _render("hybrid_wrapper.c.j2", {
+    return _render("hybrid_config.h.j2", {
         "identifier": description.model_identifier,
         "guid": description.guid,
         "inner_identifier": info.model_identifier,
         "inner_guid": info.guid,
         "inner_library": f"{info.model_identifier}.so",
         "n_states": info.n_states,
+        "n_event_indicators": info.n_event_indicators,
         "n_ann_inputs": len(spec.inputs),
         "channels": channels,
         "aliases": aliases,
@@ -130,15 +168,24 @@ def render_wrapper(spec: HybridSpec, info, description: HybridDescription) -> st
         "inner_log_categories": description.log_categories,
         "can_get_and_set_fmu_state": caps.can_get_and_set_fmu_state,
         "can_serialize_fmu_state": caps.can_get_and_set_fmu_state and caps.can_serialize_fmu_state,
+        "can_not_use_memory_management_functions": _declares(spec.original_fmu, "canNotUseMemoryManagementFunctions"),
         "kernel_prefix": KERNEL_PREFIX,
         "kernel_header": f"{KERNEL_PREFIX}.h",
     })
+
+
+def _declares(fmu: Path, capability: str) -> bool:
+    """Whether the original's ModelExchange element sets a boolean capability flag to true."""
+    import fmpy
+    model_exchange = fmpy.read_model_description(str(fmu), validate=False).modelExchange
+    return bool(getattr(model_exchange, capability, False))
 
 
 def _render(template: str, context: dict) -> str:
     env = jinja2.Environment(loader=jinja2.FileSystemLoader(TEMPLATE_DIR), undefined=jinja2.StrictUndefined,
                              trim_blocks=True, lstrip_blocks=True, keep_trailing_newline=True)
     env.filters["c_string"] = c_string
+    env.filters["c_comment"] = c_comment
     return env.get_template(template).render(context)
 
 
@@ -155,32 +202,54 @@ def c_string(text: str) -> str:
     return '"' + "".join(out) + '"'
 
 
+def c_comment(text: str) -> str:
+    """Any text made safe inside a C block comment: no comment end, no line breaks."""
+    return "".join(ch if ch.isprintable() else "?" for ch in str(text)).replace("*/", "* /")
+
+
 def _c_double(value: float) -> str:
     text = repr(float(value))
     return text if any(ch in text for ch in ".en") else text + ".0"
 
 
 def _stage_resources(original: zipfile.ZipFile, info, resources: Path) -> None:
-    """resources/ = the original's resources + its binary as <id>.so."""
+    """resources/ = the original's resources + its binaries/<platform>/ folder, the binary as <id>.so."""
     from fmubuilder.fmi.archive import binary_platform
     resources.mkdir(parents=True)
     library = f"{info.model_identifier}.so"
+    binaries = f"binaries/{binary_platform()}/"
+    if binaries + library not in original.namelist():
+        raise FmuBuilderError(f"the original FMU has no {binaries}{library}; export it for {binary_platform()}")
+    staged = {}
     for member in original.infolist():
-        if not member.filename.startswith("resources/") or member.is_dir():
+        if member.is_dir():
             continue
-        relative = member.filename[len("resources/"):]
-        if relative == library or relative.split("/")[0] == EMBEDDED_DIR:
-            raise FmuBuilderError(
-                f"the original FMU has resources/{relative}, which the hybrid FMU needs for itself; "
-                "rename that resource in the original FMU")
+        for folder in ("resources/", binaries):
+            if member.filename.startswith(folder):
+                relative = member.filename[len(folder):]
+                _check_resource_name(relative, member.filename, library, staged)
+                staged[relative] = member
+    for relative, member in staged.items():
         target = (resources / relative).resolve()
         if resources.resolve() not in target.parents:
-            raise FmuBuilderError(f"the original FMU's entry {member.filename} points outside resources/; "
+            raise FmuBuilderError(f"the original FMU's entry {member.filename} points outside its folder; "
                                   "the FMU is corrupt")
         target.parent.mkdir(parents=True, exist_ok=True)
         target.write_bytes(original.read(member))
-    binary = f"binaries/{binary_platform()}/{library}"
-    (resources / library).write_bytes(original.read(binary))
+        if member.filename.startswith(binaries):
+            target.chmod(0o755)
+
+
+def _check_resource_name(relative: str, entry: str, library: str, staged: dict) -> None:
+    """The hybrid's resources/ holds the original's resources and binaries side by side: no clashes."""
+    if relative.split("/")[0] == EMBEDDED_DIR or (relative == library and entry.startswith("resources/")):
+        raise FmuBuilderError(
+            f"the original FMU has {entry}, a name the hybrid FMU needs for itself in resources/; "
+            "rename that resource in the original FMU")
+    if relative in staged:
+        raise FmuBuilderError(
+            f"the original FMU has both {staged[relative].filename} and {entry}, which the hybrid FMU keeps side by "
+            "side in resources/; rename one of them in the original FMU")
 
 
 def _embed_for_validation(spec: HybridSpec, description: HybridDescription, original_xml: bytes,
@@ -197,13 +266,22 @@ def _embed_for_validation(spec: HybridSpec, description: HybridDescription, orig
     (folder / EMBEDDED_SPEC).write_text(json.dumps(data, indent=2) + "\n")
 
 
-def _check_with_fmpy(fmu: Path) -> None:
+def _check_with_fmpy(fmu: Path, original: Path) -> None:
+    """fmpy's validation of the hybrid, except for problems the original has as well (the hybrid
+    keeps the original's variables as they are)."""
     from fmpy.validation import validate_fmu
     problems = validate_fmu(str(fmu))
+    if problems:
+        inherited = {_without_line_numbers(p) for p in validate_fmu(str(original))}
+        problems = [p for p in problems if _without_line_numbers(p) not in inherited]
     if problems:
         raise FmuBuilderError(
             "the generated hybrid FMU fails fmpy's validation (a bug in fmubuilder's export, please report it): "
             + "; ".join(problems))
+
+
+def _without_line_numbers(problem: str) -> str:
+    return re.sub(r"\(line \d+\)|line \d+", "", problem)
 
 
 def _move_into_place(built: Path, output: Path) -> None:

@@ -4,7 +4,8 @@
  *   fmu_host LIBRARY GUID RESOURCE_URI N_STATES N_INDICATORS CYCLES STEPS STEP_SIZE [VR...]
  *
  * Loads LIBRARY with RTLD_NOW | RTLD_GLOBAL (so its fmi2* symbols are global, the case the
- * wrapper's RTLD_DEEPBIND guards against), then CYCLES times: instantiate, initialise, STEPS
+ * wrapper's RTLD_DEEPBIND guards against; RTLD_LOCAL if FMU_HOST_RTLD_LOCAL is set, for a
+ * wrapper built without RTLD_DEEPBIND under the sanitizers), then CYCLES times: instantiate, initialise, STEPS
  * forward-Euler steps with fmpy's arithmetic (dt = t_next - t, events at step ends), an FMU
  * state round trip (get, serialize, deserialize, set, free) when the FMU supports it,
  * terminate, free. Prints the states and the Real values of the given value references after
@@ -122,7 +123,7 @@ int main(int argc, char **argv) {
         vrs[i] = (fmi2ValueReference)strtoul(argv[9 + i], NULL, 10);
     }
 
-    void *library = dlopen(argv[1], RTLD_NOW | RTLD_GLOBAL);
+    void *library = dlopen(argv[1], RTLD_NOW | (getenv("FMU_HOST_RTLD_LOCAL") ? RTLD_LOCAL : RTLD_GLOBAL));
     if (library == NULL) {
         fprintf(stderr, "dlopen failed: %s\n", dlerror());
         return 2;
