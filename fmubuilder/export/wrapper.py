@@ -21,6 +21,7 @@ from pathlib import Path
 import jinja2
 
 from fmubuilder.errors import FmuBuilderError
+from fmubuilder.files import copy_atomically
 
 from .hybrid_description import HybridDescription, derive_model_description
 from .spec import HybridSpec
@@ -59,7 +60,7 @@ def export_hybrid(spec_or_path: HybridSpec | str | os.PathLike, output_fmu: str 
         scratch = Path(scratch)
         built = _build(spec, info, scratch)
         _check_with_fmpy(built)
-        _move_into_place(built, output)
+        copy_atomically(built, output)
     return output
 
 
@@ -205,15 +206,3 @@ def _check_with_fmpy(fmu: Path) -> None:
             "the generated hybrid FMU fails fmpy's validation (a bug in fmubuilder's export, please report it): "
             + "; ".join(problems))
 
-
-def _move_into_place(built: Path, output: Path) -> None:
-    """Copy next to the output first, then rename: readers never see a partial FMU."""
-    fd, temporary = tempfile.mkstemp(dir=output.parent, prefix=f".{output.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        shutil.copyfile(built, temporary)
-        os.chmod(temporary, 0o644)
-        os.replace(temporary, output)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
