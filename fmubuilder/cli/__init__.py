@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import warnings
 
 from ..errors import FmuBuilderError
 
@@ -76,14 +77,21 @@ def run(argv: list[str] | None = None) -> int:
 
 
 def execute(args) -> int:
-    """Call the command's function; every failure becomes one `error:` line and an exit code."""
+    """Call the command's function; every failure becomes one `error:` line and an exit code.
+    Warnings (numpy, scipy, torch) are kept back and folded into that line (shown with --debug)."""
+    with warnings.catch_warnings(record=not args.debug) as caught:
+        warnings.simplefilter("default")
+        return _call(args, caught or [])
+
+
+def _call(args, caught: list) -> int:
     try:
         args.func(args)
         sys.stdout.flush()
     except FmuBuilderError as exc:
         if args.debug:
             raise
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {exc}{_warnings_note(caught)}", file=sys.stderr)
         return 1
     except BrokenPipeError:  # e.g. `fmubuilder inspect x.fmu | head`: the reader has gone
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
@@ -94,12 +102,29 @@ def execute(args) -> int:
     except Exception as exc:  # a bug, not bad input: still one line unless --debug
         if args.debug:
             raise
-        print(f"error: internal error ({type(exc).__name__}: {exc}); rerun with --debug for the traceback",
-              file=sys.stderr)
+        print(f"error: internal error ({type(exc).__name__}: {_first_line(exc)}){_warnings_note(caught)}; "
+              "rerun with --debug for the traceback", file=sys.stderr)
         return 2
     return 0
 
 
+def _warnings_note(caught: list) -> str:
+    if not caught:
+        return ""
+    more = f" and {len(caught) - 1} more" if len(caught) > 1 else ""
+    return f" (after the warning '{_first_line(caught[0].message)}'{more})"
+
+
+def _first_line(text) -> str:
+    lines = str(text).strip().splitlines()
+    return lines[0] if lines else ""
+
+
 def main(argv: list[str] | None = None) -> int:
-    """The `fmubuilder` entry point."""
-    return run(argv)
+    """The `fmubuilder` entry point: the command runs in a supervised worker process, so a
+    crashing, exiting or hanging FMU binary ends in one `error:` line (cli/supervise.py)."""
+    args = parse(argv)
+    if args is None:
+        return 2
+    from .supervise import run_supervised
+    return run_supervised(args, execute)

@@ -113,9 +113,13 @@ STATUS_NAMES = ("fmi2OK", "fmi2Warning", "fmi2Discard", "fmi2Error", "fmi2Fatal"
 def load_library(path: Path):
     """dlopen an FMU binary privately (RTLD_LOCAL), so two FMUs exporting the same fmi2*
     names never bind to each other's symbols."""
+    from .breadcrumb import CALL, CODE
+    CALL[0] = CODE["dlopen"]  # library constructors run here
     try:
         lib = ffi.dlopen(str(path), ffi.RTLD_NOW | ffi.RTLD_LOCAL)
+        CALL[0] = -CODE["dlopen"]
     except OSError as exc:
+        CALL[0] = -CODE["dlopen"]
         raise FmuBuilderError(f"cannot load the FMU binary {path.name}: {exc}") from None
     missing = [name for name in REQUIRED_FUNCTIONS if not _exports(lib, name)]
     if missing:
