@@ -68,6 +68,7 @@ def _worker(args, execute, temp_root: Path) -> None:
         signal.signal(signal.SIGUSR1, _answer_ping)
         signal.siginterrupt(signal.SIGUSR1, False)  # a ping must not fail the FMU's system calls
         signal.signal(signal.SIGINT, _interrupt_once)
+        breadcrumb.watch_fmpy()
         code = execute(args)
     except SystemExit as exc:
         code = exc.code if isinstance(exc.code, int) else 1

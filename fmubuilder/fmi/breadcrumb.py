@@ -61,4 +61,26 @@ def last_call() -> tuple[str, bool, float]:
     return name, code > 0, TIME[0]
 
 
+def watch_fmpy() -> None:
+    """Leave breadcrumbs in the FMI calls fmpy makes too (validation runs FMUs through fmpy):
+    all of them pass through fmpy's `_FMU._call`."""
+    from fmpy.fmi1 import _FMU
+    original = _FMU._call
+    if getattr(original, "leaves_breadcrumbs", False):
+        return
+
+    def call(self, name, *args):
+        code = CODE.get(name, 0)
+        if name == "fmi2SetTime" and len(args) > 1:
+            TIME[0] = float(args[1])
+        elif name == "fmi2Instantiate":
+            set_model(getattr(self, "modelIdentifier", ""))
+        CALL[CALL_SLOT] = code
+        result = original(self, name, *args)
+        CALL[CALL_SLOT] = -code
+        return result
+    call.leaves_breadcrumbs = True
+    _FMU._call = call
+
+
 reset()
