@@ -147,3 +147,40 @@ def test_ctrl_c_in_python_code_stops_cleanly(bouncing_ball_fmu, tmp_path):
     assert proc.returncode == 130
     assert stderr.strip().splitlines() == ["error: interrupted"]
     assert list(tmpdir.iterdir()) == [] and list(out.iterdir()) == []
+
+
+def _worker_of(pid: int) -> int:
+    children = open(f"/proc/{pid}/task/{pid}/children").read().split()
+    return int(children[0])
+
+
+@pytest.mark.parametrize("ending", ["success", "error", "SIGTERM", "worker killed"])
+def test_no_temporary_folder_is_left_on_any_exit_path(bouncing_ball_fmu, tmp_path, ending):
+    tmpdir, out = tmp_path / "tmp", tmp_path / "out"
+    tmpdir.mkdir()
+    out.mkdir()
+    before = sorted(tmpdir.iterdir())
+    long_run = ["--stop-time", "1e5", "--solver", "euler", "--step-size", "1e-3", "--output-interval", "10"]
+    args = {"success": ["--stop-time", "1"], "error": ["--start", "h=high"]}.get(ending, long_run)
+    env = {**os.environ, "TMPDIR": str(tmpdir)}
+    proc = subprocess.Popen([sys.executable, "-m", "fmubuilder.cli", "simulate", str(bouncing_ball_fmu), *args,
+                             "-o", str(out / "result.csv")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=env)
+    if ending in ("SIGTERM", "worker killed"):
+        deadline = time.monotonic() + 60
+        while not any(tmpdir.iterdir()) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(1.0)
+        if ending == "SIGTERM":
+            proc.send_signal(signal.SIGTERM)
+        else:
+            os.kill(_worker_of(proc.pid), signal.SIGKILL)
+    _, stderr = proc.communicate(timeout=60)
+    assert sorted(tmpdir.iterdir()) == before
+    if ending == "success":
+        assert proc.returncode == 0 and (out / "result.csv").is_file()
+        return
+    assert proc.returncode != 0 and len(stderr.strip().splitlines()) == 1, stderr
+    assert list(out.iterdir()) == []
+    if ending == "worker killed":
+        assert "crashed (SIGKILL)" in stderr  # inside an FMI call or between calls, as it happened

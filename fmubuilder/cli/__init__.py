@@ -81,7 +81,7 @@ def execute(args) -> int:
     Warnings (numpy, scipy, torch) are kept back and folded into that line (shown with --debug)."""
     with warnings.catch_warnings(record=not args.debug) as caught:
         warnings.simplefilter("default")
-        return _call(args, caught or [])
+        return _call(args, caught if caught is not None else [])
 
 
 def _call(args, caught: list) -> int:
@@ -99,6 +99,12 @@ def _call(args, caught: list) -> int:
     except KeyboardInterrupt:
         print("error: interrupted", file=sys.stderr)
         return 130
+    except (OverflowError, FloatingPointError) as exc:  # nearly always data far out of range (1e300)
+        if args.debug:
+            raise
+        print(f"error: a computation overflowed ({_first_line(exc) or type(exc).__name__}){_warnings_note(caught)}; "
+              "check the input data for values far outside the model's range", file=sys.stderr)
+        return 1
     except Exception as exc:  # a bug, not bad input: still one line unless --debug
         if args.debug:
             raise

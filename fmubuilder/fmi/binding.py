@@ -120,12 +120,19 @@ def load_library(path: Path):
         CALL[0] = -CODE["dlopen"]
     except OSError as exc:
         CALL[0] = -CODE["dlopen"]
-        raise FmuBuilderError(f"cannot load the FMU binary {path.name}: {exc}") from None
+        raise FmuBuilderError(f"cannot load the FMU binary {path.name} ({_loader_reason(exc, path)}); the binary is "
+                              "broken or not built for Linux x86_64: export the FMU again") from None
     missing = [name for name in REQUIRED_FUNCTIONS if not _exports(lib, name)]
     if missing:
         raise FmuBuilderError(
             f"the FMU binary {path.name} does not export {', '.join(missing)}; it is not an FMI 2.0 Model-Exchange binary")
     return lib
+
+
+def _loader_reason(exc: OSError, path: Path) -> str:
+    """The dynamic loader's reason without the paths and cffi's find_library remark."""
+    text = str(exc).split(".  Additionally", 1)[0]
+    return text.rsplit(f"{path}: ", 1)[-1].strip() or type(exc).__name__
 
 
 def _exports(lib, name: str) -> bool:
