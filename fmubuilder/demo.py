@@ -14,9 +14,9 @@ from .errors import FmuBuilderError
 CASE = "extra_resistance"
 
 
-def run_demo(output: Path, force: bool = False, time_budget: float = 300.0) -> None:
+def run_demo(output: Path, force: bool = False, time_budget: float = 300.0):
+    """Write the example and hybridize it; returns the HybridizeResult and the example folder."""
     from .examples_zoo import write_example
-    from .hybridize.cli import summary
     from .hybridize.workflow import hybridize
 
     out = _prepare_output_dir(Path(output), force)
@@ -25,10 +25,7 @@ def run_demo(output: Path, force: bool = False, time_budget: float = 300.0) -> N
     write_example("vldm", example)
     result = hybridize(example / "vldm.fmu", example / f"{CASE}_train_cadc.csv", example / f"{CASE}_test_wltc2.csv",
                        out / "vldm_hybrid.fmu", out / "report", time_budget=time_budget)
-    print(summary(result))
-    print(f"\nThe other data sets in {example}/ (extra_loss_*, no_effect_*) work the same way, e.g.\n"
-          f"  fmubuilder hybridize {example}/vldm.fmu --train {example}/extra_loss_train_cadc.csv "
-          f"--test {example}/extra_loss_test_wltc2.csv -o loss_hybrid.fmu --report loss_report")
+    return result, example
 
 
 def _prepare_output_dir(path: Path, force: bool) -> Path:

@@ -15,8 +15,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import secrets
-import shutil
 import tempfile
 import time
 import zlib
@@ -25,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .errors import FmuBuilderError
+from .files import copy_atomically, file_sha256, write_atomically
 
 # Bump when the layout of cached data changes.
 _CACHE_FORMAT = "1"
@@ -125,7 +124,7 @@ def write_example(name: str, output: Path, *, force: bool = False, workers: int 
     for variant in VLDM_VARIANTS:
         source = example_fmu(variant.fmu)
         fmus[variant.fmu] = output / source.name
-        _atomic_copy(source, fmus[variant.fmu])
+        copy_atomically(source, fmus[variant.fmu])
 
     started = time.perf_counter()
     sets = vldm_data_sets()
@@ -134,10 +133,9 @@ def write_example(name: str, output: Path, *, force: bool = False, workers: int 
     data = {}
     for data_set, csv_path in zip(sets, cached):
         data[data_set.file_name] = output / data_set.file_name
-        _atomic_copy(csv_path, output / data_set.file_name)
-        _atomic_copy(_sidecar(csv_path), _sidecar(output / data_set.file_name))
-    from .synth import write_text_atomic
-    write_text_atomic(output / "README.md", _readme(sets, data))
+        copy_atomically(csv_path, output / data_set.file_name)
+        copy_atomically(_sidecar(csv_path), _sidecar(output / data_set.file_name))
+    write_atomically(output / "README.md", _readme(sets, data))
     print(f"wrote the '{name}' example to {output}/: {len(fmus)} FMUs, {len(data)} data sets"
           + (f" (generated {generated} in {seconds:.0f} s)" if generated else " (data from the cache)"))
     return ExampleFolder(output, fmus, data, seconds)
@@ -188,7 +186,6 @@ def data_cache_dir() -> Path:
 
 
 def _cache_folder(fmu: Path, data_set: DataSet) -> Path:
-    from .synth import file_sha256
     key = json.dumps({
         "format": _CACHE_FORMAT, "fmu": file_sha256(fmu), "file": data_set.file_name,
         "stop_time": data_set.stop_time, "start_values": data_set.start_values,
@@ -232,16 +229,6 @@ def _generate(fmu: Path, data_set: DataSet, target: Path) -> None:
 def _sidecar(path: Path) -> Path:
     from .synth import sidecar_path
     return sidecar_path(path)
-
-
-def _atomic_copy(source: Path, target: Path) -> None:
-    tmp = target.with_name(f".{target.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
-    try:
-        shutil.copyfile(source, tmp)
-        os.replace(tmp, target)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 # ---------------------------------------------------------------------------------------

@@ -50,11 +50,9 @@ Data file convention (read by the training and validation stages):
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import os
-import secrets
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -62,6 +60,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .errors import FmuBuilderError
+from .files import file_sha256, write_atomically
 
 DEFAULT_SIGNALS = ("speed", "power", "energy")
 
@@ -362,8 +361,8 @@ def write_measurement(measurement: Measurement, path: str | os.PathLike, *, forc
     metadata = dict(measurement.metadata)
     metadata["data_file"] = path.name
     metadata.update(extra_metadata or {})
-    write_text_atomic(path, format_csv(measurement.columns(), measurement.metadata["bench"]["time_resolution"]))
-    write_text_atomic(sidecar_path(path), json.dumps(metadata, indent=2) + "\n")
+    write_atomically(path, format_csv(measurement.columns(), measurement.metadata["bench"]["time_resolution"]))
+    write_atomically(sidecar_path(path), json.dumps(metadata, indent=2) + "\n")
     return path
 
 
@@ -375,18 +374,6 @@ def format_csv(columns: Mapping[str, np.ndarray], time_resolution: float) -> str
     lines = [",".join(columns)]
     lines += [",".join(fmt % value for fmt, value in zip(formats, row)) for row in table.tolist()]
     return "\n".join(lines) + "\n"
-
-
-def write_text_atomic(path: Path, text: str) -> None:
-    """Write next to the target, then rename: readers never see a half-written file."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
-    try:
-        with open(tmp, "x", newline="") as handle:
-            handle.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def split_uncertainty_columns(names: Sequence[str]) -> tuple[list[str], dict[str, str]]:
@@ -438,10 +425,3 @@ def _literal(value) -> str:
         return "true" if value else "false"
     return repr(value) if isinstance(value, float) else str(value)
 
-
-def file_sha256(path: str | os.PathLike) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()

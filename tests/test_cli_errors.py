@@ -107,3 +107,17 @@ def test_help_and_inspect_do_not_import_heavy_packages(bouncing_ball_fmu):
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "[]"
+
+
+def test_numeric_warnings_are_folded_into_the_one_line_error(tmp_path, bouncing_ball_fmu):
+    """Values near 1e300 overflow in the diagnosis: numpy's warnings must not spill onto the terminal."""
+    from fmubuilder.simulation import simulate
+    result = simulate(bouncing_ball_fmu, stop_time=1.0, variables=["h", "v"], solver="euler", step_size=1e-3,
+                      output_interval=0.01)
+    huge = tmp_path / "huge.csv"
+    huge.write_text("time,h,v\n" + "".join(f"{t!r},{h * 1e300!r},{v * 1e300!r}\n"
+                                           for t, h, v in zip(result.time, result["h"], result["v"])))
+    proc = run_cli("hybridize", bouncing_ball_fmu, "--train", huge, "--test", huge, "-o", tmp_path / "h.fmu",
+                   "--report", tmp_path / "report", "--time-budget", "10")
+    assert_one_line_error(proc, "overflow")
+    assert not (tmp_path / "report").exists() and not (tmp_path / "h.fmu").exists()

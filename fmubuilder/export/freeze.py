@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from fmubuilder.errors import FmuBuilderError
-from fmubuilder.export.files import write_atomically
+from fmubuilder.files import write_atomically
 
 if TYPE_CHECKING:
     import torch

@@ -25,7 +25,7 @@ import onnx
 from onnx import numpy_helper
 
 from fmubuilder.errors import FmuBuilderError
-from fmubuilder.export.files import write_atomically
+from fmubuilder.files import write_atomically
 
 TEMPLATE_DIR = Path(__file__).resolve().parents[2] / "c_templates"
 

@@ -124,7 +124,7 @@ class HybridSpec:
 
     def save(self, path: str | os.PathLike) -> Path:
         """Write the spec as JSON (atomically), with paths relative to the JSON's folder."""
-        from fmubuilder.export.files import write_atomically
+        from fmubuilder.files import write_atomically
         path = Path(path)
         return write_atomically(path, json.dumps(self.to_dict(relative_to=path.parent), indent=2) + "\n")
 

@@ -25,6 +25,7 @@ from pathlib import Path
 import jinja2
 
 from fmubuilder.errors import FmuBuilderError
+from fmubuilder.files import copy_atomically
 
 from .hybrid_description import HybridDescription, derive_model_description
 from .spec import HybridSpec
@@ -74,7 +75,7 @@ def export_hybrid(spec_or_path: HybridSpec | str | os.PathLike, output_fmu: str 
         scratch = Path(scratch)
         built = _build(spec, info, scratch)
         _check_with_fmpy(built, spec.original_fmu)
-        _move_into_place(built, output)
+        copy_atomically(built, output)
     return output
 
 
@@ -283,15 +284,3 @@ def _check_with_fmpy(fmu: Path, original: Path) -> None:
 def _without_line_numbers(problem: str) -> str:
     return re.sub(r"\(line \d+\)|line \d+", "", problem)
 
-
-def _move_into_place(built: Path, output: Path) -> None:
-    """Copy next to the output first, then rename: readers never see a partial FMU."""
-    fd, temporary = tempfile.mkstemp(dir=output.parent, prefix=f".{output.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        shutil.copyfile(built, temporary)
-        os.chmod(temporary, 0o644)
-        os.replace(temporary, output)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise

@@ -5,18 +5,24 @@ and what to do, so the stages behind this never see a half-valid FMU.
 """
 from __future__ import annotations
 
+import os
 import platform
 import shutil
 import sys
 import tempfile
 import weakref
 import zipfile
+import zlib
 from pathlib import Path
 
 from ..errors import FmuBuilderError
 from .model import ModelInfo, model_info_from_fmpy
 
 PLATFORM = "linux64"
+# Extraction cap: an FMU's binary and resources rarely exceed a few hundred MB; a zip bomb does.
+MAX_EXTRACT_ENV = "FMUBUILDER_MAX_EXTRACT_MB"
+DEFAULT_MAX_EXTRACT_MB = 1024
+_CORRUPT = (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError)
 
 
 def binary_platform() -> str:
@@ -34,9 +40,13 @@ def read_model_info(path: str | Path) -> ModelInfo:
     if path.is_dir():
         raise FmuBuilderError(f"{path} is a directory; give the path of an .fmu file (a zip archive)")
     if not zipfile.is_zipfile(path):
-        raise FmuBuilderError(f"{path} is not an FMU (not a zip archive); export the model as an FMI 2.0 FMU")
-    with zipfile.ZipFile(path) as zf:
-        names = set(zf.namelist())
+        raise FmuBuilderError(f"{path} is not an FMU (not a zip archive{_looks_truncated(path)}); "
+                              "export the model as an FMI 2.0 FMU")
+    try:
+        with zipfile.ZipFile(path) as zf:
+            names = set(zf.namelist())
+    except _CORRUPT as exc:
+        raise corrupt(path, exc) from None
     if "modelDescription.xml" not in names:
         raise FmuBuilderError(f"{path} has no modelDescription.xml at its top level; it is not a valid FMU")
     _check_version(path)
@@ -51,10 +61,24 @@ def read_model_info(path: str | Path) -> ModelInfo:
     return model_info_from_fmpy(md)
 
 
+def corrupt(path: Path, exc: BaseException, entry: str | None = None) -> FmuBuilderError:
+    detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    where = f" in {entry}" if entry and entry not in detail else ""
+    return FmuBuilderError(f"{path} is corrupt ({detail}{where}): the archive is damaged or truncated; "
+                           "copy or export the FMU again")
+
+
+def _looks_truncated(path: Path) -> str:
+    with open(path, "rb") as file:
+        return ": it starts like one, so it is probably truncated or damaged" if file.read(2) == b"PK" else ""
+
+
 def _parse_model_description(path: Path):
     from fmpy import read_model_description
     try:
         return read_model_description(str(path), validate=False)
+    except _CORRUPT as exc:
+        raise corrupt(path, exc, "modelDescription.xml") from None
     except Exception as exc:  # lxml and fmpy raise many kinds; the message is what matters
         first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise FmuBuilderError(f"{path}: cannot read modelDescription.xml ({first_line})") from None
@@ -68,6 +92,8 @@ def _check_version(path: Path) -> None:
             _, root = next(ET.iterparse(xml, events=("start",)))
     except (ET.ParseError, StopIteration) as exc:
         raise FmuBuilderError(f"{path}: cannot read modelDescription.xml ({exc})") from None
+    except _CORRUPT as exc:
+        raise corrupt(path, exc, "modelDescription.xml") from None
     version = root.get("fmiVersion", "unknown")
     if not version.startswith("2."):
         raise FmuBuilderError(
@@ -90,10 +116,14 @@ class FmuArchive:
         self._cleanup = weakref.finalize(self, shutil.rmtree, self.directory, True)
         try:
             with zipfile.ZipFile(self.path) as zf:
-                _safe_extract(zf, self.directory)
-        except (zipfile.BadZipFile, OSError) as exc:
+                _extract_needed(zf, self.directory, self.path, self.info.model_identifier)
+        except FmuBuilderError:
             self._cleanup()
-            raise FmuBuilderError(f"{self.path}: cannot extract the FMU ({exc})") from None
+            raise
+        except OSError as exc:
+            self._cleanup()
+            raise FmuBuilderError(f"{self.path}: cannot extract the FMU to {self.directory.parent} "
+                                  f"({exc.strerror or exc}); free some space or set TMPDIR to another folder") from None
 
     @property
     def library_path(self) -> Path:
@@ -107,11 +137,57 @@ class FmuArchive:
         self._cleanup()
 
 
-def _safe_extract(zf: zipfile.ZipFile, target: Path) -> None:
-    """Extract, refusing entries that would land outside the target folder."""
+def max_extract_bytes() -> int:
+    text = os.environ.get(MAX_EXTRACT_ENV, "")
+    try:
+        megabytes = float(text) if text else DEFAULT_MAX_EXTRACT_MB
+    except ValueError:
+        raise FmuBuilderError(f"{MAX_EXTRACT_ENV}={text!r}: give a number of megabytes, e.g. 4096") from None
+    return int(megabytes * 1024 * 1024)
+
+
+def _extract_needed(zf: zipfile.ZipFile, target: Path, path: Path, model_identifier: str) -> None:
+    """Extract what running the FMU needs (modelDescription.xml, the linux64 binaries,
+    resources/), refusing entries that would land outside the target folder and stopping
+    at the size cap, counted on the bytes actually inflated (headers can lie)."""
     root = target.resolve()
-    for member in zf.infolist():
+    wanted = ("modelDescription.xml", f"binaries/{binary_platform()}/", "resources/")
+    members = [m for m in zf.infolist() if m.filename.startswith(wanted)]
+    for member in members:
         dest = (root / member.filename).resolve()
         if root != dest and root not in dest.parents:
-            raise FmuBuilderError(f"FMU entry '{member.filename}' points outside the archive; the FMU is corrupt")
-    zf.extractall(root)
+            raise FmuBuilderError(f"{path}: entry '{member.filename}' points outside the archive; the FMU is corrupt "
+                                  "or malicious: do not use it")
+    budget = max_extract_bytes()
+    declared = 0
+    for member in members:  # refuse from the declared sizes before writing anything
+        declared += member.file_size
+        if declared > budget or (member.file_size > 2**26 and member.file_size > 1000 * member.compress_size):
+            raise _too_large(path, member, declared > budget)
+    for member in members:
+        dest = root / member.filename
+        if member.is_dir():
+            dest.mkdir(parents=True, exist_ok=True)
+            continue
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            with zf.open(member) as source, open(dest, "wb") as out:
+                while block := source.read(1 << 20):
+                    budget -= len(block)
+                    if budget < 0:
+                        raise _too_large(path, member, True)
+                    out.write(block)
+        except _CORRUPT as exc:
+            raise corrupt(path, exc, member.filename) from None
+        if member.external_attr >> 16 & 0o111:
+            dest.chmod(0o755)
+
+
+def _too_large(path: Path, member: zipfile.ZipInfo, over_limit: bool) -> FmuBuilderError:
+    size = f"{member.file_size / 2**20:.0f} MB"
+    if over_limit:
+        problem = f"would extract to more than {max_extract_bytes() / 2**20:g} MB ({member.filename}: {size})"
+    else:
+        problem = f"has {member.filename} compressed {member.file_size / max(member.compress_size, 1):.0f}:1 ({size})"
+    return FmuBuilderError(f"{path} {problem}, which looks like a zip bomb; if the FMU is genuine, raise the limit "
+                           f"with {MAX_EXTRACT_ENV}=<megabytes>")

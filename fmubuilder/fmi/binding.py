@@ -113,15 +113,26 @@ STATUS_NAMES = ("fmi2OK", "fmi2Warning", "fmi2Discard", "fmi2Error", "fmi2Fatal"
 def load_library(path: Path):
     """dlopen an FMU binary privately (RTLD_LOCAL), so two FMUs exporting the same fmi2*
     names never bind to each other's symbols."""
+    from .breadcrumb import CALL, CODE
+    CALL[0] = CODE["dlopen"]  # library constructors run here
     try:
         lib = ffi.dlopen(str(path), ffi.RTLD_NOW | ffi.RTLD_LOCAL)
+        CALL[0] = -CODE["dlopen"]
     except OSError as exc:
-        raise FmuBuilderError(f"cannot load the FMU binary {path.name}: {exc}") from None
+        CALL[0] = -CODE["dlopen"]
+        raise FmuBuilderError(f"cannot load the FMU binary {path.name} ({_loader_reason(exc, path)}); the binary is "
+                              "broken or not built for Linux x86_64: export the FMU again") from None
     missing = [name for name in REQUIRED_FUNCTIONS if not _exports(lib, name)]
     if missing:
         raise FmuBuilderError(
             f"the FMU binary {path.name} does not export {', '.join(missing)}; it is not an FMI 2.0 Model-Exchange binary")
     return lib
+
+
+def _loader_reason(exc: OSError, path: Path) -> str:
+    """The dynamic loader's reason without the paths and cffi's find_library remark."""
+    text = str(exc).split(".  Additionally", 1)[0]
+    return text.rsplit(f"{path}: ", 1)[-1].strip() or type(exc).__name__
 
 
 def _exports(lib, name: str) -> bool:

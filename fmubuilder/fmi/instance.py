@@ -17,10 +17,16 @@ import numpy as np
 
 from ..errors import FmuBuilderError
 from .archive import FmuArchive
+from . import breadcrumb
 from .binding import STATUS_NAMES, ffi, libc, load_library
+from .breadcrumb import CALL, CODE, TIME
 from .model import ModelInfo, Variable
 
 _instance_counter = itertools.count(1)
+# breadcrumb codes of the hot-path calls, as constants (a dict lookup per call would cost)
+_SETTIME, _GETCONTINUOUSSTATES, _SETCONTINUOUSSTATES = CODE["fmi2SetTime"], CODE["fmi2GetContinuousStates"], CODE["fmi2SetContinuousStates"]
+_GETDERIVATIVES, _GETEVENTINDICATORS = CODE["fmi2GetDerivatives"], CODE["fmi2GetEventIndicators"]
+_COMPLETEDINTEGRATORSTEP = CODE["fmi2CompletedIntegratorStep"]
 
 
 class FmuCallError(FmuBuilderError):
@@ -95,9 +101,12 @@ class FmuInstance:
         self._callbacks.allocateMemory = ffi.addressof(libc, "calloc")
         self._callbacks.freeMemory = ffi.addressof(libc, "free")
         self._keep = [ffi.new("char[]", s.encode()) for s in (name, self.info.guid, fmu.archive.resources_uri)]
+        breadcrumb.set_model(self.info.model_identifier)
+        CALL[0] = CODE["fmi2Instantiate"]
         self.component = self._lib.fmi2Instantiate(
             self._keep[0], self._lib.fmi2ModelExchange, self._keep[1], self._keep[2],
             self._callbacks, 0, 1 if logging else 0)
+        CALL[0] = -CODE["fmi2Instantiate"]
         if self.component == ffi.NULL:
             detail = f": {self.messages[-1]}" if self.messages else ""
             raise FmuBuilderError(f"fmi2Instantiate failed for {self.info.model_name}{detail}")
@@ -121,6 +130,16 @@ class FmuInstance:
             cat = ffi.string(category).decode(errors="replace") if category != ffi.NULL else ""
             print(f"[{STATUS_NAMES[status] if 0 <= status < 6 else status}] [{cat}] {text}")
 
+    def _call(self, function: str, *args) -> int:
+        """Call an fmi2 function, leaving a breadcrumb, and check its status."""
+        code = CODE[function]
+        CALL[0] = code
+        status = getattr(self._lib, function)(*args)
+        CALL[0] = -code
+        if status > 1:
+            raise FmuCallError(function, status, tuple(self.messages))
+        return status
+
     def _check(self, status: int, function: str) -> int:
         if status > 1:  # fmi2Discard or worse
             raise FmuCallError(function, status, tuple(self.messages))
@@ -129,26 +148,28 @@ class FmuInstance:
     # -- life cycle ----------------------------------------------------------------------
     def setup_experiment(self, start_time: float = 0.0, stop_time: float | None = None,
                          tolerance: float | None = None) -> None:
-        self._check(self._lib.fmi2SetupExperiment(
-            self.component, tolerance is not None, tolerance or 0.0, start_time,
-            stop_time is not None, stop_time if stop_time is not None else 0.0), "fmi2SetupExperiment")
+        TIME[0] = start_time
+        self._call("fmi2SetupExperiment", self.component, tolerance is not None, tolerance or 0.0, start_time,
+                   stop_time is not None, stop_time if stop_time is not None else 0.0)
 
     def enter_initialization_mode(self) -> None:
-        self._check(self._lib.fmi2EnterInitializationMode(self.component), "fmi2EnterInitializationMode")
+        self._call("fmi2EnterInitializationMode", self.component)
 
     def exit_initialization_mode(self) -> None:
-        self._check(self._lib.fmi2ExitInitializationMode(self.component), "fmi2ExitInitializationMode")
+        self._call("fmi2ExitInitializationMode", self.component)
 
     def terminate(self) -> None:
-        self._check(self._lib.fmi2Terminate(self.component), "fmi2Terminate")
+        self._call("fmi2Terminate", self.component)
 
     def reset(self) -> None:
-        self._check(self._lib.fmi2Reset(self.component), "fmi2Reset")
+        self._call("fmi2Reset", self.component)
 
     def free(self) -> None:
         if not self._freed:
             self._freed = True
+            CALL[0] = CODE["fmi2FreeInstance"]
             self._lib.fmi2FreeInstance(self.component)
+            CALL[0] = -CODE["fmi2FreeInstance"]
             self.component = ffi.NULL
 
     def __enter__(self):
@@ -161,43 +182,43 @@ class FmuInstance:
     def get_real(self, vrs: Sequence[int]) -> np.ndarray:
         n = len(vrs)
         out = ffi.new("double[]", n)
-        self._check(self._lib.fmi2GetReal(self.component, ffi.new("fmi2ValueReference[]", list(vrs)), n, out), "fmi2GetReal")
+        self._call("fmi2GetReal", self.component, ffi.new("fmi2ValueReference[]", list(vrs)), n, out)
         return np.frombuffer(ffi.buffer(out), dtype=np.float64).copy()
 
     def set_real(self, vrs: Sequence[int], values: Iterable[float]) -> None:
         values = [float(v) for v in values]
-        self._check(self._lib.fmi2SetReal(self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(values),
-                                          ffi.new("double[]", values)), "fmi2SetReal")
+        self._call("fmi2SetReal", self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(values),
+                   ffi.new("double[]", values))
 
     def get_integer(self, vrs: Sequence[int]) -> list[int]:
         out = ffi.new("int[]", len(vrs))
-        self._check(self._lib.fmi2GetInteger(self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(vrs), out), "fmi2GetInteger")
+        self._call("fmi2GetInteger", self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(vrs), out)
         return list(out)
 
     def set_integer(self, vrs: Sequence[int], values: Iterable[int]) -> None:
         values = [int(v) for v in values]
-        self._check(self._lib.fmi2SetInteger(self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(values),
-                                             ffi.new("int[]", values)), "fmi2SetInteger")
+        self._call("fmi2SetInteger", self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(values),
+                   ffi.new("int[]", values))
 
     def get_boolean(self, vrs: Sequence[int]) -> list[bool]:
         out = ffi.new("int[]", len(vrs))
-        self._check(self._lib.fmi2GetBoolean(self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(vrs), out), "fmi2GetBoolean")
+        self._call("fmi2GetBoolean", self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(vrs), out)
         return [bool(v) for v in out]
 
     def set_boolean(self, vrs: Sequence[int], values: Iterable[bool]) -> None:
         values = [1 if v else 0 for v in values]
-        self._check(self._lib.fmi2SetBoolean(self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(values),
-                                             ffi.new("int[]", values)), "fmi2SetBoolean")
+        self._call("fmi2SetBoolean", self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(values),
+                   ffi.new("int[]", values))
 
     def get_string(self, vrs: Sequence[int]) -> list[str]:
         out = ffi.new("fmi2String[]", len(vrs))
-        self._check(self._lib.fmi2GetString(self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(vrs), out), "fmi2GetString")
+        self._call("fmi2GetString", self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(vrs), out)
         return [ffi.string(s).decode() if s != ffi.NULL else "" for s in out]
 
     def set_string(self, vrs: Sequence[int], values: Iterable[str]) -> None:
         keep = [ffi.new("char[]", str(v).encode()) for v in values]
-        self._check(self._lib.fmi2SetString(self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(keep),
-                                            ffi.new("fmi2String[]", keep)), "fmi2SetString")
+        self._call("fmi2SetString", self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(keep),
+                   ffi.new("fmi2String[]", keep))
 
     def get(self, names: Sequence[str]) -> list:
         """Values of variables by name, each in its own Python type."""
@@ -220,10 +241,13 @@ class FmuInstance:
         out = ffi.new("double[]", max(n, 1))
         view = np.frombuffer(ffi.buffer(out), dtype=np.float64)[:n]
         get_real, component, check = self._lib.fmi2GetReal, self.component, self._check
+        code = CODE["fmi2GetReal"]
 
         def read() -> np.ndarray:
             if n:
+                CALL[0] = code
                 status = get_real(component, c_vrs, n, out)
+                CALL[0] = -code
                 if status > 1:
                     check(status, "fmi2GetReal")
             return view.copy()
@@ -236,70 +260,85 @@ class FmuInstance:
         buffer = ffi.new("double[]", max(n, 1))
         view = np.frombuffer(ffi.buffer(buffer), dtype=np.float64)[:n]
         set_real, component, check = self._lib.fmi2SetReal, self.component, self._check
+        code = CODE["fmi2SetReal"]
 
         def write(values) -> None:
             if n:
                 view[:] = values
+                CALL[0] = code
                 status = set_real(component, c_vrs, n, buffer)
+                CALL[0] = -code
                 if status > 1:
                     check(status, "fmi2SetReal")
         return write
 
     # -- continuous-time interface ---------------------------------------------------------
     def set_time(self, t: float) -> None:
+        TIME[0] = t
+        CALL[0] = _SETTIME
         status = self._lib.fmi2SetTime(self.component, t)
+        CALL[0] = -_SETTIME
         if status > 1:
             self._check(status, "fmi2SetTime")
 
     def get_continuous_states(self) -> np.ndarray:
+        CALL[0] = _GETCONTINUOUSSTATES
         status = self._lib.fmi2GetContinuousStates(self.component, self._x, self._n_states)
+        CALL[0] = -_GETCONTINUOUSSTATES
         if status > 1:
             self._check(status, "fmi2GetContinuousStates")
         return self._x_view.copy()
 
     def set_continuous_states(self, x) -> None:
         self._x_view[:] = x
+        CALL[0] = _SETCONTINUOUSSTATES
         status = self._lib.fmi2SetContinuousStates(self.component, self._x, self._n_states)
+        CALL[0] = -_SETCONTINUOUSSTATES
         if status > 1:
             self._check(status, "fmi2SetContinuousStates")
 
     def get_derivatives(self) -> np.ndarray:
+        CALL[0] = _GETDERIVATIVES
         status = self._lib.fmi2GetDerivatives(self.component, self._dx, self._n_states)
+        CALL[0] = -_GETDERIVATIVES
         if status > 1:
             self._check(status, "fmi2GetDerivatives")
         return self._dx_view.copy()
 
     def get_event_indicators(self) -> np.ndarray:
+        CALL[0] = _GETEVENTINDICATORS
         status = self._lib.fmi2GetEventIndicators(self.component, self._z, self._n_indicators)
+        CALL[0] = -_GETEVENTINDICATORS
         if status > 1:
             self._check(status, "fmi2GetEventIndicators")
         return self._z_view.copy()
 
     def get_nominals_of_continuous_states(self) -> np.ndarray:
         out = ffi.new("double[]", max(self.info.n_states, 1))
-        self._check(self._lib.fmi2GetNominalsOfContinuousStates(self.component, out, self.info.n_states),
-                    "fmi2GetNominalsOfContinuousStates")
+        self._call("fmi2GetNominalsOfContinuousStates", self.component, out, self.info.n_states)
         return np.frombuffer(ffi.buffer(out), dtype=np.float64)[: self.info.n_states].copy()
 
     def completed_integrator_step(self, no_set_fmu_state_prior: bool = True) -> tuple[bool, bool]:
         """Returns (enter_event_mode, terminate_simulation)."""
         flags = self._flags
+        CALL[0] = _COMPLETEDINTEGRATORSTEP
         status = self._lib.fmi2CompletedIntegratorStep(self.component, no_set_fmu_state_prior, flags, flags + 1)
+        CALL[0] = -_COMPLETEDINTEGRATORSTEP
         if status > 1:
             self._check(status, "fmi2CompletedIntegratorStep")
         return bool(flags[0]), bool(flags[1])
 
     # -- event mode ------------------------------------------------------------------------
     def enter_event_mode(self) -> None:
-        self._check(self._lib.fmi2EnterEventMode(self.component), "fmi2EnterEventMode")
+        self._call("fmi2EnterEventMode", self.component)
 
     def enter_continuous_time_mode(self) -> None:
-        self._check(self._lib.fmi2EnterContinuousTimeMode(self.component), "fmi2EnterContinuousTimeMode")
+        self._call("fmi2EnterContinuousTimeMode", self.component)
 
     def new_discrete_states(self) -> EventInfo:
         info = self._event_info
         info.newDiscreteStatesNeeded = 1  # the importer's initial value, as the standard's pseudo-code
-        self._check(self._lib.fmi2NewDiscreteStates(self.component, info), "fmi2NewDiscreteStates")
+        self._call("fmi2NewDiscreteStates", self.component, info)
         return EventInfo(bool(info.newDiscreteStatesNeeded), bool(info.terminateSimulation),
                          bool(info.nominalsOfContinuousStatesChanged), bool(info.valuesOfContinuousStatesChanged),
                          bool(info.nextEventTimeDefined), float(info.nextEventTime))
@@ -326,29 +365,29 @@ class FmuInstance:
         """Snapshot the instance; pass a previous snapshot to overwrite it in place."""
         self._require("can_get_and_set_fmu_state", "getting/setting its state")
         handle = ffi.new("fmi2FMUstate*", state if state is not None else ffi.NULL)
-        self._check(self._lib.fmi2GetFMUstate(self.component, handle), "fmi2GetFMUstate")
+        self._call("fmi2GetFMUstate", self.component, handle)
         return handle[0]
 
     def set_fmu_state(self, state) -> None:
-        self._check(self._lib.fmi2SetFMUstate(self.component, state), "fmi2SetFMUstate")
+        self._call("fmi2SetFMUstate", self.component, state)
 
     def free_fmu_state(self, state) -> None:
         handle = ffi.new("fmi2FMUstate*", state)
-        self._check(self._lib.fmi2FreeFMUstate(self.component, handle), "fmi2FreeFMUstate")
+        self._call("fmi2FreeFMUstate", self.component, handle)
 
     def serialize_fmu_state(self, state) -> bytes:
         self._require("can_serialize_fmu_state", "serializing its state")
         size = ffi.new("size_t*")
-        self._check(self._lib.fmi2SerializedFMUstateSize(self.component, state, size), "fmi2SerializedFMUstateSize")
+        self._call("fmi2SerializedFMUstateSize", self.component, state, size)
         data = ffi.new("fmi2Byte[]", size[0])
-        self._check(self._lib.fmi2SerializeFMUstate(self.component, state, data, size[0]), "fmi2SerializeFMUstate")
+        self._call("fmi2SerializeFMUstate", self.component, state, data, size[0])
         return ffi.buffer(data)[:]
 
     def deserialize_fmu_state(self, data: bytes):
         self._require("can_serialize_fmu_state", "serializing its state")
         handle = ffi.new("fmi2FMUstate*", ffi.NULL)
         buf = ffi.new("fmi2Byte[]", data)
-        self._check(self._lib.fmi2DeSerializeFMUstate(self.component, buf, len(data), handle), "fmi2DeSerializeFMUstate")
+        self._call("fmi2DeSerializeFMUstate", self.component, buf, len(data), handle)
         return handle[0]
 
     # -- directional derivatives -----------------------------------------------------------
@@ -356,10 +395,10 @@ class FmuInstance:
         """J[unknowns, knowns] @ seed, from the FMU's own derivative code."""
         self._require("provides_directional_derivative", "directional derivatives")
         out = ffi.new("double[]", len(unknowns))
-        self._check(self._lib.fmi2GetDirectionalDerivative(
-            self.component, ffi.new("fmi2ValueReference[]", list(unknowns)), len(unknowns),
+        self._call(
+            "fmi2GetDirectionalDerivative", self.component, ffi.new("fmi2ValueReference[]", list(unknowns)), len(unknowns),
             ffi.new("fmi2ValueReference[]", list(knowns)), len(knowns),
-            ffi.new("double[]", [float(s) for s in seed]), out), "fmi2GetDirectionalDerivative")
+            ffi.new("double[]", [float(s) for s in seed]), out)
         return np.frombuffer(ffi.buffer(out), dtype=np.float64).copy()
 
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..export.files import write_atomically
+from ..files import write_atomically
 from .evaluate import relative_mse
 
 

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import FmuBuilderError
+from ..files import copy_atomically
 from ..fmi import read_model_info
 from .evaluate import Evaluation, evaluate, load_data, relative_mse
 
@@ -261,9 +262,7 @@ def _publish(source: Path, target: Path, force: bool) -> None:
     if target.exists() and not force:
         raise FmuBuilderError(f"{target} exists; choose another output path or pass --force to overwrite it")
     target.parent.mkdir(parents=True, exist_ok=True)
-    temporary = target.with_name(f".{target.name}.partial")
-    shutil.copyfile(source, temporary)
-    temporary.replace(target)
+    copy_atomically(source, target)
 
 
 def _check_outputs(output_fmu: Path, report_dir: Path, force: bool) -> None:

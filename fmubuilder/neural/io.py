@@ -2,7 +2,6 @@
 tensors, the start values and the FMU it wraps (path, GUID and SHA-256, checked on load)."""
 from __future__ import annotations
 
-import hashlib
 import io
 import warnings
 from pathlib import Path
@@ -10,20 +9,12 @@ from pathlib import Path
 import torch
 
 from ..errors import FmuBuilderError
-from ..export.files import write_atomically
+from ..files import file_sha256, write_atomically
 from ..fmi import read_model_info
 from .model import NeuralFMU
 from .topology import TopologyConfig
 
 FORMAT = "fmubuilder-neuralfmu/1"
-
-
-def file_sha256(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def save_neural_fmu(model: NeuralFMU, path: str | Path, *, metadata: dict | None = None, force: bool = True) -> Path:

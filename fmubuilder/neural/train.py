@@ -50,7 +50,7 @@ import numpy as np
 import torch
 
 from ..errors import FmuBuilderError
-from ..export.files import write_atomically
+from ..files import write_atomically
 from ..synth import first_order_lag
 from .data import MeasuredData, load_data
 from .io import save_neural_fmu

@@ -3,14 +3,13 @@ from __future__ import annotations
 
 import io
 import os
-import tempfile
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 from typing import IO
 
 import numpy as np
 
 from ..errors import FmuBuilderError
+from ..files import write_atomically
 
 
 @dataclass
@@ -73,21 +72,7 @@ class SimulationResult:
         if hasattr(target, "write"):
             target.write(self._csv_text())
             return
-        path = Path(target)
-        directory = path.parent if str(path.parent) else Path(".")
-        if not directory.is_dir():
-            raise FmuBuilderError(f"cannot write {path}: folder {directory} does not exist; create it first")
-        fd, temp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
-        try:
-            with os.fdopen(fd, "w", newline="") as file:
-                file.write(self._csv_text())
-            os.replace(temp, path)
-        except OSError as exc:
-            Path(temp).unlink(missing_ok=True)
-            raise FmuBuilderError(f"cannot write {path}: {exc.strerror or exc}") from None
-        except BaseException:
-            Path(temp).unlink(missing_ok=True)
-            raise
+        write_atomically(target, self._csv_text())
 
     def _csv_text(self) -> str:
         columns = [self.time, *self.values.values()]

@@ -6,7 +6,7 @@ import json
 import pytest
 
 from fmubuilder.build import example_fmu
-from fmubuilder.diagnose.cli import add_diagnose_parser
+from fmubuilder.cli.diagnose import add_diagnose_parser
 from fmubuilder.errors import FmuBuilderError
 
 from .conftest import DC_DRIVE_BENCH, measure

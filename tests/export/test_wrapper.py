@@ -540,7 +540,7 @@ def test_spec_json_round_trip_and_checks(ball, tmp_path):
 
 def run_cli(*argv):
     import argparse
-    from fmubuilder.export.cli import add_export_parsers
+    from fmubuilder.cli.export import add_export_parsers
     parser = argparse.ArgumentParser(prog="fmubuilder")
     add_export_parsers(parser.add_subparsers())
     args = parser.parse_args([str(a) for a in argv])

@@ -23,7 +23,7 @@ from fmpy.validation import validate_fmu
 from fmubuilder import synth
 from fmubuilder.build import example_fmu
 from fmubuilder.hybridize import hybridize
-from fmubuilder.hybridize.cli import summary
+from fmubuilder.cli.hybridize import summary
 
 BENCH = dict(signals=("speed", "current", "power", "temperature"),
              noise_std={"speed": 0.1, "current": 0.02, "power": 1.0, "temperature": 0.02})

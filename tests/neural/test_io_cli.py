@@ -10,7 +10,7 @@ import torch
 
 from fmubuilder.errors import FmuBuilderError
 from fmubuilder.neural import NeuralFMU, TopologyConfig, simulate
-from fmubuilder.neural.cli import main as train_main
+from fmubuilder.cli import run as train_main
 from fmubuilder.neural.io import load_neural_fmu, read_neural_fmu, save_neural_fmu
 
 from .conftest import plant_data
@@ -70,7 +70,7 @@ def test_train_command_errors_are_one_line(plant_fmu, tmp_path):
     data, _ = plant_data(plant_fmu, [0, 1], [1, 1], 1.0, seed=0)
     csv = tmp_path / "train.csv"
     write_csv(csv, data, extra={"bogus": np.zeros(data.time.size)})
-    command = [sys.executable, "-m", "fmubuilder.neural.cli", "train", str(plant_fmu), "--data", str(csv),
+    command = [sys.executable, "-m", "fmubuilder.cli", "train", str(plant_fmu), "--data", str(csv),
                "--target", "der(w)", "--inputs", "w", "-o", str(tmp_path / "x.nfmu")]
     done = subprocess.run(command, capture_output=True, text=True)
     assert done.returncode == 1

@@ -1,16 +1,15 @@
-"""`fmubuilder train`: the command-line face of fmubuilder.neural.train (torch loads only when it runs).
-
-fmubuilder/cli.py registers it with one line: `add_train_parser(sub)`.
-"""
+"""`fmubuilder train`: the command-line face of fmubuilder.neural.train (torch loads only when it runs)."""
 from __future__ import annotations
 
 import argparse
-import sys
+
+from ..errors import FmuBuilderError
+from .common import parse_assignments, parse_names
 
 
-def add_train_parser(subparsers) -> argparse.ArgumentParser:
+def add_train_parser(subparsers, common=None) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
-        "train", help="train a NeuralFMU (FMU + ANN on chosen derivatives) on measured data",
+        "train", parents=[common] if common else [], help="train a NeuralFMU (FMU + ANN on chosen derivatives) on measured data",
         description="Train a NeuralFMU: an ANN corrects chosen state derivatives of the FMU; it is fitted to "
                     "measured signals by simulating the hybrid model with the FMU's event handling.")
     p.add_argument("fmu", help="path of an FMI 2.0 Model-Exchange FMU")
@@ -48,17 +47,15 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--output", "-o", required=True, metavar="TRAINED", help="file for the trained NeuralFMU")
     p.add_argument("--json", metavar="METRICS.json", help="write the errors before/after training as JSON")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
-    p.set_defaults(func=cmd_train)
+    p.set_defaults(func=cmd_train, outputs=lambda args: [] if args.resume else [args.output, args.json])
     return p
 
 
 def cmd_train(args) -> None:
-    from ..cli import parse_assignments, parse_names
-    from ..errors import FmuBuilderError
-    from .train import TrainSettings, train_neural_fmu
+    from ..neural.train import TrainSettings, train_neural_fmu
 
     try:
-        hidden = [int(h) for h in parse_names(args.hidden)]
+        hidden = [int(h) for h in parse_names(args.hidden, "--hidden")]
     except ValueError:
         raise FmuBuilderError(f"--hidden must be comma-separated integers, got '{args.hidden}'") from None
     if args.resume and args.force:
@@ -67,11 +64,11 @@ def cmd_train(args) -> None:
         epochs=args.epochs, element_length=args.element_length, order=args.order, batch_size=args.batch_size,
         step_size=args.step_size, solver=args.solver, learning_rate=args.lr, decay=args.decay,
         nipt_iterations=args.nipt, ccpt_iterations=args.ccpt, time_budget=args.time_budget, seed=args.seed,
-        loss_signals=parse_names(args.loss), sensor_lag=args.sensor_lag, resume=args.resume, progress=not args.quiet)
+        loss_signals=parse_names(args.loss, "--loss"), sensor_lag=args.sensor_lag, resume=args.resume, progress=not args.quiet)
     result = train_neural_fmu(
-        args.fmu, args.data, targets=args.target, inputs=parse_names(args.inputs),
+        args.fmu, args.data, targets=args.target, inputs=parse_names(args.inputs, "--inputs"),
         start_values=parse_assignments(args.start), topology=args.topology, hidden=hidden,
-        activation=args.activation, parameters=parse_names(args.parameters) or [], settings=settings,
+        activation=args.activation, parameters=parse_names(args.parameters, "--parameters") or [], settings=settings,
         output=args.output, metrics_path=args.json, force=args.force or args.resume, test_data=args.test_data)
     try:
         print(summary(result.metrics, args.output))
@@ -91,19 +88,3 @@ def summary(metrics: dict, output) -> str:
             lines.append(f"  {label}: {name}: MSE {b:.4g} -> {a:.4g} (factor {factor:.3g})")
     return "\n".join(lines)
 
-
-def main(argv=None) -> int:  # for `python -m fmubuilder.neural.cli`
-    from ..errors import FmuBuilderError
-    parser = argparse.ArgumentParser(prog="fmubuilder")
-    add_train_parser(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(argv)
-    try:
-        args.func(args)
-    except FmuBuilderError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,4 +1,4 @@
-"""Command-line parsers of the export stage:
+"""`fmubuilder export` and `fmubuilder validate`:
 
     fmubuilder export TRAINED -o HYBRID.fmu [--force]
     fmubuilder validate HYBRID.fmu [--against TRAINED] [--data DATA.csv] [--start NAME=VALUE]...
@@ -13,18 +13,20 @@ import contextlib
 import tempfile
 from pathlib import Path
 
-from fmubuilder.errors import FmuBuilderError
+from ..errors import FmuBuilderError
+from .common import parse_assignments
 
 
-def add_export_parsers(subparsers) -> None:
+def add_export_parsers(subparsers, common=None) -> None:
     """Add the `export` and `validate` commands to an argparse subparsers object."""
-    p = subparsers.add_parser("export", help="export a trained hybrid model as an FMI 2.0 Model-Exchange FMU")
+    parents = [common] if common else []
+    p = subparsers.add_parser("export", parents=parents, help="export a trained hybrid model as an FMI 2.0 Model-Exchange FMU")
     p.add_argument("trained", metavar="TRAINED", help="hybrid spec JSON or trained NeuralFMU file")
     p.add_argument("--output", "-o", required=True, metavar="HYBRID.fmu", help="the FMU to write")
     p.add_argument("--force", action="store_true", help="overwrite an existing output file")
-    p.set_defaults(func=cmd_export)
+    p.set_defaults(func=cmd_export, outputs=lambda args: [args.output])
 
-    p = subparsers.add_parser("validate", help="check an exported hybrid FMU against the Python reference")
+    p = subparsers.add_parser("validate", parents=parents, help="check an exported hybrid FMU against the Python reference")
     p.add_argument("fmu", metavar="HYBRID.fmu", help="hybrid FMU written by `fmubuilder export`")
     p.add_argument("--against", metavar="TRAINED",
                    help="hybrid spec JSON or trained NeuralFMU file (default: the spec stored in the FMU)")
@@ -38,15 +40,14 @@ def add_export_parsers(subparsers) -> None:
 
 
 def cmd_export(args) -> None:
-    from .wrapper import export_hybrid
+    from ..export.wrapper import export_hybrid
     with _spec_from(args.trained) as spec:
         output = export_hybrid(spec, args.output, force=args.force)
     print(f"wrote {output}")
 
 
 def cmd_validate(args) -> None:
-    from fmubuilder.cli import parse_assignments
-    from .validate import validate_hybrid
+    from ..export.validate import validate_hybrid
     with contextlib.ExitStack() as stack:
         spec = stack.enter_context(_spec_from(args.against)) if args.against else None
         report = validate_hybrid(args.fmu, spec=spec, data_csv=args.data, start_values=parse_assignments(args.start),
@@ -60,18 +61,14 @@ def cmd_validate(args) -> None:
 def _spec_from(trained: str):
     """A HybridSpec from a spec JSON, or from a trained NeuralFMU file via the neural stage
     (its ONNX file lives in a temporary folder for the duration of the command)."""
-    from .spec import HybridSpec
+    from ..export.spec import HybridSpec
     path = Path(trained)
     if not path.is_file():
         raise FmuBuilderError(f"{path}: no such file; give a hybrid spec JSON or a trained NeuralFMU file")
     if _looks_like_json(path):
         yield HybridSpec.load(path)
         return
-    to_hybrid_spec = _neural_converter()
-    if to_hybrid_spec is None:
-        raise FmuBuilderError(
-            f"{path} is not a hybrid spec JSON, and this installation cannot convert trained NeuralFMU files; "
-            "give the hybrid spec JSON written at training")
+    from ..hybridize.terms import to_hybrid_spec
     with tempfile.TemporaryDirectory(prefix="fmubuilder-spec-") as folder:
         spec = to_hybrid_spec(path, Path(folder))
         yield spec if isinstance(spec, HybridSpec) else HybridSpec.load(spec)
@@ -81,7 +78,3 @@ def _looks_like_json(path: Path) -> bool:
     with open(path, "rb") as file:
         return file.read(64).lstrip().startswith(b"{")
 
-
-def _neural_converter():
-    from fmubuilder.hybridize.terms import to_hybrid_spec
-    return to_hybrid_spec

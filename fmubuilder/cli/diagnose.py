@@ -4,10 +4,14 @@ from __future__ import annotations
 import json
 import math
 
+from ..errors import FmuBuilderError
+from ..files import write_atomically
+from .common import check_output_path, parse_assignments
 
-def add_diagnose_parser(subparsers) -> None:
+
+def add_diagnose_parser(subparsers, common=None) -> None:
     p = subparsers.add_parser(
-        "diagnose",
+        "diagnose", parents=[common] if common else [],
         help="compare a model with measured data: errors, is it more than noise, where is an effect missing",
         description="Simulate the declared model against measured data, test whether the residual exceeds the "
                     "measurement noise and, if so, trace it to the state derivative and the variables a missing "
@@ -22,13 +26,11 @@ def add_diagnose_parser(subparsers) -> None:
     p.add_argument("--time-budget", type=float, default=60.0, metavar="SECONDS",
                    help="time the tracing may take; long data are traced on a leading window (default 60)")
     p.add_argument("--force", action="store_true", help="overwrite an existing JSON file")
-    p.set_defaults(func=cmd_diagnose)
+    p.set_defaults(func=cmd_diagnose, outputs=lambda args: [args.json, args.plots])
 
 
 def cmd_diagnose(args) -> None:
-    from ..cli import check_output_path, parse_assignments
-    from ..errors import FmuBuilderError
-    from .diagnosis import diagnose
+    from ..diagnose.diagnosis import diagnose
 
     if not (math.isfinite(args.time_budget) and args.time_budget > 0):
         raise FmuBuilderError(f"--time-budget {args.time_budget:g}: give a positive number of seconds")
@@ -37,10 +39,7 @@ def cmd_diagnose(args) -> None:
                       time_budget=args.time_budget)
     print(result.report())
     if json_path is not None:
-        try:
-            json_path.write_text(json.dumps(result.to_dict(), indent=2) + "\n")
-        except OSError as exc:
-            raise FmuBuilderError(f"cannot write {json_path}: {exc.strerror or exc}") from None
+        write_atomically(json_path, json.dumps(result.to_dict(), indent=2) + "\n")
         print(f"wrote {json_path}")
     for path in result.plots:
         print(f"wrote {path}")

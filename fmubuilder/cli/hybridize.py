@@ -1,10 +1,12 @@
 """`fmubuilder hybridize MODEL.fmu --train TRAIN.csv --test TEST.csv -o HYBRID.fmu --report DIR`."""
 from __future__ import annotations
 
+from .common import parse_assignments
 
-def add_hybridize_parser(subparsers) -> None:
+
+def add_hybridize_parser(subparsers, common=None) -> None:
     p = subparsers.add_parser(
-        "hybridize", help="diagnose, add the missing effect, train, export and validate a hybrid FMU, with a report")
+        "hybridize", parents=[common] if common else [], help="diagnose, add the missing effect, train, export and validate a hybrid FMU, with a report")
     p.add_argument("fmu", metavar="MODEL.fmu", help="the first-principle FMI 2.0 Model-Exchange FMU")
     p.add_argument("--train", required=True, metavar="TRAIN.csv", help="measured data to train on")
     p.add_argument("--train-start", action="append", metavar="NAME=VALUE",
@@ -17,12 +19,11 @@ def add_hybridize_parser(subparsers) -> None:
                    help="rough wall-time budget for diagnosis and training (default 300)")
     p.add_argument("--force", action="store_true",
                    help="overwrite outputs, and build a hybrid even when the effect is not significant")
-    p.set_defaults(func=cmd_hybridize)
+    p.set_defaults(func=cmd_hybridize, outputs=lambda args: [args.output, args.report])
 
 
 def cmd_hybridize(args) -> None:
-    from ..cli import parse_assignments
-    from .workflow import hybridize
+    from ..hybridize.workflow import hybridize
     result = hybridize(args.fmu, args.train, args.test, args.output, args.report,
                        train_start=parse_assignments(args.train_start, "--train-start"),
                        test_start=parse_assignments(args.test_start, "--test-start"),

@@ -1,21 +1,19 @@
-"""Command-line parsers of `fmubuilder synth` (synthetic measurements) and `fmubuilder example`.
+"""`fmubuilder synth` (synthetic measurements) and `fmubuilder example`.
 
-Registered by fmubuilder/cli.py. The stage modules are imported inside the commands so that
-the parsers cost nothing at start-up.
+The stage modules are imported inside the commands so that the parsers cost nothing at start-up.
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
-from .errors import FmuBuilderError
+from .common import parse_assignments, parse_floats, parse_names, positive
 
 
-def add_synth_parser(subparsers) -> None:
-    from .synth import DEFAULT_NOISE_STD, DEFAULT_SIGNALS
+def add_synth_parser(subparsers, common=None) -> None:
+    from ..synth import DEFAULT_NOISE_STD, DEFAULT_SIGNALS
     defaults = ", ".join(f"{name} {std:g}" for name, std in DEFAULT_NOISE_STD.items())
     p = subparsers.add_parser(
-        "synth", help="simulate a truth FMU on a test bench and write measured data (CSV + JSON sidecar)",
+        "synth", parents=[common] if common else [], help="simulate a truth FMU on a test bench and write measured data (CSV + JSON sidecar)",
         description="Simulate a truth FMU and log it as a test bench does: a few signals, sensor lag, "
                     "jittered 10 Hz time stamps, sensor noise, two runs averaged (their spread is written "
                     "as <signal>_std columns). The start values are recorded in <output>.json.")
@@ -38,12 +36,12 @@ def add_synth_parser(subparsers) -> None:
                    help="scale a Real parameter by 1+N(0,REL) in each run, e.g. rolling_coefficient=0.02 (repeatable)")
     p.add_argument("--output", "-o", required=True, metavar="DATA.csv", help="data file to write")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
-    p.set_defaults(func=cmd_synth)
+    p.set_defaults(func=cmd_synth, outputs=lambda args: [args.output, args.output + ".json"])
 
 
-def add_example_parser(subparsers) -> None:
+def add_example_parser(subparsers, common=None) -> None:
     p = subparsers.add_parser(
-        "example", help="write an example: FMUs, truth FMUs and measured data sets into a folder",
+        "example", parents=[common] if common else [], help="write an example: FMUs, truth FMUs and measured data sets into a folder",
         description="Write the declared model, its truth variants and synthetic measurements "
                     "(training and test cycle) with a README into a folder.")
     p.add_argument("name", help="example name (available: vldm)")
@@ -53,15 +51,15 @@ def add_example_parser(subparsers) -> None:
 
 
 def cmd_synth(args) -> None:
-    from .synth import BenchSettings, check_output_path, measure, sidecar_path, write_measurement
+    from ..synth import BenchSettings, check_output_path, measure, sidecar_path, write_measurement
     output = Path(args.output)
     settings = BenchSettings(
-        signals=tuple(_parse_signals(args.signals)), noise_std=_parse_floats(args.noise, "--noise"),
-        sample_rate=_positive(args.sample_rate, "--sample-rate"), jitter=args.jitter, lag=args.lag,
-        runs=args.runs, run_variation=_parse_floats(args.run_variation, "--run-variation"), seed=args.seed)
+        signals=tuple(parse_names(args.signals, "--signals")), noise_std=parse_floats(args.noise, "--noise"),
+        sample_rate=positive(args.sample_rate, "--sample-rate"), jitter=args.jitter, lag=args.lag,
+        runs=args.runs, run_variation=parse_floats(args.run_variation, "--run-variation"), seed=args.seed)
     check_output_path(output, args.force)  # before the simulation, which may take a while
     measurement = measure(args.fmu, start_time=args.start_time, stop_time=args.stop_time,
-                          start_values=_parse_assignments(args.start, "--start"), settings=settings)
+                          start_values=parse_assignments(args.start), settings=settings)
     write_measurement(measurement, output, force=args.force)
     meta = measurement.metadata
     print(f"wrote {len(measurement.time)} rows of {','.join(measurement.signals)} "
@@ -71,38 +69,6 @@ def cmd_synth(args) -> None:
 
 
 def cmd_example(args) -> None:
-    from .examples_zoo import write_example
+    from ..examples_zoo import write_example
     write_example(args.name, Path(args.output), force=args.force)
 
-
-def _parse_signals(text: str) -> list[str]:
-    names = [n.strip() for n in text.split(",") if n.strip()]
-    if not names:
-        raise FmuBuilderError("empty --signals: give comma-separated FMU variables, e.g. --signals speed,power,energy")
-    return names
-
-
-def _parse_assignments(items: list[str] | None, option: str) -> dict[str, str]:
-    values = {}
-    for item in items or []:
-        name, sep, value = item.partition("=")
-        if not sep or not name.strip() or not value.strip():
-            raise FmuBuilderError(f"malformed {option} '{item}': write {option} NAME=VALUE, e.g. {option} cycle=1")
-        values[name.strip()] = value.strip()
-    return values
-
-
-def _parse_floats(items: list[str] | None, option: str) -> dict[str, float]:
-    values = {}
-    for name, text in _parse_assignments(items, option).items():
-        try:
-            values[name] = float(text)
-        except ValueError:
-            raise FmuBuilderError(f"{option} {name}={text}: the value must be a number, e.g. {option} {name}=0.05") from None
-    return values
-
-
-def _positive(value: float, option: str) -> float:
-    if not (math.isfinite(value) and value > 0):
-        raise FmuBuilderError(f"{option} {value:g} must be a positive number")
-    return value

@@ -1,0 +1,51 @@
+"""Argument helpers shared by the commands."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from ..errors import FmuBuilderError
+
+
+def parse_assignments(items: list[str] | None, option: str = "--start") -> dict[str, str]:
+    """Parse repeated NAME=VALUE options into a dict (values stay strings; the FMU's
+    variable types decide their conversion)."""
+    values = {}
+    for item in items or []:
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip() or not value.strip():
+            raise FmuBuilderError(f"malformed {option} '{item}': write {option} NAME=VALUE, e.g. {option} mass=1000")
+        values[name.strip()] = value.strip()
+    return values
+
+
+def parse_floats(items: list[str] | None, option: str) -> dict[str, float]:
+    values = {}
+    for name, text in parse_assignments(items, option).items():
+        try:
+            values[name] = float(text)
+        except ValueError:
+            raise FmuBuilderError(f"{option} {name}={text}: the value must be a number, e.g. {option} {name}=0.05") from None
+    return values
+
+
+def parse_names(text: str | None, option: str = "--variables") -> list[str] | None:
+    if text is None:
+        return None
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    if not names:
+        raise FmuBuilderError(f"empty {option} list: give comma-separated names, e.g. {option} h,v")
+    return names
+
+
+def check_output_path(path: str | Path, force: bool) -> Path:
+    path = Path(path)
+    if path.exists() and not force:
+        raise FmuBuilderError(f"{path} exists; choose another output path or pass --force to overwrite it")
+    return path
+
+
+def positive(value: float, option: str) -> float:
+    if not (math.isfinite(value) and value > 0):
+        raise FmuBuilderError(f"{option} {value:g}: give a positive number")
+    return value

@@ -1,0 +1,25 @@
+"""`fmubuilder demo`: hybridize on the bundled example."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from .hybridize import summary
+
+
+def add_demo_parser(subparsers, common) -> None:
+    p = subparsers.add_parser("demo", parents=[common],
+                              help="run the whole workflow on the bundled example and write a report")
+    p.add_argument("--output", "-o", default="fmubuilder-demo", help="output folder (default: ./fmubuilder-demo)")
+    p.add_argument("--force", action="store_true", help="replace an existing output folder")
+    p.add_argument("--time-budget", type=float, default=300.0, metavar="SECONDS",
+                   help="rough wall-time budget for diagnosis and training (default 300)")
+    p.set_defaults(func=cmd_demo, outputs=lambda args: [] if args.force else [args.output])
+
+
+def cmd_demo(args) -> None:
+    from ..demo import run_demo
+    result, example = run_demo(Path(args.output), force=args.force, time_budget=args.time_budget)
+    print(summary(result))
+    print(f"\nThe other data sets in {example}/ (extra_loss_*, no_effect_*) work the same way, e.g.\n"
+          f"  fmubuilder hybridize {example}/vldm.fmu --train {example}/extra_loss_train_cadc.csv "
+          f"--test {example}/extra_loss_test_wltc2.csv -o loss_hybrid.fmu --report loss_report")

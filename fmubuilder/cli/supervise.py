@@ -1,0 +1,258 @@
+"""Run a command in a forked worker that an FMU's binary cannot take down with the tool.
+
+The parent forks once per command and waits; the whole simulation runs in the worker, so
+no FMI call crosses a process boundary. The worker reports its exit code in the shared
+breadcrumb page (fmi/breadcrumb.py) before it exits; a worker that dies by a signal, exits
+without that report (an exit() inside the FMU) or stays inside one FMI call longer than
+--call-timeout is reported by the parent from the breadcrumb in one `error:` line.
+
+The parent also owns the command's temporary folder (the worker's TMPDIR: extracted FMUs,
+build folders) and removes it on every exit path, together with the outputs the failed
+command created and the `.partial` leftovers of interrupted atomic writes.
+"""
+from __future__ import annotations
+
+import math
+import os
+import select
+import shutil
+import signal
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from ..files import PARTIAL_SUFFIX, partial_files
+from ..fmi import breadcrumb
+from ..fmi.breadcrumb import CALL, PING_SLOT, REPORT_SLOT, REPORTED
+
+INTERRUPT_GRACE = 5.0       # seconds the worker gets to stop cleanly after Ctrl-C
+EXIT_HANG = 124             # as timeout(1)
+EXIT_UNEXPECTED = 3         # the worker ended with exit code 0 but never reported
+
+
+def run_supervised(args, execute) -> int:
+    """Run `execute(args)` in a worker process; returns the command's exit code."""
+    outputs = _declared_outputs(args)
+    before = {path: _fingerprint(path) for path in outputs}
+    temp_root = Path(tempfile.mkdtemp(prefix="fmubuilder-run-"))
+    try:
+        breadcrumb.reset()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        pid = os.fork()
+        if pid == 0:
+            _worker(args, execute, temp_root)  # never returns
+        code, message, hint = _Supervisor(pid, args.call_timeout).wait()
+    finally:
+        shutil.rmtree(temp_root, ignore_errors=True)
+    if code != 0:
+        _remove_outputs_of_failed_run(before)
+        changed = [str(path) for path, fingerprint in before.items() if _fingerprint(path) != fingerprint]
+        if message:
+            message += "; " + ("written before the failure: " + ", ".join(changed) if changed else "nothing was written")
+    if message and hint:
+        message += "; " + hint
+    if message:
+        print(f"error: {message}", file=sys.stderr)
+    return code
+
+
+# -- worker --------------------------------------------------------------------------------
+
+def _worker(args, execute, temp_root: Path) -> None:
+    code = 2
+    try:
+        os.environ["TMPDIR"] = str(temp_root)  # for the worker and the tools it starts
+        tempfile.tempdir = str(temp_root)
+        signal.signal(signal.SIGUSR1, _answer_ping)
+        signal.siginterrupt(signal.SIGUSR1, False)  # a ping must not fail the FMU's system calls
+        signal.signal(signal.SIGINT, _interrupt_once)
+        breadcrumb.watch_fmpy()
+        code = execute(args)
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else 1
+    except BaseException:  # --debug re-raises: show the traceback, then report
+        import traceback
+        traceback.print_exc()
+        code = 2
+    finally:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except Exception:
+                pass
+        CALL[REPORT_SLOT] = REPORTED + code
+        os._exit(code)
+
+
+def _answer_ping(signum, frame) -> None:
+    CALL[PING_SLOT] = 0
+
+
+_interrupted = False
+
+
+def _interrupt_once(signum, frame) -> None:
+    """Ctrl-C reaches the worker twice (terminal and parent): stop once, then clean up undisturbed."""
+    global _interrupted
+    if not _interrupted:
+        _interrupted = True
+        raise KeyboardInterrupt
+
+
+# -- parent --------------------------------------------------------------------------------
+
+class _Supervisor:
+    def __init__(self, pid: int, call_timeout: float):
+        self.pid = pid
+        self.call_timeout = call_timeout
+        self.poll = min(0.2, call_timeout / 10) if call_timeout > 0 else 0.2
+        self.ping_sent: float | None = None
+        self.interrupted_at: float | None = None
+        self.terminated = False
+        self.pidfd = _open_pidfd(pid)
+
+    def wait(self) -> tuple[int, str, str]:
+        """(exit code, message for the user or "" when the worker reported itself, hint)"""
+        previous = {sig: signal.signal(sig, self._on_signal) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+        try:
+            while True:
+                status = self._wait_for_exit(self.poll)
+                if status is not None:
+                    return self._verdict(status)
+                hang = self._check_hang()
+                if hang:
+                    self._kill()
+                    return EXIT_HANG, hang, "raise --call-timeout if the model needs longer (0 waits forever)"
+                if self.interrupted_at is not None and time.monotonic() - self.interrupted_at > INTERRUPT_GRACE:
+                    self._kill()  # stuck inside the FMU: it cannot see the interrupt
+                    return 130, "interrupted", ""
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+            if self.pidfd is not None:
+                os.close(self.pidfd)
+
+    def _on_signal(self, signum, frame) -> None:
+        if signum == signal.SIGINT and self.interrupted_at is None:
+            self.interrupted_at = time.monotonic()
+            _send(self.pid, signal.SIGINT)
+        elif signum == signal.SIGINT:  # a second Ctrl-C: stop now
+            self.interrupted_at = -math.inf
+        else:
+            self.terminated = True
+            _send(self.pid, signal.SIGKILL)
+
+    def _wait_for_exit(self, timeout: float):
+        if self.pidfd is not None:
+            try:
+                select.select([self.pidfd], [], [], timeout)
+            except InterruptedError:
+                pass
+        else:
+            time.sleep(timeout)
+        try:
+            pid, status = os.waitpid(self.pid, os.WNOHANG)
+        except ChildProcessError:
+            return 0
+        return status if pid else None
+
+    def _check_hang(self) -> str | None:
+        """The worker is stuck in an FMI call when the call is in progress and the worker has not
+        run any Python code (its SIGUSR1 handler) for call_timeout seconds."""
+        if self.call_timeout <= 0:
+            return None
+        function, in_call, t = breadcrumb.last_call()
+        now = time.monotonic()
+        if not in_call:
+            self.ping_sent = None
+        elif self.ping_sent is None or CALL[PING_SLOT] == 0:
+            CALL[PING_SLOT] = 1
+            self.ping_sent = now
+            _send(self.pid, signal.SIGUSR1)
+        elif now - self.ping_sent >= self.call_timeout:
+            return f"{_who()} did not return from {function}{_at(t)} within {self.call_timeout:g} s and was stopped"
+        return None
+
+    def _kill(self) -> None:
+        _send(self.pid, signal.SIGKILL)
+        try:
+            os.waitpid(self.pid, 0)
+        except ChildProcessError:
+            pass
+
+    def _verdict(self, status: int) -> tuple[int, str, str]:
+        reported = CALL[REPORT_SLOT]
+        if self.terminated:
+            return 143, "terminated", ""
+        if os.WIFSIGNALED(status):
+            sig = os.WTERMSIG(status)
+            if self.interrupted_at is not None:
+                return 130, "interrupted", ""
+            return 128 + sig, *_crash_message(f"crashed ({signal.Signals(sig).name})")
+        code = os.WEXITSTATUS(status)
+        if reported >= REPORTED:
+            return code, "", ""  # the worker printed its own messages
+        return code or EXIT_UNEXPECTED, *_crash_message(f"ended the process (exit code {code})")
+
+
+def _crash_message(what: str) -> tuple[str, str]:
+    function, in_call, t = breadcrumb.last_call()
+    if in_call:
+        return f"{_who()} {what} in {function}{_at(t)}", "the FMU is faulty: report it to its vendor"
+    last = f" (last FMI call: {function}{_at(t)})" if function else ""
+    return f"the command {what} outside a call into an FMU{last}", "rerun with --debug and please report it"
+
+
+def _who() -> str:
+    model = breadcrumb.model()
+    return f"the FMU's binary ({model})" if model else "the FMU's binary"
+
+
+def _at(t: float) -> str:
+    return "" if math.isnan(t) else f" at t = {t:.6g} s"
+
+
+def _send(pid: int, sig: int) -> None:
+    try:
+        os.kill(pid, sig)
+    except ProcessLookupError:
+        pass
+
+
+def _open_pidfd(pid: int):
+    try:
+        return os.pidfd_open(pid)
+    except (AttributeError, OSError):
+        return None
+
+
+# -- outputs -------------------------------------------------------------------------------
+
+def _declared_outputs(args) -> list[Path]:
+    declare = getattr(args, "outputs", None)
+    return [Path(p) for p in (declare(args) if declare else []) if p]
+
+
+def _fingerprint(path: Path):
+    try:
+        stat = path.stat()
+    except OSError:
+        return None
+    return stat.st_mtime_ns, stat.st_size
+
+
+def _remove_outputs_of_failed_run(before: dict) -> None:
+    """Remove the outputs a failed command created and leftovers of its atomic writes."""
+    for path, fingerprint in before.items():
+        for partial in partial_files(path):
+            partial.unlink(missing_ok=True)
+        if fingerprint is None:
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path, ignore_errors=True)
+            elif path.exists() or path.is_symlink():
+                path.unlink(missing_ok=True)
+        elif path.is_dir():
+            for partial in path.rglob(f".*{PARTIAL_SUFFIX}"):
+                partial.unlink(missing_ok=True)

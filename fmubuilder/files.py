@@ -1,0 +1,72 @@
+"""Writing outputs safely: every stage writes through these helpers.
+
+A file is written next to its target under a hidden `.NAME.XXXX.partial` name and renamed
+into place, so a reader (or a crash half-way) never sees a half-written file. The CLI
+removes such leftovers of a killed run by that pattern (`partial_files`).
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+from .errors import FmuBuilderError
+
+PARTIAL_SUFFIX = ".partial"
+
+
+def write_atomically(target: str | os.PathLike, data: bytes | str) -> Path:
+    """Write `data` (text as UTF-8) to `target` atomically."""
+    payload = data.encode("utf-8") if isinstance(data, str) else data
+    return _replace_atomically(Path(target), lambda handle: handle.write(payload))
+
+
+def copy_atomically(source: str | os.PathLike, target: str | os.PathLike) -> Path:
+    """Copy the file `source` to `target` atomically."""
+    def copy(handle):
+        with open(source, "rb") as original:
+            shutil.copyfileobj(original, handle, 1 << 20)
+    return _replace_atomically(Path(target), copy)
+
+
+def _replace_atomically(target: Path, write) -> Path:
+    folder = target.parent if str(target.parent) else Path(".")
+    if not folder.is_dir():
+        raise FmuBuilderError(f"cannot write {target}: folder {folder} does not exist; create it first")
+    if target.is_dir():
+        raise FmuBuilderError(f"cannot write {target}: it is a folder; give a file name")
+    try:
+        fd, temporary = tempfile.mkstemp(dir=folder, prefix=f".{target.name}.", suffix=PARTIAL_SUFFIX)
+    except OSError as exc:
+        raise FmuBuilderError(f"cannot write {target}: {exc.strerror or exc}") from None
+    try:
+        os.fchmod(fd, 0o644)  # mkstemp creates 0600; give the file the permissions of a new file
+        with os.fdopen(fd, "wb") as handle:
+            write(handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temporary, target)
+    except OSError as exc:
+        Path(temporary).unlink(missing_ok=True)
+        raise FmuBuilderError(f"cannot write {target}: {exc.strerror or exc}") from None
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+    return target
+
+
+def partial_files(target: str | os.PathLike) -> list[Path]:
+    """Leftovers of an interrupted atomic write of `target`."""
+    target = Path(target)
+    folder = target.parent if str(target.parent) else Path(".")
+    return sorted(folder.glob(f".{target.name}.*{PARTIAL_SUFFIX}")) if folder.is_dir() else []
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
