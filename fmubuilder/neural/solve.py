@@ -73,6 +73,7 @@ from ..simulation.inputs import InputSignals
 from ..simulation.solvers import hermite, rk4_step
 from .layer import EventSensitivity, FmuEvaluator, fd_steps, fmu_call
 from .model import NeuralFMU
+from .system import NumpyTopology
 
 SOLVERS = ("euler", "rk4")
 MAX_EVENTS_PER_STEP = 100
@@ -191,7 +192,8 @@ class _Run:
         self.ev = FmuEvaluator(self.instances, self.info, variables, inputs.names if inputs else (),
                                model.config.parameters)
         self.p = self.topology.fmu_parameters
-        self.ann = None   # the folded ANN (Topology.folded) during run()
+        self.ann = None      # the folded ANN (Topology.folded) of a run with gradients
+        self.kernel = None   # its numpy evaluation (system.NumpyTopology) in a run without
         self.x0 = x0
         self.grad = torch.is_grad_enabled() and (
             (x0 is not None and x0.requires_grad) or any(q.requires_grad for q in model.parameters()))
@@ -341,6 +343,10 @@ class _Run:
         out = fmu_call(self.ev, rows, t, x, self.p, self._inputs_at(t))
         if c is not None:
             out = out + c
+        if self.kernel is not None:   # no gradient wanted: the same fold in numpy is cheaper
+            out_np = out.numpy()
+            dx = self.kernel.rows(x.detach().numpy(), out_np[:, : self.n].copy(), out_np[:, self.n:])
+            return torch.from_numpy(dx), out
         if self.ann is None:
             return out[:, : self.n], out
         return self.topology.mix(self.ann, x, out), out
@@ -360,8 +366,11 @@ class _Run:
     def run(self) -> Trajectory:
         started = _time.perf_counter()
         # the ANN folded once per run (its gradient gathers here); none when it cannot act
-        self.ann = self.topology.folded() if self.topology.has_ann and (
-            self.grad or bool(self.topology.gate_ann.count_nonzero())) else None
+        active = self.topology.has_ann and bool(self.topology.gate_ann.count_nonzero())
+        if self.grad and self.topology.has_ann:
+            self.ann = self.topology.folded()
+        elif active:
+            self.kernel = NumpyTopology(self.topology)
         x, dd, c = self.initialise()
         t = self.t0.copy()
         if self.forcing is not None:

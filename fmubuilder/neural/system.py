@@ -93,6 +93,20 @@ class NumpyTopology:
             der[self.channels] = self._last_W @ z + self._last_b + self.gate_fmu * der[self.channels]
         return der
 
+    def rows(self, x: np.ndarray, der: np.ndarray, variables: np.ndarray) -> np.ndarray:
+        """The same for several points at once: x, der [R, n], variables [R, k]; `der` is updated
+        in place and returned."""
+        if not self.active:
+            return der
+        z = np.concatenate((x, der, variables), axis=1)[:, self.source]
+        for layer in self.layers:
+            if isinstance(layer, tuple):
+                z = z @ layer[0].T + layer[1]
+            else:
+                layer(z, z)
+        der[:, self.channels] = z + self.gate_fmu * der[:, self.channels]
+        return der
+
 
 class NeuralFmuSystem(FmuSystem):
     """The engine's HybridSystem for a NeuralFMU (see the module docstring). Recorded derivative

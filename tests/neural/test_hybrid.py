@@ -84,6 +84,11 @@ def test_numpy_kernel_matches_torch(vldm_fmu):
             expected = unfolded_hybrid(model.topology, torch.from_numpy(x)[None],
                                        torch.from_numpy(np.concatenate([der, power]))[None])
         np.testing.assert_allclose(kernel(x, der, power), expected[0].numpy(), rtol=1e-13, atol=1e-13)
+        xs, ders, powers = rng.normal(size=(3, 6)), rng.normal(size=(3, 6)), rng.normal(size=(3, 1))
+        with torch.no_grad():
+            expected = unfolded_hybrid(model.topology, torch.from_numpy(xs),
+                                       torch.from_numpy(np.concatenate([ders, powers], axis=1)))
+        np.testing.assert_allclose(kernel.rows(xs, ders.copy(), powers), expected.numpy(), rtol=1e-13, atol=1e-13)
         model.close()
 
 
