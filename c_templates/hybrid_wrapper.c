@@ -724,10 +724,10 @@ fmi2Status fmi2GetReal(fmi2Component c, const fmi2ValueReference vr[], size_t nv
     return status;
 }
 
-static fmi2Status set_gate(Hybrid *h, double *gate, const char *name, const char *which, double value) {
+static fmi2Status set_gate(Hybrid *h, double *gate, const char *name, double value) {
     if (!(h->state & MASK_SET_DISCRETE)) {
-        LOG_ERROR(h, "fmi2SetReal: the tunable parameter %s of %s can be set before initialization or in "
-                     "event mode, not in state %s.", which, name, state_name(h->state));
+        LOG_ERROR(h, "fmi2SetReal: the tunable parameter %s can be set before initialization or in "
+                     "event mode, not in state %s.", name, state_name(h->state));
         return fmi2Error;
     }
     *gate = value;
@@ -748,13 +748,13 @@ fmi2Status fmi2SetReal(fmi2Component c, const fmi2ValueReference vr[], size_t nv
         size_t ch;
         switch (real_kind(vr[i], &ch)) {
         case REAL_P_ANN:
-            status = worst(status, set_gate(h, &h->p_ann[ch], CHANNELS[ch].name, "p_ann", value[i]));
+            status = worst(status, set_gate(h, &h->p_ann[ch], CHANNELS[ch].p_ann_name, value[i]));
             break;
         case REAL_P_FMU:
-            status = worst(status, set_gate(h, &h->p_fmu[ch], CHANNELS[ch].name, "p_fmu", value[i]));
+            status = worst(status, set_gate(h, &h->p_fmu[ch], CHANNELS[ch].p_fmu_name, value[i]));
             break;
         case REAL_ANN_OUTPUT:
-            LOG_ERROR(h, "%s: the network output of %s is computed and cannot be set.", fn, CHANNELS[ch].name);
+            LOG_ERROR(h, "%s: %s is computed and cannot be set.", fn, CHANNELS[ch].ann_name);
             status = fmi2Error;
             break;
         default:

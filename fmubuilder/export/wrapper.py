@@ -148,6 +148,7 @@ def render_config(spec: HybridSpec, info, description: HybridDescription) -> str
         "name": c.channel, "der_vr": c.der_vr, "state_index": c.state_index,
         "p_ann_vr": c.p_ann_vr, "p_fmu_vr": c.p_fmu_vr, "ann_vr": c.ann_vr,
         "p_ann_start": _c_double(spec.p_ann[i]), "p_fmu_start": _c_double(spec.p_fmu[i]),
+        "p_ann": c.p_ann, "p_fmu": c.p_fmu, "ann": c.ann,
     } for i, c in enumerate(description.channels)]
     aliases = [{"name": name, "vr": info.variable(name).value_reference, "channel": spec.channels.index(channel)}
                for name, channel in spec.aliases.items()]
@@ -259,7 +260,8 @@ def _embed_for_validation(spec: HybridSpec, description: HybridDescription, orig
     (folder / EMBEDDED_ORIGINAL_XML).write_bytes(original_xml)
     embedded = HybridSpec(original_fmu=Path("original.fmu"), original_guid=spec.original_guid,
                           channels=spec.channels, inputs=spec.inputs, onnx=Path(EMBEDDED_ONNX),
-                          p_ann=spec.p_ann, p_fmu=spec.p_fmu, aliases=spec.aliases)
+                          p_ann=spec.p_ann, p_fmu=spec.p_fmu, aliases=spec.aliases, term=spec.term,
+                          expression=spec.expression)
     data = embedded.to_dict()
     data["gates"] = [{"channel": c.channel, "p_ann": c.p_ann, "p_fmu": c.p_fmu, "ann": c.ann}
                      for c in description.channels]
