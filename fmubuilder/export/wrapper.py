@@ -96,9 +96,9 @@ def _build(spec: HybridSpec, info, scratch: Path) -> Path:
     with zipfile.ZipFile(spec.original_fmu) as original:
         original_xml = original.read("modelDescription.xml")
         description = derive_model_description(original_xml, spec, info)
-        _stage_resources(original, info, project / "resources")
+        binaries = _stage_resources(original, info, project / "resources")
     (project / "modelDescription.xml").write_bytes(description.xml)
-    _embed_for_validation(spec, description, original_xml, project / "resources" / EMBEDDED_DIR)
+    _embed_for_validation(spec, description, original_xml, binaries, project / "resources" / EMBEDDED_DIR)
 
     kernel = generate_kernel(spec.onnx, prefix=KERNEL_PREFIX)
     kernel.write(project / "sources")
@@ -213,8 +213,10 @@ def _c_double(value: float) -> str:
     return text if any(ch in text for ch in ".en") else text + ".0"
 
 
-def _stage_resources(original: zipfile.ZipFile, info, resources: Path) -> None:
-    """resources/ = the original's resources + its binaries/<platform>/ folder, the binary as <id>.so."""
+def _stage_resources(original: zipfile.ZipFile, info, resources: Path) -> list[str]:
+    """resources/ = the original's resources + its binaries/<platform>/ folder, the binary as <id>.so.
+
+    Returns the files of the binaries folder (paths relative to it)."""
     from fmubuilder.fmi.archive import binary_platform
     resources.mkdir(parents=True)
     library = f"{info.model_identifier}.so"
@@ -239,6 +241,7 @@ def _stage_resources(original: zipfile.ZipFile, info, resources: Path) -> None:
         target.write_bytes(original.read(member))
         if member.filename.startswith(binaries):
             target.chmod(0o755)
+    return sorted(relative for relative, member in staged.items() if member.filename.startswith(binaries))
 
 
 def _check_resource_name(relative: str, entry: str, library: str, staged: dict) -> None:
@@ -254,7 +257,7 @@ def _check_resource_name(relative: str, entry: str, library: str, staged: dict) 
 
 
 def _embed_for_validation(spec: HybridSpec, description: HybridDescription, original_xml: bytes,
-                          folder: Path) -> None:
+                          binaries: list[str], folder: Path) -> None:
     folder.mkdir(parents=True)
     shutil.copyfile(spec.onnx, folder / EMBEDDED_ONNX)
     (folder / EMBEDDED_ORIGINAL_XML).write_bytes(original_xml)
@@ -265,6 +268,8 @@ def _embed_for_validation(spec: HybridSpec, description: HybridDescription, orig
     data = embedded.to_dict()
     data["gates"] = [{"channel": c.channel, "p_ann": c.p_ann, "p_fmu": c.p_fmu, "ann": c.ann}
                      for c in description.channels]
+    # Which files of resources/ came from the original's binaries folder (to rebuild the original).
+    data["original_binaries"] = binaries
     (folder / EMBEDDED_SPEC).write_text(json.dumps(data, indent=2) + "\n")
 
 
