@@ -20,6 +20,9 @@ typedef struct {
     fmi2ValueReference ann_vr;
     double p_ann_start;
     double p_fmu_start;
+    const char *p_ann_name;        /* names of the added variables, for messages */
+    const char *p_fmu_name;
+    const char *ann_name;
 } Channel;
 
 /* An output of the original that equals a channel's der(x). */

@@ -253,17 +253,13 @@ static bool network_needed(const Hybrid *h) {
     return false;
 }
 
-/* Reads the network inputs from the original instance and evaluates the network.
- * `derivatives` are the original's state derivatives at this point, or NULL (then they are
- * fetched if a network input needs them). */
-static fmi2Status evaluate_network(Hybrid *h, const fmi2Real *derivatives) {
+/* Reads the network inputs that are variables of the original (not its derivatives).
+ * Called before the original's fmi2GetDerivatives at the same point: some FMUs evaluate lazily
+ * and return, after fmi2GetDerivatives, outputs of the previous point (OpenModelica 1.18). */
+static fmi2Status read_variable_inputs(Hybrid *h) {
     fmi2Status status = fmi2OK;
-    if (N_DERIVATIVE_INPUTS > 0 && derivatives == NULL) {
-        status = h->inner.getDerivatives(h->inner_component, h->derivatives, N_STATES);
-        derivatives = h->derivatives;
-    }
-    if (N_REAL_INPUTS > 0 && status <= fmi2Warning) {
-        status = worst(status, h->inner.getReal(h->inner_component, REAL_INPUT_VRS, N_REAL_INPUTS, h->real_inputs));
+    if (N_REAL_INPUTS > 0) {
+        status = h->inner.getReal(h->inner_component, REAL_INPUT_VRS, N_REAL_INPUTS, h->real_inputs);
     }
     if (N_INTEGER_INPUTS > 0 && status <= fmi2Warning) {
         status = worst(status, h->inner.getInteger(h->inner_component, INTEGER_INPUT_VRS, N_INTEGER_INPUTS,
@@ -273,9 +269,12 @@ static fmi2Status evaluate_network(Hybrid *h, const fmi2Real *derivatives) {
         status = worst(status, h->inner.getBoolean(h->inner_component, BOOLEAN_INPUT_VRS, N_BOOLEAN_INPUTS,
                                                    h->boolean_inputs));
     }
-    if (status > fmi2Warning) {
-        return forwarded(h, status, "reading the network inputs");
-    }
+    return status > fmi2Warning ? forwarded(h, status, "reading the network inputs") : status;
+}
+
+/* Evaluates the network on the variable inputs read last and the original's `derivatives`
+ * at this point. */
+static void run_network(Hybrid *h, const fmi2Real *derivatives) {
     for (size_t i = 0; i < N_DERIVATIVE_INPUTS; i++) {
         h->ann_input[DERIVATIVE_INPUT_POSITIONS[i]] = derivatives[DERIVATIVE_INPUT_STATES[i]];
     }
@@ -289,6 +288,22 @@ static fmi2Status evaluate_network(Hybrid *h, const fmi2Real *derivatives) {
         h->ann_input[BOOLEAN_INPUT_POSITIONS[i]] = h->boolean_inputs[i] ? 1.0 : 0.0;
     }
     RUN_NETWORK(h->ann_input, h->ann_output);
+}
+
+/* Reads all network inputs (variables first, then derivatives if needed) and evaluates it. */
+static fmi2Status evaluate_network(Hybrid *h) {
+    fmi2Status status = read_variable_inputs(h);
+    if (status > fmi2Warning) {
+        return status;
+    }
+    if (N_DERIVATIVE_INPUTS > 0) {
+        status = worst(status, forwarded(h, h->inner.getDerivatives(h->inner_component, h->derivatives, N_STATES),
+                                         "reading the network inputs"));
+        if (status > fmi2Warning) {
+            return status;
+        }
+    }
+    run_network(h, h->derivatives);
     return status;
 }
 
@@ -672,48 +687,47 @@ fmi2Status fmi2GetReal(fmi2Component c, const fmi2ValueReference vr[], size_t nv
     const char *fn = "fmi2GetReal";
     Hybrid *h = checked(c, MASK_GET_VALUES, fn);
     fmi2Status status = fmi2OK;
-    bool network_ready = false;
+    bool network = false;
+    size_t ch;
     if (h == NULL || !array_ok(h, vr, nvr, "vr", fn) || !array_ok(h, value, nvr, "value", fn)) {
         return fmi2Error;
     }
     if (only_inner_reals(vr, nvr)) {
         return FORWARDED(h, h->inner.getReal(h->inner_component, vr, nvr, value));
     }
+    /* The original's values first: the network may call the original's fmi2GetDerivatives,
+     * after which a lazily evaluating FMU may return outputs of the previous point. */
     for (size_t i = 0; i < nvr && status <= fmi2Warning; i++) {
-        size_t ch;
         RealKind kind = real_kind(vr[i], &ch);
-        if (kind == REAL_P_ANN) {
-            value[i] = h->p_ann[ch];
-            continue;
+        if (kind == REAL_OF_INNER || kind == REAL_CHANNEL_DERIVATIVE || kind == REAL_ALIAS) {
+            status = worst(status, FORWARDED(h, h->inner.getReal(h->inner_component, &vr[i], 1, &value[i])));
         }
-        if (kind == REAL_P_FMU) {
-            value[i] = h->p_fmu[ch];
-            continue;
-        }
-        if (kind != REAL_OF_INNER && !network_ready) {
-            status = worst(status, evaluate_network(h, NULL));
-            network_ready = true;
-            if (status > fmi2Warning) {
-                break;
-            }
-        }
-        if (kind == REAL_ANN_OUTPUT) {
-            value[i] = h->ann_output[ch];
-            continue;
-        }
-        status = worst(status, FORWARDED(h, h->inner.getReal(h->inner_component, &vr[i], 1, &value[i])));
+        network = network || kind == REAL_CHANNEL_DERIVATIVE || kind == REAL_ALIAS || kind == REAL_ANN_OUTPUT;
+    }
+    if (network && status <= fmi2Warning) {
+        status = worst(status, evaluate_network(h));
+    }
+    if (status > fmi2Warning) {
+        return status;
+    }
+    for (size_t i = 0; i < nvr; i++) {
+        switch (real_kind(vr[i], &ch)) {
+        case REAL_P_ANN: value[i] = h->p_ann[ch]; break;
+        case REAL_P_FMU: value[i] = h->p_fmu[ch]; break;
+        case REAL_ANN_OUTPUT: value[i] = h->ann_output[ch]; break;
         /* An alias holds the original's der(x) value: correct it like der(x). */
-        if ((kind == REAL_CHANNEL_DERIVATIVE || kind == REAL_ALIAS) && status <= fmi2Warning) {
-            value[i] = hybrid_value(h, ch, value[i]);
+        case REAL_CHANNEL_DERIVATIVE:
+        case REAL_ALIAS: value[i] = hybrid_value(h, ch, value[i]); break;
+        case REAL_OF_INNER: break;
         }
     }
     return status;
 }
 
-static fmi2Status set_gate(Hybrid *h, double *gate, const char *name, const char *which, double value) {
+static fmi2Status set_gate(Hybrid *h, double *gate, const char *name, double value) {
     if (!(h->state & MASK_SET_DISCRETE)) {
-        LOG_ERROR(h, "fmi2SetReal: the tunable parameter %s of %s can be set before initialization or in "
-                     "event mode, not in state %s.", which, name, state_name(h->state));
+        LOG_ERROR(h, "fmi2SetReal: the tunable parameter %s can be set before initialization or in "
+                     "event mode, not in state %s.", name, state_name(h->state));
         return fmi2Error;
     }
     *gate = value;
@@ -734,13 +748,13 @@ fmi2Status fmi2SetReal(fmi2Component c, const fmi2ValueReference vr[], size_t nv
         size_t ch;
         switch (real_kind(vr[i], &ch)) {
         case REAL_P_ANN:
-            status = worst(status, set_gate(h, &h->p_ann[ch], CHANNELS[ch].name, "p_ann", value[i]));
+            status = worst(status, set_gate(h, &h->p_ann[ch], CHANNELS[ch].p_ann_name, value[i]));
             break;
         case REAL_P_FMU:
-            status = worst(status, set_gate(h, &h->p_fmu[ch], CHANNELS[ch].name, "p_fmu", value[i]));
+            status = worst(status, set_gate(h, &h->p_fmu[ch], CHANNELS[ch].p_fmu_name, value[i]));
             break;
         case REAL_ANN_OUTPUT:
-            LOG_ERROR(h, "%s: the network output of %s is computed and cannot be set.", fn, CHANNELS[ch].name);
+            LOG_ERROR(h, "%s: %s is computed and cannot be set.", fn, CHANNELS[ch].ann_name);
             status = fmi2Error;
             break;
         default:
@@ -1101,19 +1115,20 @@ fmi2Status fmi2SetContinuousStates(fmi2Component c, const fmi2Real x[], size_t n
 fmi2Status fmi2GetDerivatives(fmi2Component c, fmi2Real derivatives[], size_t nx) {
     const char *fn = "fmi2GetDerivatives";
     Hybrid *h = checked(c, MASK_GET_VALUES, fn);
-    fmi2Status status;
     if (h == NULL || !array_ok(h, derivatives, nx, "derivatives", fn) || !size_ok(h, nx, N_STATES, fn)) {
         return fmi2Error;
     }
-    status = FORWARDED(h, h->inner.getDerivatives(h->inner_component, derivatives, nx));
+    bool network = network_needed(h);
+    fmi2Status status = network ? read_variable_inputs(h) : fmi2OK; /* before the derivatives: see there */
     if (status > fmi2Warning) {
         return status;
     }
-    if (network_needed(h)) {
-        status = worst(status, evaluate_network(h, derivatives)); /* before the channels change */
-        if (status > fmi2Warning) {
-            return status;
-        }
+    status = worst(status, FORWARDED(h, h->inner.getDerivatives(h->inner_component, derivatives, nx)));
+    if (status > fmi2Warning) {
+        return status;
+    }
+    if (network) {
+        run_network(h, derivatives); /* before the channels change */
     }
     for (size_t ch = 0; ch < N_CHANNELS; ch++) {
         size_t i = CHANNELS[ch].state_index;

@@ -9,8 +9,10 @@ the hybrid. Changed or added:
   every other capability flag as the original's;
 * per channel der(x), three Real variables appended after the original's (so the original's
   indices in ModelStructure stay valid), with value references beyond all of the original's:
-  ``hybrid.<x>.p_ann`` and ``hybrid.<x>.p_fmu`` (tunable parameters, the gates) and
-  ``hybrid.<x>.ann`` (local: the network output before gating);
+  ``hybrid.<x>.p_ann`` and ``hybrid.<x>.p_fmu`` (tunable parameters, the gates, unit "1") and
+  ``hybrid.<x>.ann`` (local: the network output before gating); for a fitted term
+  ``hybrid.<x>.p_term``, ``hybrid.<x>.p_fmu`` and ``hybrid.<x>.term``, and the names and
+  descriptions speak of the term, not of a network;
 * ModelStructure: the dependencies of each channel's derivative gain those of the network
   inputs; where they are not known (e.g. a local variable feeds the network) the attribute is
   dropped, which per FMI 2.0 means "depends on everything". An output listed in the spec's
@@ -30,11 +32,28 @@ from fmubuilder.errors import FmuBuilderError
 from .spec import HybridSpec
 
 WRAPPER_LOG_CATEGORY = "logStatusError"
+DIMENSIONLESS = "1"     # the unit of the gates
 GENERATION_TOOL = "fmubuilder"
 _STRUCTURED_NAME = re.compile(r"[A-Za-z_]\w*(\[\d+(,\d+)*\])?(\.[A-Za-z_]\w*(\[\d+(,\d+)*\])?)*\Z")
 # Children of fmiModelDescription in schema order (for inserting a missing LogCategories).
 _ELEMENT_ORDER = ("ModelExchange", "CoSimulation", "UnitDefinitions", "TypeDefinitions", "LogCategories",
                   "DefaultExperiment", "VendorAnnotations", "ModelVariables", "ModelStructure")
+
+
+@dataclass(frozen=True)
+class _Words:
+    """How the hybrid's variables and descriptions name what the ONNX graph holds."""
+
+    gate: str       # name of the gate parameter
+    value: str      # name of the value before gating
+    thing: str      # what it is, in a sentence
+
+
+def _words(spec: HybridSpec) -> _Words:
+    if spec.term == "fitted term":
+        expression = f" {spec.expression}" if spec.expression else ""
+        return _Words(gate="p_term", value="term", thing=f"the fitted term{expression}")
+    return _Words(gate="p_ann", value="ann", thing="the neural network")
 
 
 @dataclass(frozen=True)
@@ -79,6 +98,7 @@ def derive_model_description(original_xml: bytes, spec: HybridSpec, info) -> Hyb
     log_categories = _log_categories(root)
     variables = root.find("ModelVariables")
     layout = _add_channel_variables(variables, spec, info)
+    _define_dimensionless_unit(root)
     _update_structure(root, spec, info)
     etree.indent(root, space="  ")
     xml = etree.tostring(root, xml_declaration=True, encoding="UTF-8", pretty_print=True)
@@ -87,10 +107,11 @@ def derive_model_description(original_xml: bytes, spec: HybridSpec, info) -> Hyb
 
 
 def _set_header(root, info, spec: HybridSpec, guid: str) -> None:
+    words = _words(spec)
     root.set("guid", guid)
     root.set("modelName", f"{info.model_name}_hybrid")
-    root.set("description", f"{info.model_name} with {', '.join(spec.channels)} corrected by a neural network "
-                            "(gates p_ann, p_fmu per corrected derivative)")
+    root.set("description", f"{info.model_name} with {', '.join(spec.channels)} corrected by {words.thing} "
+                            f"(gates {words.gate}, p_fmu per corrected derivative)")
     root.set("generationTool", GENERATION_TOOL)
     now = datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0)
     root.set("generationDateAndTime", now.strftime("%Y-%m-%dT%H:%M:%SZ"))
@@ -105,8 +126,11 @@ def _set_model_exchange(root, identifier: str) -> None:
     # Other capability flags hold for the hybrid as for the original: the wrapper forwards those
     # calls, keeps the FMU state capabilities, and with canNotUseMemoryManagementFunctions it
     # allocates through the C library as the original does.
+    # No SourceFiles: the hybrid's sources wrap a binary for one platform and build nowhere else.
     for source_files in me.findall("SourceFiles"):
         me.remove(source_files)
+    if len(me) == 0:
+        me.text = None
 
 
 def _log_categories(root) -> list[str]:
@@ -120,6 +144,16 @@ def _log_categories(root) -> list[str]:
         etree.SubElement(element, "Category", name=WRAPPER_LOG_CATEGORY,
                          description="Calls rejected with fmi2Error")
     return names
+
+
+def _define_dimensionless_unit(root) -> None:
+    """The gates' unit "1" in UnitDefinitions, unless the original defines it already."""
+    units = root.find("UnitDefinitions")
+    if units is None:
+        units = etree.Element("UnitDefinitions")
+        _insert_in_order(root, units)
+    if all(unit.get("name") != DIMENSIONLESS for unit in units.findall("Unit")):
+        etree.SubElement(units, "Unit", name=DIMENSIONLESS)
 
 
 def _insert_in_order(root, element) -> None:
@@ -156,23 +190,25 @@ def _add_channel_variables(variables, spec: HybridSpec, info) -> list[ChannelLay
     next_vr = max((v.value_reference for v in info.variables.values()), default=-1) + 1
     state_index = {d.name: i for i, d in enumerate(info.derivatives)}
     layout = []
+    words = _words(spec)
     for c, (channel, state) in enumerate(zip(spec.channels, spec.channel_states(info))):
         base = f"{prefix}.{_variable_label(state)}"
-        if any(f"{base}.{suffix}" in by_name for suffix in ("p_ann", "p_fmu", "ann")):
+        if any(f"{base}.{suffix}" in by_name for suffix in (words.gate, "p_fmu", words.value)):
             base = f"{prefix}.channel{c + 1}"
         der_real = by_name[channel].find("Real")
         p_ann = _append_variable(
-            variables, f"{base}.p_ann", next_vr, causality="parameter", variability="tunable", initial="exact",
-            description=f"Gate of the network term in {channel} (0 switches the network off)",
-            start=spec.p_ann[c])
+            variables, f"{base}.{words.gate}", next_vr, causality="parameter", variability="tunable",
+            initial="exact", description=f"Gate of {words.thing} in {channel} (0 switches it off)",
+            start=spec.p_ann[c], real_attributes={"unit": DIMENSIONLESS})
         p_fmu = _append_variable(
             variables, f"{base}.p_fmu", next_vr + 1, causality="parameter", variability="tunable",
-            initial="exact", description=f"Gate of the original model's term in {channel}", start=spec.p_fmu[c])
+            initial="exact", description=f"Gate of the original model's term in {channel}", start=spec.p_fmu[c],
+            real_attributes={"unit": DIMENSIONLESS})
         unit_attributes = {k: der_real.get(k) for k in ("declaredType", "quantity", "unit")
                            if der_real is not None and der_real.get(k) is not None}
         ann = _append_variable(
-            variables, f"{base}.ann", next_vr + 2, causality="local", variability="continuous",
-            description=f"Network output for {channel} before gating", real_attributes=unit_attributes)
+            variables, f"{base}.{words.value}", next_vr + 2, causality="local", variability="continuous",
+            description=f"Value of {words.thing} for {channel} before gating", real_attributes=unit_attributes)
         layout.append(ChannelLayout(
             channel=channel, state=state, state_index=state_index[channel],
             der_vr=info.variable(channel).value_reference, p_ann=p_ann, p_ann_vr=next_vr,

@@ -51,7 +51,13 @@ class HybridReference(FmuSystem):
                                if name in spec.aliases]
 
     def derivatives(self, t: float, x: np.ndarray) -> np.ndarray:
-        return self._hybrid(super().derivatives(t, x))
+        if not any(g != 0.0 for g in self.p_ann):
+            return self._hybrid(super().derivatives(t, x))
+        # The network's inputs before the original's derivatives: a lazily evaluating FMU may
+        # return, after fmi2GetDerivatives, outputs of the previous point (OpenModelica 1.18).
+        self._at(t, x)
+        ann = self.network_output()
+        return self._hybrid(self.instance.get_derivatives(), ann)
 
     def outputs(self, times: np.ndarray, states: np.ndarray) -> np.ndarray:
         table = super().outputs(times, states)

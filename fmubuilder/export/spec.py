@@ -28,10 +28,15 @@ JSON form (paths relative to the JSON file's folder)::
       "inputs": ["speed", "der(speed)", "force"],
       "onnx": "network.onnx",
       "p_ann": [1.0], "p_fmu": [1.0],
-      "aliases": {"acceleration": "der(speed)"}
+      "aliases": {"acceleration": "der(speed)"},
+      "term": "network"
     }
 
 ("aliases" may be left out: no output is corrected besides the derivatives.)
+
+``term`` says what the ONNX graph holds, so that the exported FMU names it truthfully:
+"network" (a trained neural network, the default) or "fitted term" (a symbolic term fitted to
+the data, frozen as a graph), with its ``expression`` for the FMU's description.
 """
 from __future__ import annotations
 
@@ -51,6 +56,8 @@ VERSION = 1
 INPUT_TYPES = ("Real", "Integer", "Enumeration", "Boolean")
 # Causalities an alias of a derivative may have: values computed by the model, not parameters.
 ALIAS_CAUSALITIES = ("output", "local")
+# What the ONNX graph may hold.
+TERMS = ("network", "fitted term")
 
 
 @dataclass
@@ -65,6 +72,8 @@ class HybridSpec:
     p_ann: list[float] = field(default_factory=list)
     p_fmu: list[float] = field(default_factory=list)
     aliases: dict[str, str] = field(default_factory=dict)   # output name -> channel der(x)
+    term: str = "network"       # or "fitted term"
+    expression: str = ""        # of a fitted term, for the FMU's description
 
     def __post_init__(self):
         self.original_fmu = Path(self.original_fmu)
@@ -82,6 +91,9 @@ class HybridSpec:
         if not self.inputs:
             raise FmuBuilderError("the hybrid spec has no network inputs; list the FMU variables fed to the network")
         self.aliases = _aliases(self.aliases)
+        if self.term not in TERMS:
+            raise FmuBuilderError(f"the hybrid spec's term {self.term!r} is unknown; give one of {', '.join(TERMS)}")
+        self.expression = str(self.expression or "")
 
     # -- JSON ------------------------------------------------------------------------------
     @classmethod
@@ -107,7 +119,8 @@ class HybridSpec:
             original_fmu=base / data["original_fmu"], original_guid=str(data["original_guid"]),
             channels=list(data["channels"]), inputs=list(data["inputs"]), onnx=base / data["onnx"],
             p_ann=list(data.get("p_ann", [])), p_fmu=list(data.get("p_fmu", [])),
-            aliases=data.get("aliases", {}))
+            aliases=data.get("aliases", {}), term=data.get("term", "network"),
+            expression=data.get("expression", ""))
 
     def to_dict(self, relative_to: str | os.PathLike | None = None) -> dict:
         def where(p: Path) -> str:
@@ -120,6 +133,7 @@ class HybridSpec:
             "original_fmu": where(self.original_fmu), "original_guid": self.original_guid,
             "channels": list(self.channels), "inputs": list(self.inputs), "onnx": where(self.onnx),
             "p_ann": list(self.p_ann), "p_fmu": list(self.p_fmu), "aliases": dict(self.aliases),
+            "term": self.term, **({"expression": self.expression} if self.expression else {}),
         }
 
     def save(self, path: str | os.PathLike) -> Path:

@@ -97,9 +97,9 @@ def _build(spec: HybridSpec, info, scratch: Path) -> Path:
     with zipfile.ZipFile(spec.original_fmu) as original:
         original_xml = original.read("modelDescription.xml")
         description = derive_model_description(original_xml, spec, info)
-        _stage_resources(original, info, project / "resources")
+        binaries = _stage_resources(original, info, project / "resources")
     (project / "modelDescription.xml").write_bytes(description.xml)
-    _embed_for_validation(spec, description, original_xml, project / "resources" / EMBEDDED_DIR)
+    _embed_for_validation(spec, description, original_xml, binaries, project / "resources" / EMBEDDED_DIR)
 
     kernel = generate_kernel(spec.onnx, prefix=KERNEL_PREFIX)
     kernel.write(project / "sources")
@@ -149,6 +149,7 @@ def render_config(spec: HybridSpec, info, description: HybridDescription) -> str
         "name": c.channel, "der_vr": c.der_vr, "state_index": c.state_index,
         "p_ann_vr": c.p_ann_vr, "p_fmu_vr": c.p_fmu_vr, "ann_vr": c.ann_vr,
         "p_ann_start": _c_double(spec.p_ann[i]), "p_fmu_start": _c_double(spec.p_fmu[i]),
+        "p_ann": c.p_ann, "p_fmu": c.p_fmu, "ann": c.ann,
     } for i, c in enumerate(description.channels)]
     aliases = [{"name": name, "vr": info.variable(name).value_reference, "channel": spec.channels.index(channel)}
                for name, channel in spec.aliases.items()]
@@ -213,8 +214,10 @@ def _c_double(value: float) -> str:
     return text if any(ch in text for ch in ".en") else text + ".0"
 
 
-def _stage_resources(original: zipfile.ZipFile, info, resources: Path) -> None:
-    """resources/ = the original's resources + its binaries/<platform>/ folder, the binary as <id>.so."""
+def _stage_resources(original: zipfile.ZipFile, info, resources: Path) -> list[str]:
+    """resources/ = the original's resources + its binaries/<platform>/ folder, the binary as <id>.so.
+
+    Returns the files of the binaries folder (paths relative to it)."""
     from fmubuilder.fmi.archive import binary_platform
     resources.mkdir(parents=True)
     library = f"{info.model_identifier}.so"
@@ -239,6 +242,7 @@ def _stage_resources(original: zipfile.ZipFile, info, resources: Path) -> None:
         target.write_bytes(original.read(member))
         if member.filename.startswith(binaries):
             target.chmod(0o755)
+    return sorted(relative for relative, member in staged.items() if member.filename.startswith(binaries))
 
 
 def _check_resource_name(relative: str, entry: str, library: str, staged: dict) -> None:
@@ -254,16 +258,19 @@ def _check_resource_name(relative: str, entry: str, library: str, staged: dict) 
 
 
 def _embed_for_validation(spec: HybridSpec, description: HybridDescription, original_xml: bytes,
-                          folder: Path) -> None:
+                          binaries: list[str], folder: Path) -> None:
     folder.mkdir(parents=True)
     shutil.copyfile(spec.onnx, folder / EMBEDDED_ONNX)
     (folder / EMBEDDED_ORIGINAL_XML).write_bytes(original_xml)
     embedded = HybridSpec(original_fmu=Path("original.fmu"), original_guid=spec.original_guid,
                           channels=spec.channels, inputs=spec.inputs, onnx=Path(EMBEDDED_ONNX),
-                          p_ann=spec.p_ann, p_fmu=spec.p_fmu, aliases=spec.aliases)
+                          p_ann=spec.p_ann, p_fmu=spec.p_fmu, aliases=spec.aliases, term=spec.term,
+                          expression=spec.expression)
     data = embedded.to_dict()
     data["gates"] = [{"channel": c.channel, "p_ann": c.p_ann, "p_fmu": c.p_fmu, "ann": c.ann}
                      for c in description.channels]
+    # Which files of resources/ came from the original's binaries folder (to rebuild the original).
+    data["original_binaries"] = binaries
     (folder / EMBEDDED_SPEC).write_text(json.dumps(data, indent=2) + "\n")
 
 

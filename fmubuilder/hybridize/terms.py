@@ -103,6 +103,7 @@ def spec_from_fitted_term(fitted: dict, fmu_path: Path, guid: str, folder: Path,
     onnx_path = folder / "term.onnx"
     freeze(FittedTerm(terms, inputs).eval(), len(inputs), onnx_path)
     spec = HybridSpec(original_fmu=Path(fmu_path).resolve(), original_guid=guid, channels=[fitted["channel"]],
-                      inputs=inputs, onnx=onnx_path, p_ann=[1.0], p_fmu=[1.0], aliases=aliases or {})
+                      inputs=inputs, onnx=onnx_path, p_ann=[1.0], p_fmu=[1.0], aliases=aliases or {},
+                      term="fitted term", expression=fitted.get("expression", ""))
     spec.save(folder / "spec.json")
     return spec

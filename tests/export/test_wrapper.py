@@ -417,7 +417,7 @@ def test_wrong_state_calls_return_error_with_message(ball):
         with pytest.raises(FmuCallError, match="must not be called in state Instantiated"):
             instance.enter_continuous_time_mode()
         started(instance)
-        with pytest.raises(FmuCallError, match="tunable parameter p_ann of der.v. can be set"):
+        with pytest.raises(FmuCallError, match="tunable parameter hybrid.v.p_ann can be set"):
             instance.set({"hybrid.v.p_ann": 0.0})
         with pytest.raises(FmuCallError, match="computed and cannot be set"):
             instance.set({"hybrid.v.ann": 0.0})

@@ -26,7 +26,7 @@ static void sample_network(const double *input, double *output) {
 }
 
 static const Channel CHANNELS[N_CHANNELS] = {
-    {"der(v)", 3, 1, 8, 9, 10, 1.0, 1.0},
+    {"der(v)", 3, 1, 8, 9, 10, 1.0, 1.0, "hybrid.v.p_ann", "hybrid.v.p_fmu", "hybrid.v.ann"},
 };
 
 #define N_ALIASES 0
