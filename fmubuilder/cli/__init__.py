@@ -95,6 +95,9 @@ def _call(args, caught: list) -> int:
     try:
         args.func(args)
         sys.stdout.flush()
+        if caught:  # kept back, but not lost: one line
+            print(f"warning: {len(caught)} warning(s) during the command, the first: "
+                  f"'{_first_line(caught[0].message)}'; rerun with --debug to see them", file=sys.stderr)
     except FmuBuilderError as exc:
         if args.debug:
             raise
