@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .fmi.archive import read_model_info
+from .fmi.archive import check_archive, read_model_info
 from .fmi.model import ModelInfo, Variable
 
 _CAUSALITY_ORDER = {"parameter": 0, "calculatedParameter": 1, "input": 2, "output": 3, "local": 4, "independent": 5}
@@ -11,6 +11,7 @@ _CAUSALITY_ORDER = {"parameter": 0, "calculatedParameter": 1, "input": 2, "outpu
 
 def describe(path: str | Path) -> str:
     info = read_model_info(path)
+    check_archive(path)  # a damaged binary or resource should show here, not first in a simulation
     lines = [f"{info.model_name}  ({Path(path).name})", ""]
     lines += _summary(info)
     lines += ["", "Continuous states", ""]

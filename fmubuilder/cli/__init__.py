@@ -16,6 +16,13 @@ from ..errors import FmuBuilderError
 DEFAULT_CALL_TIMEOUT = 60.0
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with errors in the house style: one `error:` line that points at --help, exit code 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"error: {message}; see `{self.prog} --help`\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
     from .diagnose import add_diagnose_parser
@@ -26,12 +33,12 @@ def build_parser() -> argparse.ArgumentParser:
     from .synth import add_example_parser, add_synth_parser
     from .train import add_train_parser
 
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="fmubuilder",
         description="Hybrid FMUs from a first-principle FMI 2.0 Model-Exchange FMU and measured data.")
     parser.add_argument("--version", action="version", version=f"fmubuilder {__version__}")
     _add_run_options(parser, default=None)
-    common = argparse.ArgumentParser(add_help=False)
+    common = _Parser(add_help=False)
     _add_run_options(common, default=argparse.SUPPRESS)  # SUPPRESS: do not reset options given before the command
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     add_model_parsers(sub, common)
@@ -88,6 +95,9 @@ def _call(args, caught: list) -> int:
     try:
         args.func(args)
         sys.stdout.flush()
+        if caught:  # kept back, but not lost: one line
+            print(f"warning: {len(caught)} warning(s) during the command, the first: "
+                  f"'{_first_line(caught[0].message)}'; rerun with --debug to see them", file=sys.stderr)
     except FmuBuilderError as exc:
         if args.debug:
             raise
@@ -102,7 +112,8 @@ def _call(args, caught: list) -> int:
     except (OverflowError, FloatingPointError) as exc:  # nearly always data far out of range (1e300)
         if args.debug:
             raise
-        print(f"error: a computation overflowed ({_first_line(exc) or type(exc).__name__}){_warnings_note(caught)}; "
+        reason = exc.args[-1] if exc.args and isinstance(exc.args[-1], str) else type(exc).__name__
+        print(f"error: a computation overflowed ({reason}){_warnings_note(caught)}; "
               "check the input data for values far outside the model's range", file=sys.stderr)
         return 1
     except Exception as exc:  # a bug, not bad input: still one line unless --debug

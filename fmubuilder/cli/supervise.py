@@ -36,14 +36,23 @@ def run_supervised(args, execute) -> int:
     outputs = _declared_outputs(args)
     before = {path: _fingerprint(path) for path in outputs}
     temp_root = Path(tempfile.mkdtemp(prefix="fmubuilder-run-"))
+    pid = None
     try:
         breadcrumb.reset()
         sys.stdout.flush()
         sys.stderr.flush()
         pid = os.fork()
         if pid == 0:
-            _worker(args, execute, temp_root)  # never returns
+            try:
+                _worker(args, execute, temp_root)
+            finally:
+                os._exit(2)  # never run the parent's code in the worker
         code, message, hint = _Supervisor(pid, args.call_timeout).wait()
+    except KeyboardInterrupt:  # before the supervisor's own handlers were in place
+        if pid:
+            _send(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+        code, message, hint = 130, "interrupted", ""
     finally:
         shutil.rmtree(temp_root, ignore_errors=True)
     if code != 0:

@@ -146,11 +146,36 @@ def max_extract_bytes() -> int:
     return int(megabytes * 1024 * 1024)
 
 
+def check_archive(path: str | Path) -> None:
+    """Check what running the FMU needs without extracting it: entries stay inside the archive,
+    sizes stay under the cap, the data inflate and match their CRCs."""
+    path = Path(path)
+    with zipfile.ZipFile(path) as zf:
+        budget = [max_extract_bytes()]
+        for member in _needed_members(zf, path, Path("/nonexistent/fmu")):
+            if not member.is_dir():
+                _inflate(zf, member, path, lambda block: None, budget)
+
+
 def _extract_needed(zf: zipfile.ZipFile, target: Path, path: Path, model_identifier: str) -> None:
-    """Extract what running the FMU needs (modelDescription.xml, the linux64 binaries,
-    resources/), refusing entries that would land outside the target folder and stopping
-    at the size cap, counted on the bytes actually inflated (headers can lie)."""
+    """Extract what running the FMU needs (modelDescription.xml, the linux64 binaries, resources/)."""
     root = target.resolve()
+    budget = [max_extract_bytes()]
+    for member in _needed_members(zf, path, root):
+        dest = root / member.filename
+        if member.is_dir():
+            dest.mkdir(parents=True, exist_ok=True)
+            continue
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        with open(dest, "wb") as out:
+            _inflate(zf, member, path, out.write, budget)
+        if member.external_attr >> 16 & 0o111:
+            dest.chmod(0o755)
+
+
+def _needed_members(zf: zipfile.ZipFile, path: Path, root: Path) -> list[zipfile.ZipInfo]:
+    """The entries running the FMU needs, refusing entries that would land outside the
+    extraction folder and archives whose declared sizes break the cap."""
     wanted = ("modelDescription.xml", f"binaries/{binary_platform()}/", "resources/")
     members = [m for m in zf.infolist() if m.filename.startswith(wanted)]
     for member in members:
@@ -158,29 +183,26 @@ def _extract_needed(zf: zipfile.ZipFile, target: Path, path: Path, model_identif
         if root != dest and root not in dest.parents:
             raise FmuBuilderError(f"{path}: entry '{member.filename}' points outside the archive; the FMU is corrupt "
                                   "or malicious: do not use it")
-    budget = max_extract_bytes()
-    declared = 0
-    for member in members:  # refuse from the declared sizes before writing anything
+    budget, declared = max_extract_bytes(), 0
+    for member in members:
         declared += member.file_size
         if declared > budget or (member.file_size > 2**26 and member.file_size > 1000 * member.compress_size):
             raise _too_large(path, member, declared > budget)
-    for member in members:
-        dest = root / member.filename
-        if member.is_dir():
-            dest.mkdir(parents=True, exist_ok=True)
-            continue
-        dest.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            with zf.open(member) as source, open(dest, "wb") as out:
-                while block := source.read(1 << 20):
-                    budget -= len(block)
-                    if budget < 0:
-                        raise _too_large(path, member, True)
-                    out.write(block)
-        except _CORRUPT as exc:
-            raise corrupt(path, exc, member.filename) from None
-        if member.external_attr >> 16 & 0o111:
-            dest.chmod(0o755)
+    return members
+
+
+def _inflate(zf: zipfile.ZipFile, member: zipfile.ZipInfo, path: Path, write, budget: list[int]) -> None:
+    """Inflate one entry into `write`, counting the bytes actually produced against the
+    archive's budget (one-element list, shared by its entries): headers can lie."""
+    try:
+        with zf.open(member) as source:
+            while block := source.read(1 << 20):
+                budget[0] -= len(block)
+                if budget[0] < 0:
+                    raise _too_large(path, member, True)
+                write(block)
+    except _CORRUPT as exc:
+        raise corrupt(path, exc, member.filename) from None
 
 
 def _too_large(path: Path, member: zipfile.ZipInfo, over_limit: bool) -> FmuBuilderError:

@@ -16,16 +16,20 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from ..errors import FmuBuilderError
-from .archive import FmuArchive
 from . import breadcrumb
+from .archive import FmuArchive
 from .binding import STATUS_NAMES, ffi, libc, load_library
 from .breadcrumb import CALL, CODE, TIME
 from .model import ModelInfo, Variable
 
 _instance_counter = itertools.count(1)
-# breadcrumb codes of the hot-path calls, as constants (a dict lookup per call would cost)
-_SETTIME, _GETCONTINUOUSSTATES, _SETCONTINUOUSSTATES = CODE["fmi2SetTime"], CODE["fmi2GetContinuousStates"], CODE["fmi2SetContinuousStates"]
-_GETDERIVATIVES, _GETEVENTINDICATORS = CODE["fmi2GetDerivatives"], CODE["fmi2GetEventIndicators"]
+# Breadcrumbs (breadcrumb.py): CALL[0] = +code before a call into the binary, -code after it.
+# The hot-path calls use their codes as module constants: a dict lookup per call would cost.
+_SETTIME = CODE["fmi2SetTime"]
+_GETCONTINUOUSSTATES = CODE["fmi2GetContinuousStates"]
+_SETCONTINUOUSSTATES = CODE["fmi2SetContinuousStates"]
+_GETDERIVATIVES = CODE["fmi2GetDerivatives"]
+_GETEVENTINDICATORS = CODE["fmi2GetEventIndicators"]
 _COMPLETEDINTEGRATORSTEP = CODE["fmi2CompletedIntegratorStep"]
 
 

@@ -11,7 +11,8 @@ def test_bad_crc_of_the_binary(tmp_path, bouncing_ball_fmu):
     path = flip_byte_in_entry(bouncing_ball_fmu, tmp_path / "crc.fmu", binary_name(bouncing_ball_fmu), compressed=False)
     with zipfile.ZipFile(path) as zf:
         assert zf.testzip() == binary_name(bouncing_ball_fmu)  # the damage zipfile itself sees
-    assert_one_line_error(run_cli("simulate", path), "is corrupt", "CRC", "export the FMU again")
+    for command in ("inspect", "simulate"):  # inspect checks the archive too, without extracting it
+        assert_one_line_error(run_cli(command, path), "is corrupt", "CRC", "export the FMU again")
 
 
 def test_damaged_deflate_data(tmp_path, bouncing_ball_fmu):
@@ -30,14 +31,16 @@ def test_truncated_archive(tmp_path, bouncing_ball_fmu):
 
 def test_entry_outside_the_archive(tmp_path, bouncing_ball_fmu):
     path = add_entries(bouncing_ball_fmu, tmp_path / "evil.fmu", {"resources/../../evil.txt": b"x"})
-    assert_one_line_error(run_cli("simulate", path, "--stop-time", "0.1"), "points outside the archive")
+    for command in ("inspect", "simulate"):
+        assert_one_line_error(run_cli(command, path), "points outside the archive")
     assert not (tmp_path.parent / "evil.txt").exists()
 
 
 def test_zip_bomb_is_refused_and_the_cap_can_be_raised(tmp_path, bouncing_ball_fmu, monkeypatch):
     path = add_zip_bomb(bouncing_ball_fmu, tmp_path / "bomb.fmu", megabytes=12)
     monkeypatch.setenv("FMUBUILDER_MAX_EXTRACT_MB", "5")
-    assert_one_line_error(run_cli("simulate", path, "--stop-time", "0.1"), "zip bomb", "FMUBUILDER_MAX_EXTRACT_MB=")
+    for command in ("inspect", "simulate"):
+        assert_one_line_error(run_cli(command, path), "zip bomb", "FMUBUILDER_MAX_EXTRACT_MB=")
     monkeypatch.setenv("FMUBUILDER_MAX_EXTRACT_MB", "50")
     proc = run_cli("simulate", path, "--stop-time", "0.1")
     assert proc.returncode == 0, proc.stderr
