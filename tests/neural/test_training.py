@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fmubuilder.errors import FmuBuilderError
-from fmubuilder.neural.data import MeasuredData
+from fmubuilder.data import MeasuredData
 from fmubuilder.neural.train import train_neural_fmu
 from fmubuilder.simulation import simulate as engine_simulate
 
