@@ -1,15 +1,16 @@
 """`fmubuilder hybridize` end to end: diagnose, add the effect, export, validate, report.
 
 The DC drive (examples/dc_drive/model.c) runs one hard-coded set-point/load profile and has no
-parameter or input to choose another, so the held-out data are a different time window of that
+parameter or input to choose another, so the test data are a different time window of that
 profile (20.5-30 s: a start from rest and a run up to 200 rad/s, beyond the 150 rad/s of the
 training window 0-15 s) logged with a different noise seed. The truth of each variant is known
 from the C source: windage enters der(speed) and depends on speed; the extra heating enters
 der(temperature) and depends on the current.
 
 The last 20 % of the training window is held out of the fit and chooses the candidate; the test
-window is scored once, after the choice. The test errors are checked twice: in the report (fmubuilder's engine) and independently,
-by simulating the plain and the hybrid FMU with fmpy and applying the bench's sensor lag here.
+window is scored once, after the choice. The test errors are checked twice: in the report
+(fmubuilder's engine) and independently, by simulating the plain and the hybrid FMU with fmpy and
+applying the bench's sensor lag here.
 """
 import json
 import subprocess
@@ -71,7 +72,7 @@ def runs(data, tmp_path_factory):
 
 
 # ---------------------------------------------------------------------------------------
-# an independent check of the held-out errors: fmpy plus the bench's sensor lag
+# an independent check of the test errors: fmpy plus the bench's sensor lag
 
 
 def lagged(time, values, lag):
@@ -120,7 +121,7 @@ def test_the_report_names_the_channel_and_leading_input(runs, truth):
 
 
 @pytest.mark.parametrize("truth", list(EFFECTS))
-def test_the_held_out_error_of_the_affected_signals_drops_tenfold(runs, data, truth):
+def test_the_test_error_of_the_affected_signals_drops_tenfold(runs, data, truth):
     _, _, affected = EFFECTS[truth]
     result = runs(truth)
     errors = result.report["errors"]["test"]
@@ -190,7 +191,7 @@ def test_no_effect_no_hybrid(runs):
 
 
 # ---------------------------------------------------------------------------------------
-# VLDM: the first 30 s of the training cycle (CADC road) and of the held-out cycle (WLTC class 2)
+# VLDM: the first 30 s of the training cycle (CADC road) and of the test cycle (WLTC class 2)
 
 
 @pytest.mark.slow
