@@ -101,9 +101,9 @@ TRAINING = dict(targets=["der(speed)"], inputs=["speed"], topology="residual", h
 
 def training(budget: float, epochs: int) -> None:
     from fmubuilder.examples_zoo import cached_data, vldm_data_sets
-    from fmubuilder.neural.data import load_data
+    from fmubuilder.data import load_data
     from fmubuilder.neural.train import evaluate, train_neural_fmu
-    from fmubuilder.synth import read_sidecar
+    from fmubuilder.data import read_sidecar
 
     sets = [d for d in vldm_data_sets() if d.variant.key == "extra_resistance"]
     paths, generated = cached_data(sets)

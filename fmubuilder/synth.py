@@ -59,6 +59,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from .data import (UNCERTAINTY_SUFFIX, first_order_lag, read_sidecar, sidecar_path,  # noqa: F401
+                   split_uncertainty_columns)
 from .errors import FmuBuilderError
 from .files import file_sha256, write_atomically
 
@@ -76,7 +78,6 @@ DEFAULT_NOISE_STD = {
 # Relative tolerance of the truth simulation: far below the sensor noise.
 TRUTH_RTOL = 1e-8
 
-UNCERTAINTY_SUFFIX = "_std"
 FORMAT = "fmubuilder-measurement/1"
 
 
@@ -200,28 +201,6 @@ def sample_times(start: float, stop: float, rate: float, jitter: float, resoluti
     return stamps
 
 
-def first_order_lag(time: np.ndarray, signal: np.ndarray, tau: float) -> np.ndarray:
-    """Output of ``tau * dy/dt = u - y`` with ``y(t0) = u(t0)`` for an input ``u`` that is
-    linear between the given points. Repeated time points (before/after an event) are a
-    step of the input and leave the output unchanged."""
-    signal = np.asarray(signal, dtype=float)
-    if tau <= 0.0:
-        return signal.copy()
-    h = np.diff(np.asarray(time, dtype=float))
-    decay = np.exp(-h / tau)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        # Weight of the input change over a step: 1 - tau/h * (1 - exp(-h/tau)); -> 0 for h -> 0.
-        ramp_gain = np.where(h > 1e-12 * tau, 1.0 - tau / h * -np.expm1(-h / tau), 0.0)
-    start_gain = 1.0 - decay
-    out = np.empty_like(signal)
-    y = out[0] = signal[0]
-    u = signal.tolist()
-    for k, (a, b, c) in enumerate(zip(decay.tolist(), start_gain.tolist(), ramp_gain.tolist())):
-        y = a * y + b * u[k] + c * (u[k + 1] - u[k])
-        out[k + 1] = y
-    return out
-
-
 def simulate_fine(fmu: Path, start_time: float, stop_time: float, start_values: Mapping[str, object],
                   names: Sequence[str], step: float) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Trajectories of ``names`` on a ``step`` grid plus the values before and after each event."""
@@ -335,12 +314,6 @@ def _run_start_values(info, start_values: dict, settings: BenchSettings,
 # Writing and reading
 
 
-def sidecar_path(csv_path: str | os.PathLike) -> Path:
-    """The metadata JSON belonging to a data file: ``<csv path>.json``."""
-    csv_path = Path(csv_path)
-    return csv_path.with_name(csv_path.name + ".json")
-
-
 def check_output_path(path: str | os.PathLike, force: bool = False) -> Path:
     """Refuse a data path whose CSV or sidecar exists (unless ``force``) or whose folder is missing."""
     path = Path(path)
@@ -376,25 +349,6 @@ def format_csv(columns: Mapping[str, np.ndarray], time_resolution: float) -> str
     return "\n".join(lines) + "\n"
 
 
-def split_uncertainty_columns(names: Sequence[str]) -> tuple[list[str], dict[str, str]]:
-    """Split data columns into signals and uncertainty columns: ``X_std`` is the uncertainty
-    of ``X`` when ``X`` is a column too. Returns (signals, {signal: its _std column})."""
-    present = set(names)
-    uncertainty = {n[: -len(UNCERTAINTY_SUFFIX)]: n for n in names
-                   if n.endswith(UNCERTAINTY_SUFFIX) and n[: -len(UNCERTAINTY_SUFFIX)] in present}
-    signals = [n for n in names if n != "time" and n not in uncertainty.values()]
-    return signals, uncertainty
-
-
-def read_sidecar(csv_path: str | os.PathLike) -> dict | None:
-    """The metadata of a data file, or None when it has no sidecar."""
-    meta_path = sidecar_path(csv_path)
-    if not meta_path.is_file():
-        return None
-    try:
-        return json.loads(meta_path.read_text())
-    except ValueError as exc:
-        raise FmuBuilderError(f"{meta_path} is not valid JSON ({exc}); regenerate it with `fmubuilder synth`") from None
 
 
 def _metadata(fmu: Path, info, start_time: float, stop_time: float, start_values: dict,

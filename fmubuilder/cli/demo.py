@@ -11,8 +11,8 @@ def add_demo_parser(subparsers, common) -> None:
                               help="run the whole workflow on the bundled example and write a report")
     p.add_argument("--output", "-o", default="fmubuilder-demo", help="output folder (default: ./fmubuilder-demo)")
     p.add_argument("--force", action="store_true", help="replace an existing output folder")
-    p.add_argument("--time-budget", type=float, default=300.0, metavar="SECONDS",
-                   help="rough wall-time budget for diagnosis and training (default 300)")
+    p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
+                   help="optional wall-clock cap on the training (default: none; the work is counted in epochs)")
     p.set_defaults(func=cmd_demo, outputs=lambda args: [] if args.force else [args.output])
 
 

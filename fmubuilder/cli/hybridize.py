@@ -1,22 +1,56 @@
-"""`fmubuilder hybridize MODEL.fmu --train TRAIN.csv --test TEST.csv -o HYBRID.fmu --report DIR`."""
+"""`fmubuilder hybridize MODEL.fmu --train TRAIN.csv [--train MORE.csv ...] [--validation VAL.csv]
+--test TEST.csv -o HYBRID.fmu --report DIR`."""
 from __future__ import annotations
+
+import argparse
 
 from .common import parse_assignments
 
 
+class _TrainFile(argparse.Action):
+    """--train FILE: one more training file, with its own list of start values."""
+
+    def __call__(self, parser, namespace, value, option_string=None):
+        runs = list(getattr(namespace, self.dest) or [])
+        runs.append((value, []))
+        setattr(namespace, self.dest, runs)
+
+
+class _TrainStart(argparse.Action):
+    """--train-start NAME=VALUE: a start value of the --train file given before it."""
+
+    def __call__(self, parser, namespace, value, option_string=None):
+        runs = getattr(namespace, "train") or []
+        if not runs:
+            parser.error("--train-start belongs to the --train file before it; give --train DATA.csv first")
+        runs[-1][1].append(value)
+
+
 def add_hybridize_parser(subparsers, common=None) -> None:
+    from ..hybridize.workflow import DEFAULT_EPOCHS, VALIDATION_SHARE
     p = subparsers.add_parser(
         "hybridize", parents=[common] if common else [], help="diagnose, add the missing effect, train, export and validate a hybrid FMU, with a report")
     p.add_argument("fmu", metavar="MODEL.fmu", help="the first-principle FMI 2.0 Model-Exchange FMU")
-    p.add_argument("--train", required=True, metavar="TRAIN.csv", help="measured data to train on")
-    p.add_argument("--train-start", action="append", metavar="NAME=VALUE",
-                   help="start value for the training data (repeatable; default: from the data's .json sidecar)")
-    p.add_argument("--test", required=True, metavar="TEST.csv", help="held-out measured data")
-    p.add_argument("--test-start", action="append", metavar="NAME=VALUE", help="start value for the held-out data")
+    p.add_argument("--train", required=True, action=_TrainFile, metavar="TRAIN.csv",
+                   help="measured data to train on (repeatable: one run per file)")
+    p.add_argument("--train-start", action=_TrainStart, metavar="NAME=VALUE",
+                   help="start value for the --train file before it (repeatable; default: the file's .json sidecar)")
+    p.add_argument("--validation", metavar="VAL.csv",
+                   help="a separate run that chooses the candidate and decides whether to publish it "
+                        f"(default: the last {VALIDATION_SHARE:.0%} of each training run, held out of the fit)")
+    p.add_argument("--validation-start", action="append", metavar="NAME=VALUE",
+                   help="start value for the validation run")
+    p.add_argument("--test", required=True, metavar="TEST.csv",
+                   help="test data: touched once, after everything is decided")
+    p.add_argument("--test-start", action="append", metavar="NAME=VALUE", help="start value for the test data")
     p.add_argument("--output", "-o", required=True, metavar="HYBRID.fmu", help="the hybrid FMU to write")
     p.add_argument("--report", required=True, metavar="DIR", help="folder for report.json, report.md and plots")
-    p.add_argument("--time-budget", type=float, default=300.0, metavar="SECONDS",
-                   help="rough wall-time budget for diagnosis and training (default 300)")
+    p.add_argument("--epochs", type=int, default=DEFAULT_EPOCHS, metavar="N",
+                   help=f"NeuralFMU training epochs (default {DEFAULT_EPOCHS})")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the training (default 0)")
+    p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
+                   help="optional wall-clock cap on the training; the report says when it cut the training short "
+                        "(the results then depend on the machine)")
     p.add_argument("--force", action="store_true",
                    help="overwrite outputs, and build a hybrid even when the effect is not significant")
     p.set_defaults(func=cmd_hybridize, outputs=lambda args: [args.output, args.report])
@@ -24,20 +58,29 @@ def add_hybridize_parser(subparsers, common=None) -> None:
 
 def cmd_hybridize(args) -> None:
     from ..hybridize.workflow import hybridize
-    result = hybridize(args.fmu, args.train, args.test, args.output, args.report,
-                       train_start=parse_assignments(args.train_start, "--train-start"),
-                       test_start=parse_assignments(args.test_start, "--test-start"),
-                       time_budget=args.time_budget, force=args.force)
+    train = [path for path, _ in args.train]
+    train_start = [parse_assignments(starts, "--train-start") for _, starts in args.train]
+    result = hybridize(args.fmu, train, args.test, args.output, args.report, validation_csv=args.validation,
+                       train_start=train_start,
+                       validation_start=parse_assignments(args.validation_start, "--validation-start"),
+                       test_start=parse_assignments(args.test_start, "--test-start"), epochs=args.epochs,
+                       seed=args.seed, time_budget=args.time_budget, force=args.force)
     print(summary(result))
 
 
 def summary(result) -> str:
     report = result.report
     lines = []
-    for part in ("train", "test"):
+    for part in ("train", "validation", "test"):
         for signal, factor in report["mse_factor"][part].items():
-            lines.append(f"  {part:5s} {signal:12s} MSE x{factor:.3g} better")
+            lines.append(f"  {part:10s} {signal:12s} MSE x{factor:.3g} better")
+    if report.get("selection", {}).get("scores"):
+        scores = ", ".join(f"{name} {score:.3g}" for name, score in report["selection"]["scores"].items())
+        lines.append(f"  validation MSE relative to the plain FMU (chooses): {scores}")
+    if report["models"]:
+        lines.append("  test MSE relative to the plain FMU (touched once, after the choice): " +
+                     ", ".join(f"{m['name']} {m['test_relative_mse']:.3g}" for m in report["models"]))
     head = (f"wrote {result.hybrid_fmu}" if result.hybrid_fmu else
             "no hybrid FMU written: " + ("no significant effect" if not report["diagnosis"]["significant"]
-                                         else "no candidate improved the held-out error"))
+                                         else "no candidate improved the validation error"))
     return "\n".join([head, *lines, f"report: {result.report_dir / 'report.md'}"])

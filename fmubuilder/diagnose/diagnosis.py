@@ -26,7 +26,7 @@ import numpy as np
 from ..errors import FmuBuilderError
 from ..fmi.archive import read_model_info
 from . import significance
-from .data import MeasuredData, load_measurement
+from ..data import MeasuredData, load_data
 from .runs import AddedTerm, ModelRun, ModelRunner, form_text, rms
 from .trace import (FIRST_FORMS, INPUT_FORMS, MAX_CHANNELS, REFINED_VARIABLES, SECOND_CHANNEL_RATIO,
                     FittedTerm, Tracer, candidate_variables)
@@ -94,18 +94,25 @@ class Diagnosis:
 
 
 def diagnose(model_fmu, data_csv, start_values: dict | None = None, plots_dir=None, *,
-             time_budget: float = 60.0, trace_always: bool = False) -> Diagnosis:
+             time_budget: float = 60.0, trace_always: bool = False,
+             trace_span: float | None = None) -> Diagnosis:
     """Compare the declared model with measured data and trace a significant difference.
 
     start_values: {name: value} for the model (added to those recorded with the data);
     plots_dir: folder for PNG plots (created); time_budget: seconds the tracing may take
     (longer data are traced on a leading window); trace_always: trace even when the residual
-    is not significant.
+    is not significant; trace_span: seconds of data to trace on instead of what the time budget
+    allows (the same data then give the same diagnosis on an idle and on a busy machine).
     """
     started = wallclock.perf_counter()
-    model_fmu, data_csv = Path(model_fmu), Path(data_csv)
+    model_fmu = Path(model_fmu)
     info = read_model_info(model_fmu)
-    data = load_measurement(data_csv, info)
+    # data_csv: a path, or data already loaded (e.g. the part of a run a workflow fits on)
+    if isinstance(data_csv, MeasuredData):
+        data, data_csv = data_csv, data_csv.source
+    else:   # fewer than 8 samples cannot tell an effect from noise
+        data_csv = Path(data_csv)
+        data = load_data(data_csv, info, min_samples=8)
     start, stop = float(data.time[0]), float(data.time[-1])
     given = {**data.start_values, **(start_values or {})}
     variables = candidate_variables(info)
@@ -131,7 +138,8 @@ def diagnose(model_fmu, data_csv, start_values: dict | None = None, plots_dir=No
         fitted_run = None
         if significant or trace_always:
             trace_started = wallclock.perf_counter()
-            fitted_term = _trace(diagnosis, info, data, runner, nominal, tests, variables, time_budget)
+            fitted_term = _trace(diagnosis, info, data, runner, nominal, tests, variables, time_budget,
+                                 trace_span)
             wall["trace"] = wallclock.perf_counter() - trace_started
             if fitted_term is not None:
                 fitted_run = runner.simulate(fitted_term.terms, trajectories=False)
@@ -227,10 +235,12 @@ def signal_errors(data: MeasuredData, nominal: ModelRun):
 
 
 def _trace(diagnosis: Diagnosis, info, data: MeasuredData, runner: ModelRunner, nominal: ModelRun,
-           tests, variables, time_budget: float) -> FittedTerm | None:
+           tests, variables, time_budget: float, trace_span: float | None = None) -> FittedTerm | None:
     noise = {e.signal: math.hypot(t.noise, t.floor) for e, t in zip(diagnosis.errors, tests)}
     start, stop = diagnosis.window
     fraction = min(1.0, time_budget / max(planned_trials(info, nominal, variables) * nominal.wall_time, 1e-9))
+    if trace_span is not None:
+        fraction = min(1.0, trace_span / (stop - start))
     trace_runner, trace_nominal = runner, nominal
     if fraction < 1.0:
         trace_stop = start + max(fraction, 0.1) * (stop - start)

@@ -23,7 +23,7 @@ from ..fmi.instance import Fmu
 from ..simulation.engine import output_grid, run
 from ..simulation.solvers import make_solver
 from ..simulation.system import FmuSystem
-from ..synth import first_order_lag
+from ..data import first_order_lag
 
 TIME = "time"  # pseudo-variable: a term in the time since the start of the window
 

@@ -1,33 +1,51 @@
 """`fmubuilder hybridize`: diagnose, add the effect, train, export, validate, report.
 
+The data play three roles, and each number in the report comes from one of them:
+
+    training   -> the diagnosis and the NeuralFMU's fit see only these samples
+    validation -> chooses among the candidates and decides whether one is published: a late share
+                  of each training run held out of the fit, or a separate run (`validation_csv`)
+    test       -> touched once, after everything is decided; every candidate's test numbers are
+                  reported, the chosen one's and the others'
+
     diagnosis  -> is there an effect beyond noise? which derivative, which variables?
     candidates -> a NeuralFMU with the ANN at the traced channel and inputs, and the fitted
                   symbolic term when the diagnosis offers one; each exported as a hybrid FMU
-    selection  -> the candidate with the lower error on the held-out data
-    validation -> round trip of the chosen hybrid FMU (fmpy vs the Python reference)
+    selection  -> the candidate with the lower validation error, if it beats the plain FMU there
+    round trip -> of the chosen hybrid FMU (fmpy vs the Python reference)
     report     -> DIR/report.json, DIR/report.md and plots
+
+The work is counted, not timed: the diagnosis traces a fixed span of data and the NeuralFMU trains
+a fixed number of epochs, so the same command gives the same numbers on an idle and a busy machine.
+`time_budget` is an optional wall-clock cap on the training; the report says when it cut it short.
 """
 from __future__ import annotations
 
+import math
 import shutil
 import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
+from ..data import MeasuredData
 from ..errors import FmuBuilderError
 from ..files import copy_atomically
 from ..fmi import read_model_info
-from .evaluate import Evaluation, evaluate, load_data, relative_mse
+from .evaluate import Evaluation, Scoring, evaluate, read_data, relative_mse, signal_errors
 
-# Share of the time budget for the diagnosis' tracing. The NeuralFMU's training gets what is left
-# after keeping back, for the steps after it (export, two evaluations, validation, report), twice
-# the plain model's evaluation time plus AFTER_TRAINING seconds; at least MIN_TRAINING seconds.
-DIAGNOSIS_SHARE = 0.2
-AFTER_TRAINING = 30.0
-MIN_TRAINING = 30.0
+# Share of each training run (its end) held out of the fit for validation, when no separate
+# validation run is given.
+VALIDATION_SHARE = 0.2
+# Seconds of the training data the diagnosis traces the effect on (the significance test uses all).
+# On the VLDM demo 120 s trace the resistance to der(speed); 200 s lead the tracing to der(energy).
+TRACE_SPAN = 120.0
+# NeuralFMU epochs (one optimizer step each, see MAX_ELEMENT_LENGTH).
+DEFAULT_EPOCHS = 10
 # Seconds of the test data replayed by the round-trip validation (fmpy Euler and CVode).
-VALIDATION_SPAN = 60.0
+ROUNDTRIP_SPAN = 60.0
 # ANN inputs: the leading traced variable. Each further input is another way to fit noise, and the
 # runners-up often carry little new (on the VLDM, motor_torque_limit is a function of speed).
 MAX_ANN_INPUTS = 1
@@ -41,13 +59,49 @@ ALIAS_SPAN = 60.0
 
 
 @dataclass
+class Part:
+    """The samples of one data set that play one role; the model is simulated over the whole run."""
+    data: MeasuredData
+    start_values: dict
+    window: tuple[float, float]
+
+    @property
+    def label(self) -> str:
+        name = Path(self.data.path).name if self.data.path else self.data.source
+        whole = self.window == (self.data.start, self.data.stop)
+        return name if whole else f"{name} [{self.window[0]:g}, {self.window[1]:g}] s"
+
+    def samples(self) -> MeasuredData:
+        return self.data.window(*self.window)
+
+
+@dataclass
+class Roles:
+    train: list[Part]
+    validation: list[Part]
+    test: Part
+    held_out_of_training: bool       # validation = the late share of each training run
+
+    def describe(self) -> dict:
+        return {role: [p.label for p in parts] for role, parts in
+                (("train", self.train), ("validation", self.validation), ("test", [self.test]))}
+
+
+@dataclass
+class Scores:
+    """A model's errors per role (over all the role's samples) and its runs for the plots."""
+    fmu: Path
+    errors: dict = field(default_factory=dict)        # role -> signal -> {"mse", "max_abs", "final"}
+    runs: dict = field(default_factory=dict)          # id(data) -> Evaluation over the whole run
+
+
+@dataclass
 class Candidate:
     name: str                      # "neural" or "fitted term"
     description: str
     fmu: Path
     spec_dir: Path
-    train: Evaluation
-    test: Evaluation
+    scores: Scores
     details: dict = field(default_factory=dict)
 
 
@@ -58,79 +112,165 @@ class HybridizeResult:
     hybrid_fmu: Path | None
 
 
-def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, train_start: dict | None = None,
-              test_start: dict | None = None, time_budget: float = 300.0, force: bool = False,
-              progress: bool = True) -> HybridizeResult:
+def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validation_csv=None,
+              train_start: dict | list | None = None, validation_start: dict | None = None,
+              test_start: dict | None = None, epochs: int = DEFAULT_EPOCHS, seed: int = 0,
+              time_budget: float | None = None, force: bool = False, progress: bool = True) -> HybridizeResult:
+    """train_csv: one data file or a list of them; train_start: start values for all of them, or a
+    list with one dict per file (added to each file's sidecar). time_budget: optional wall-clock cap
+    in seconds on the NeuralFMU's training (the work is `epochs`)."""
     started = time.perf_counter()
     model_fmu, output_fmu, report_dir = Path(model_fmu), Path(output_fmu), Path(report_dir)
     _check_outputs(output_fmu, report_dir, force)
+    if epochs < 0:
+        raise FmuBuilderError(f"epochs must be >= 0, got {epochs}")
+    if time_budget is not None and not time_budget > 0:
+        raise FmuBuilderError(f"time budget {time_budget:g} s: give a positive number of seconds or none")
     info = read_model_info(model_fmu)
-    train_data, test_data = load_data(Path(train_csv), model_fmu), load_data(Path(test_csv), model_fmu)
-    train_start = {**train_data.start_values, **(train_start or {})}
-    test_start = {**test_data.start_values, **(test_start or {})}
+    roles = _assign_roles(info, train_csv, train_start, validation_csv, validation_start, test_csv, test_start)
+    scoring = Scoring.like_training(info, roles.train[0].data)
     work = Path(tempfile.mkdtemp(prefix="fmubuilder-hybridize-"))
     try:
         report_dir.mkdir(parents=True, exist_ok=True)
         say = print if progress else (lambda *a, **k: None)
-        say(f"[1/5] diagnosing {model_fmu.name} against {Path(train_csv).name} ...")
+        first = roles.train[0]
+        say(f"[1/5] diagnosing {model_fmu.name} against {first.label} ...")
         from ..diagnose import diagnose
-        diagnosis = diagnose(model_fmu, train_csv, train_start, plots_dir=report_dir / "diagnosis",
-                             time_budget=DIAGNOSIS_SHARE * time_budget)
-        train_start = {**train_start, **diagnosis.start_values}
+        diagnosis = diagnose(model_fmu, first.samples(), first.start_values, plots_dir=report_dir / "diagnosis",
+                             time_budget=math.inf, trace_span=TRACE_SPAN)
+        for part in (*roles.train, *roles.validation):     # the diagnosis' start values belong to its run
+            if part.data is first.data:
+                part.start_values = {**part.start_values, **diagnosis.start_values}
         say(f"      {_diagnosis_line(diagnosis)}")
         timings = {"diagnosis": time.perf_counter() - started}
-        evaluation_started = time.perf_counter()
-        before_train = evaluate(model_fmu, train_data, train_start)
-        before_test = evaluate(model_fmu, test_data, test_start)
-        evaluation_seconds = timings["evaluation"] = time.perf_counter() - evaluation_started
+        plain = score(Scores(model_fmu), roles, scoring, ("train", "validation"))
         candidates: list[Candidate] = []
+        training = None
         if diagnosis.significant or force:
             if diagnosis.channel is None:
                 raise FmuBuilderError("the diagnosis found an effect but could not trace it to a state derivative; "
                                       "see the diagnosis in the report folder")
-            context = _Context(model_fmu, info, train_csv, test_csv, train_data, test_data, train_start, test_start,
-                               work, say, evaluation_seconds, progress=progress)
+            context = _Context(model_fmu, info, roles, scoring, work, say, epochs, seed, time_budget, started,
+                               progress=progress)
             candidates_started = time.perf_counter()
-            candidates = _build_candidates(context, diagnosis, started, time_budget)
+            candidates = _build_candidates(context, diagnosis)
+            training = context.training
             timings["candidates"] = time.perf_counter() - candidates_started
-        chosen = _choose(candidates, before_test)
+        selection = _select(candidates, plain)
+        chosen = next((c for c in candidates if c.name == selection["chosen"]), None)
+        # Everything is decided: now, and only now, the test data.
+        say("      scoring every model on the test data (once, after the choice) ...")
+        for model in (plain, *(c.scores for c in candidates)):
+            score(model, roles, scoring, ("test",))
         hybrid_path, roundtrip = None, None
         if chosen is not None:
             say(f"[4/5] validating the round trip of the {chosen.name} hybrid ...")
-            validation_started = time.perf_counter()
-            roundtrip = _validate(chosen, test_csv, test_start, test_data)
-            timings["validation"] = time.perf_counter() - validation_started
+            roundtrip_started = time.perf_counter()
+            roundtrip = _roundtrip(chosen, roles.test)
+            timings["roundtrip"] = time.perf_counter() - roundtrip_started
             _publish(chosen.fmu, output_fmu, force)
             hybrid_path = output_fmu
         say("[5/5] writing the report ...")
         from .report import write_report
-        report = write_report(report_dir, model_fmu=model_fmu, diagnosis=diagnosis, before=(before_train, before_test),
-                              candidates=candidates, chosen=chosen, roundtrip=roundtrip, hybrid_fmu=hybrid_path,
-                              train_data=train_data, test_data=test_data, seconds=time.perf_counter() - started,
-                              timings=timings)
+        report = write_report(report_dir, model_fmu=model_fmu, diagnosis=diagnosis, plain=plain,
+                              candidates=candidates, chosen=chosen, selection=selection, roundtrip=roundtrip,
+                              hybrid_fmu=hybrid_path, roles=roles, scoring=scoring, training=training,
+                              seconds=time.perf_counter() - started, timings=timings)
         return HybridizeResult(report, report_dir, hybrid_path)
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
 
+# -- roles of the data ----------------------------------------------------------------------------
+
+def _assign_roles(info, train_csv, train_start, validation_csv, validation_start, test_csv, test_start) -> Roles:
+    paths = [train_csv] if isinstance(train_csv, (str, Path)) else list(train_csv)
+    if not paths:
+        raise FmuBuilderError("no training data: give at least one --train DATA.csv")
+    starts = train_start if isinstance(train_start, list) else [train_start] * len(paths)
+    if len(starts) != len(paths):
+        raise FmuBuilderError(f"{len(starts)} sets of training start values for {len(paths)} training files; "
+                              "give one per file")
+    runs = [read_data(Path(p), info) for p in paths]
+    train = [Part(d, {**d.start_values, **(s or {})}, (d.start, d.stop)) for d, s in zip(runs, starts)]
+    test_data = read_data(Path(test_csv), info)
+    test = Part(test_data, {**test_data.start_values, **(test_start or {})}, (test_data.start, test_data.stop))
+    if validation_csv is not None:
+        data = read_data(Path(validation_csv), info)
+        validation = [Part(data, {**data.start_values, **(validation_start or {})}, (data.start, data.stop))]
+        return Roles(train, validation, test, held_out_of_training=False)
+    validation = []
+    for part in train:
+        split = _split_time(part.data)
+        validation.append(Part(part.data, part.start_values, (_next_sample(part.data, split), part.data.stop)))
+        part.window = (part.data.start, split)
+    return Roles(train, validation, test, held_out_of_training=True)
+
+
+def _split_time(data: MeasuredData) -> float:
+    """The last sample before the held-out late share of a run."""
+    split = data.start + (1.0 - VALIDATION_SHARE) * (data.stop - data.start)
+    index = int(np.searchsorted(data.time, split, side="right")) - 1
+    if index < 1 or index > data.time.size - 3:
+        raise FmuBuilderError(f"{data.source} has too few samples to hold {VALIDATION_SHARE:.0%} of it out for "
+                              "validation; give a separate run with --validation")
+    return float(data.time[index])
+
+
+def _next_sample(data: MeasuredData, t: float) -> float:
+    return float(data.time[int(np.searchsorted(data.time, t, side="right"))])
+
+
+# -- scoring ------------------------------------------------------------------------------------
+
+def score(scores: Scores, roles: Roles, scoring: Scoring, which: tuple[str, ...]) -> Scores:
+    """Errors of the model on the roles in `which`, over all of each role's samples; each run is
+    simulated once (a training run gives both its fit part and its held-out tail)."""
+    for role in which:
+        parts = {"train": roles.train, "validation": roles.validation, "test": [roles.test]}[role]
+        pieces = []
+        for part in parts:
+            key = id(part.data)
+            if key not in scores.runs:
+                scores.runs[key] = evaluate(scores.fmu, part.data, part.start_values, scoring)
+            run = scores.runs[key]
+            pieces.append((part.data.signals, run.predicted, (run.time >= part.window[0]) & (run.time <= part.window[1])))
+        scores.errors[role] = {name: signal_errors(np.concatenate([m[name][k] for m, _, k in pieces]),
+                                                   np.concatenate([p[name][k] for _, p, k in pieces]))
+                               for name in parts[0].data.names}
+    return scores
+
+
+def _select(candidates: list[Candidate], plain: Scores) -> dict:
+    """The candidate with the lowest validation error, if it improves on the plain model there
+    (score: mean over signals of MSE candidate / MSE plain; the plain model scores 1)."""
+    scores = {c.name: relative_mse(plain.errors["validation"], c.scores.errors["validation"]) for c in candidates}
+    better = {name: score for name, score in scores.items() if score < 1.0}
+    chosen = min(better, key=better.get) if better else None
+    return {"on": "validation", "scores": scores, "chosen": chosen,
+            "rule": "lowest mean validation MSE relative to the plain FMU, published if below 1"}
+
+
+# -- candidates ---------------------------------------------------------------------------------
+
 @dataclass
 class _Context:
     model_fmu: Path
     info: object
-    train_csv: Path
-    test_csv: Path
-    train_data: object
-    test_data: object
-    train_start: dict
-    test_start: dict
+    roles: Roles
+    scoring: Scoring
     work: Path
     say: object
-    evaluation_seconds: float      # of the plain model on the training and the held-out data
+    epochs: int
+    seed: int
+    time_budget: float | None      # wall-clock cap on the whole call, seconds
+    started: float
     aliases: dict = field(default_factory=dict)   # channel -> {output: channel}, see channel_aliases
+    training: dict | None = None                  # what the NeuralFMU's training did
     progress: bool = True
 
 
-def _build_candidates(ctx: _Context, diagnosis, started: float, time_budget: float) -> list[Candidate]:
+def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
     candidates = []
     fitted = diagnosis.fitted_term
     if fitted and fitted.get("offered"):
@@ -140,20 +280,24 @@ def _build_candidates(ctx: _Context, diagnosis, started: float, time_budget: flo
             candidates.append(term)
     inputs = _ann_inputs(diagnosis, ctx.info)
     aliases = _aliases_of(ctx, diagnosis.channel)
-    remaining = time_budget - (time.perf_counter() - started)
-    budget = max(MIN_TRAINING, remaining - 2.0 * ctx.evaluation_seconds - AFTER_TRAINING)
     ctx.say(f"[3/5] training a NeuralFMU: ANN on {diagnosis.channel} with inputs {', '.join(inputs)} "
-            f"(time budget {budget:.0f} s) ...")
-    settings = _training_settings(ctx.train_data, diagnosis)
-    candidates.append(_neural_candidate(ctx, diagnosis.channel, inputs, budget, aliases, settings))
+            f"({ctx.epochs} epochs) ...")
+    settings = _training_settings(ctx.roles.train[0].samples(), diagnosis)
+    candidates.append(_neural_candidate(ctx, diagnosis.channel, inputs, aliases, settings))
     return candidates
+
+
+def _candidate(ctx: _Context, name: str, description: str, fmu: Path, folder: Path, details: dict) -> Candidate:
+    scores = Scores(fmu)
+    score(scores, ctx.roles, ctx.scoring, ("train", "validation"))
+    return Candidate(name, description, fmu, folder, scores, details)
 
 
 def _aliases_of(ctx: _Context, channel: str) -> dict[str, str]:
     if channel not in ctx.aliases:
-        data = ctx.train_data
+        data = ctx.roles.train[0].samples()
         start = float(data.time[0])
-        ctx.aliases[channel] = channel_aliases(ctx.model_fmu, ctx.info, channel, ctx.train_start, data.time,
+        ctx.aliases[channel] = channel_aliases(ctx.model_fmu, ctx.info, channel, ctx.roles.train[0].start_values, data.time,
                                                start, min(float(data.time[-1]), start + ALIAS_SPAN))
         if ctx.aliases[channel]:
             ctx.say(f"      corrected with {channel} too: {', '.join(ctx.aliases[channel])} (equal to it in the model)")
@@ -203,36 +347,45 @@ def _fitted_term_candidate(ctx: _Context, fitted: dict, aliases: dict[str, str])
     if spec is None:
         return None
     fmu = export_hybrid(spec, folder / "hybrid.fmu")
-    return Candidate("fitted term", fitted["expression"], fmu, folder,
-                     evaluate(fmu, ctx.train_data, ctx.train_start), evaluate(fmu, ctx.test_data, ctx.test_start),
-                     {"expression": fitted["expression"], "aliases": aliases})
+    return _candidate(ctx, "fitted term", fitted["expression"], fmu, folder,
+                      {"expression": fitted["expression"], "aliases": aliases,
+                       "fitted_on": ctx.roles.train[0].label})
 
 
-def _neural_candidate(ctx: _Context, channel: str, inputs: list[str], budget: float,
-                      aliases: dict[str, str], settings: dict) -> Candidate:
+def _neural_candidate(ctx: _Context, channel: str, inputs: list[str], aliases: dict[str, str],
+                      settings: dict) -> Candidate:
     from ..export import export_hybrid
     from ..neural import train_neural_fmu
     from .terms import spec_from_neural
     folder = ctx.work / "neural"
     folder.mkdir()
-    # The data's sidecar gives the bench's sensor lag; the training sees the model through it.
-    trained = train_neural_fmu(ctx.model_fmu, ctx.train_csv, targets=[channel], inputs=inputs,
-                               start_values=ctx.train_start, topology="residual", time_budget=budget,
-                               output=folder / "trained.neuralfmu", progress=ctx.progress,
-                               **settings)
+    first = ctx.roles.train[0]
+    cap = None
+    if ctx.time_budget is not None:
+        cap = max(1.0, ctx.time_budget - (time.perf_counter() - ctx.started))
+    # The training sees the model through the data's sensor lag (from the sidecar), at the step and
+    # with the solver every model is scored with.
+    trained = train_neural_fmu(ctx.model_fmu, first.samples(), targets=[channel], inputs=inputs,
+                               start_values=first.start_values, topology="residual", epochs=ctx.epochs,
+                               seed=ctx.seed, time_budget=cap, solver=ctx.scoring.solver,
+                               step_size=ctx.scoring.step, output=folder / "trained.neuralfmu",
+                               progress=ctx.progress, **settings)
     try:
         spec = spec_from_neural(trained.model, folder, aliases)
     finally:
         trained.model.close()
     fmu = export_hybrid(spec, folder / "hybrid.fmu")
-    details = {"channel": channel, "inputs": inputs, "aliases": aliases, "epochs": trained.metrics.get("epochs"),
-               "training_seconds": trained.metrics.get("seconds"), "loss_signals": settings["loss_signals"]}
-    return Candidate("neural", f"ANN on {channel} with inputs {', '.join(inputs)}", fmu, folder,
-                     evaluate(fmu, ctx.train_data, ctx.train_start), evaluate(fmu, ctx.test_data, ctx.test_start),
-                     details)
+    metrics = trained.metrics
+    ctx.training = {"epochs": ctx.epochs, "epochs_done": metrics.get("epochs"), "seed": ctx.seed,
+                    "time_budget": ctx.time_budget, "cut_short_by_time_budget": bool(metrics.get("cut_short_by_time_budget")),
+                    "trained_on": first.label}
+    details = {"channel": channel, "inputs": inputs, "aliases": aliases, "epochs": metrics.get("epochs"),
+               "training_seconds": metrics.get("seconds"), "loss_signals": settings["loss_signals"],
+               "trained_on": first.label}
+    return _candidate(ctx, "neural", f"ANN on {channel} with inputs {', '.join(inputs)}", fmu, folder, details)
 
 
-def _training_settings(data, diagnosis) -> dict:
+def _training_settings(data: MeasuredData, diagnosis) -> dict:
     """Element length and loss signals of the NeuralFMU training: the loss is on the signals in
     which the diagnosis found the effect (all of them if it found it in none alone). The others sit
     at the noise level and their fit to noise pulls the ANN away from the effect."""
@@ -241,21 +394,16 @@ def _training_settings(data, diagnosis) -> dict:
     return {"element_length": min(MAX_ELEMENT_LENGTH, span / MIN_ELEMENTS), "loss_signals": showing or None}
 
 
-def _choose(candidates: list[Candidate], before_test: Evaluation) -> Candidate | None:
-    """The candidate with the lowest held-out error, if it improves on the plain model."""
-    scored = [(relative_mse(before_test.errors, c.test.errors), c) for c in candidates]
-    scored = [(score, c) for score, c in scored if score < 1.0]
-    return min(scored, key=lambda sc: sc[0])[1] if scored else None
-
-
-def _validate(chosen: Candidate, test_csv, test_start: dict, test_data) -> dict:
+def _roundtrip(chosen: Candidate, test: Part) -> dict:
     from ..export import validate_hybrid
-    stop = min(float(test_data.time[-1]), float(test_data.time[0]) + VALIDATION_SPAN)
-    report = validate_hybrid(chosen.fmu, spec=chosen.spec_dir / "spec.json", start_values=test_start,
+    data = test.data
+    stop = min(data.stop, data.start + ROUNDTRIP_SPAN)
+    report = validate_hybrid(chosen.fmu, spec=chosen.spec_dir / "spec.json", start_values=test.start_values,
                              stop_time=stop)
-    rows = [c for c in report.comparisons if not c.informational and c.error is None]
+    rows = [c for c in report.comparisons if not c.informational and c.compared]
     return {"passed": report.passed, "max_rel_error": max((c.max_rel for c in rows), default=None),
-            "span": [float(test_data.time[0]), stop], "table": report.format_table()}
+            "span": [data.start, stop], "table": report.format_table(),
+            "not_compared": [c.label for c in report.comparisons if c.error is None and not c.compared]}
 
 
 def _publish(source: Path, target: Path, force: bool) -> None:

@@ -16,7 +16,7 @@ _EXPORTS = {
     "simulate": "solve", "ElementStart": "solve", "Trajectory": "solve",
     "train_neural_fmu": "train", "TrainSettings": "train", "TrainingResult": "train", "evaluate": "train",
     "save_neural_fmu": "io", "load_neural_fmu": "io", "read_neural_fmu": "io",
-    "NeuralFmuSystem": "system", "simulate_hybrid": "system", "load_data": "data", "MeasuredData": "data",
+    "NeuralFmuSystem": "system", "simulate_hybrid": "system",
 }
 
 __all__ = sorted(_EXPORTS)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .data import MeasuredData
+from ..data import MeasuredData
 from .model import NeuralFMU
 from .solve import ElementStart, simulate
 

@@ -50,9 +50,8 @@ import numpy as np
 import torch
 
 from ..errors import FmuBuilderError
+from ..data import MeasuredData, first_order_lag, load_data
 from ..files import write_atomically
-from ..synth import first_order_lag
-from .data import MeasuredData, load_data
 from .io import save_neural_fmu
 from .model import NeuralFMU
 from .solve import ElementStart, simulate
@@ -123,9 +122,9 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
                             activation=activation, kind=topology, parameters=list(parameters))
     model = NeuralFMU(fmu, config, start_values)
     try:
-        if settings.sensor_lag is None:
-            settings.sensor_lag = 0.0 if isinstance(data, MeasuredData) else _sidecar_sensor_lag(data)
         data = data if isinstance(data, MeasuredData) else load_data(data, model.info)
+        if settings.sensor_lag is None:
+            settings.sensor_lag = data.sensor_lag
         trainer = Trainer(model, data, settings, started)
         trainer.prepare()
         before = trainer.evaluate_plain()
@@ -134,12 +133,13 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
         after = evaluate(model, data, trainer.step, settings.solver, sensor_lag=lag)
         metrics = {"errors": {"before": before, "after": after},
                    "seconds": time.perf_counter() - started, "epochs": trainer.epochs_done,
+                   "epochs_planned": settings.epochs, "cut_short_by_time_budget": trainer.cut_short,
                    "loss": trainer.history[-1]["loss"] if trainer.history else None,
                    "settings": asdict(settings)}
         if test_data is not None:
             test = test_data if isinstance(test_data, MeasuredData) else load_data(test_data, model.info)
-            if test_start_values is None and not isinstance(test_data, MeasuredData):
-                test_start_values = _sidecar_start_values(test_data)
+            if test_start_values is None:
+                test_start_values = test.start_values
             metrics["test_errors"] = {
                 "before": evaluate(model, test, trainer.step, settings.solver, start_values=test_start_values,
                                    plain=True, sensor_lag=lag),
@@ -173,20 +173,6 @@ def _settings(settings: TrainSettings | None, overrides: dict) -> TrainSettings:
     if settings.time_budget is not None and not settings.time_budget > 0:
         raise FmuBuilderError(f"time budget must be positive seconds, got {settings.time_budget}")
     return settings
-
-
-def _sidecar_start_values(path) -> dict | None:
-    """Start values recorded next to a data file by `fmubuilder synth` (e.g. the driving cycle)."""
-    from ..synth import read_sidecar
-    meta = read_sidecar(path)
-    return dict(meta.get("start_values") or {}) if meta else None
-
-
-def _sidecar_sensor_lag(path) -> float:
-    """The sensor lag of the bench that wrote a data file (`fmubuilder synth`), 0 without a sidecar."""
-    from ..synth import read_sidecar
-    meta = read_sidecar(path)
-    return float(((meta or {}).get("bench") or {}).get("lag") or 0.0)
 
 
 def _check_outputs(output, metrics_path, force: bool) -> None:
@@ -277,6 +263,7 @@ class Trainer:
         self.inputs = data.input_signals(self.model.info)
         self.history: list[dict] = []
         self.epochs_done = 0
+        self.cut_short = False     # the time budget ended the training before its epochs
         self.elements: list[_Element] = []
         self.reference = None
         self.best_loss, self.best_state, self._best = math.inf, None, None   # see _keep_best
@@ -285,8 +272,12 @@ class Trainer:
         return time.perf_counter() - self.started
 
     def out_of_time(self) -> bool:
+        """Whether the wall-clock cap (time_budget) is used up; the work itself is counted in epochs,
+        so the cap changes the result only when it cuts the training short, which it records."""
         budget = self.settings.time_budget
-        return budget is not None and self.elapsed() > budget
+        if budget is not None and self.elapsed() > budget:
+            self.cut_short = True
+        return self.cut_short
 
     # -- preparation --------------------------------------------------------------------------
     def prepare(self) -> None:

@@ -39,7 +39,7 @@ def dc_drive_fmu():
 def plant_data(path, times, setpoints, stop, seed, friction=0.2, noise=0.002):
     """sampled_plant driven by a set-point profile, with a different viscous friction `b` than the
     declared 0.05 (the effect the ANN has to learn), speed w measured with noise."""
-    from fmubuilder.neural.data import MeasuredData
+    from fmubuilder.data import MeasuredData
     from fmubuilder.simulation import simulate
     result = simulate(path, start_time=0.0, stop_time=stop, start_values={"b": friction},
                       inputs={"time": np.asarray(times, float), "setpoint": np.asarray(setpoints, float)},

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fmubuilder.errors import FmuBuilderError
-from fmubuilder.neural.data import MeasuredData
+from fmubuilder.data import MeasuredData
 from fmubuilder.neural.train import train_neural_fmu
 from fmubuilder.simulation import simulate as engine_simulate
 
@@ -68,12 +68,14 @@ def test_seed_budget_checkpoint_and_resume(plant_fmu, tmp_path):
     first = train_neural_fmu(plant_fmu, train, epochs=2, seed=7, **common)
     second = train_neural_fmu(plant_fmu, train, epochs=2, seed=7, **common)
     assert [h["loss"] for h in first.history] == [h["loss"] for h in second.history]
+    assert first.metrics["epochs"] == first.metrics["epochs_planned"] == 2
+    assert not first.metrics["cut_short_by_time_budget"]
     first.model.close(), second.model.close()
 
     output = tmp_path / "plant.nfmu"
     budget = train_neural_fmu(plant_fmu, train, epochs=1000, time_budget=3.0, output=output,
                               metrics_path=tmp_path / "m.json", **common)
-    assert 0 < budget.metrics["epochs"] < 1000
+    assert 0 < budget.metrics["epochs"] < 1000 and budget.metrics["cut_short_by_time_budget"]
     assert output.is_file() and (tmp_path / "plant.nfmu.ckpt").is_file()
     done = budget.metrics["epochs"]
     budget.model.close()

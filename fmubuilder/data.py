@@ -1,0 +1,199 @@
+"""Measured data, as every stage reads it: the CSV, its sidecar and the sensor model.
+
+A data CSV has ``time`` first (seconds, strictly increasing, any spacing), then columns named
+exactly as FMU variables. Columns that are FMU inputs drive the FMU; the others (states, outputs,
+locals) are measured signals compared with the simulation. A column ``X_std`` next to ``X`` is
+the run-to-run spread of X.
+
+A sidecar ``<csv>.json`` (written by ``fmubuilder synth``, or by hand) describes the data set:
+
+* ``start_values``: start values the data were recorded with (e.g. the driving cycle); they
+  belong to the data set, since a cycle or an operating point is often a model parameter;
+* ``sensor_lag`` (or ``bench.lag``): time constant of the sensors' first-order lag [s];
+  a model output is comparable with a measurement only after the same filter (default 0);
+* ``bench.runs``: how many runs the ``_std`` spread comes from (default 2);
+* ``bench.fine_step``: the grid the bench simulated the truth on [s] (optional).
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .errors import FmuBuilderError
+
+UNCERTAINTY_SUFFIX = "_std"
+DEFAULT_RUNS = 2
+
+
+@dataclass
+class MeasuredData:
+    time: np.ndarray
+    signals: dict[str, np.ndarray]                               # measured FMU variables
+    std: dict[str, np.ndarray] = field(default_factory=dict)     # run-to-run spread of some signals
+    inputs: dict[str, np.ndarray] = field(default_factory=dict)  # FMU inputs
+    source: str = "data"                                         # where the data came from, for messages
+    sensor_lag: float = 0.0                                      # s, first-order sensor filter
+    runs: int = DEFAULT_RUNS                                     # runs behind the spread
+    fine_step: float | None = None                               # s, grid the bench simulated on
+    start_values: dict = field(default_factory=dict)             # from the sidecar
+    path: Path | None = None
+
+    @property
+    def names(self) -> list[str]:
+        return list(self.signals)
+
+    @property
+    def spread(self) -> dict[str, np.ndarray]:
+        return self.std
+
+    @property
+    def start(self) -> float:
+        return float(self.time[0])
+
+    @property
+    def stop(self) -> float:
+        return float(self.time[-1])
+
+    def input_signals(self, info):
+        """The FMU inputs (an `InputSignals` for the FMU described by `info`), or None."""
+        if not self.inputs:
+            return None
+        from .simulation.inputs import input_signals_from
+        return input_signals_from({"time": self.time, **self.inputs}, info)
+
+    def at(self, name: str, t) -> np.ndarray:
+        return np.interp(t, self.time, self.signals[name])
+
+    def weights(self, name: str) -> np.ndarray:
+        """Per-sample weights from the spread (mean 1), or ones without one."""
+        if name not in self.std:
+            return np.ones_like(self.time)
+        variance = np.asarray(self.std[name], dtype=float) ** 2
+        floor = 0.1 * float(np.mean(variance)) if np.any(variance > 0) else 1.0
+        inverse = 1.0 / (variance + floor)
+        return inverse / inverse.mean()
+
+    def window(self, start: float, stop: float) -> "MeasuredData":
+        """The samples with start <= time <= stop, same bench and start values."""
+        keep = (self.time >= start) & (self.time <= stop)
+        cut = lambda columns: {name: values[keep] for name, values in columns.items()}  # noqa: E731
+        return replace(self, time=self.time[keep], signals=cut(self.signals), std=cut(self.std),
+                       inputs=cut(self.inputs), source=f"{self.source} [{start:g}, {stop:g}] s")
+
+
+def load_data(path: str | os.PathLike, info, *, min_samples: int = 2) -> MeasuredData:
+    """Read a data CSV and its sidecar, checked against the FMU's variables (`info`: ModelInfo)."""
+    from .simulation.inputs import read_csv_signals
+    path = Path(path)
+    time, columns = read_csv_signals(path)
+    if time.size < min_samples:
+        raise FmuBuilderError(f"{path} has {time.size} time stamp(s); give at least {min_samples}")
+    names, uncertainty = split_uncertainty_columns(["time", *columns])
+    signals, inputs = {}, {}
+    for name in names:
+        var = info.variable(name)     # an unknown name fails here with the close names
+        if var.type != "Real":
+            raise FmuBuilderError(f"{path}: column '{name}' is a {var.type} variable of the model; "
+                                  "measured signals must be Real variables")
+        if not np.all(np.isfinite(columns[name])):
+            raise FmuBuilderError(f"{path}: column '{name}' holds non-finite values; remove or fill them")
+        if var.causality == "input":
+            inputs[name] = columns[name]
+        elif var.is_parameter:
+            raise FmuBuilderError(f"{path}: column '{name}' is a parameter; give parameters as start values "
+                                  f"({name}=VALUE) or in the sidecar {sidecar_path(path).name}")
+        else:
+            signals[name] = columns[name]
+    if not signals:
+        raise FmuBuilderError(f"{path} has no measured signal: add columns named after FMU states or outputs, "
+                              "e.g. time,speed")
+    std = {name: np.abs(columns[column]) for name, column in uncertainty.items() if name in signals}
+    sidecar = read_sidecar(path) or {}
+    bench = sidecar.get("bench") or {}
+    return MeasuredData(time, signals, std, inputs, source=str(path), sensor_lag=sensor_lag_of(sidecar, path),
+                        runs=max(1, int(bench.get("runs", DEFAULT_RUNS))),
+                        fine_step=_positive_or_none(bench.get("fine_step")),
+                        start_values=dict(sidecar.get("start_values") or {}), path=path)
+
+
+def start_values_of(path: str | os.PathLike) -> dict:
+    """The start values recorded in a data file's sidecar ({} without one)."""
+    return dict((read_sidecar(path) or {}).get("start_values") or {})
+
+
+def sensor_lag_of(sidecar: dict, path: str | os.PathLike = "data") -> float:
+    """The sensor lag a sidecar declares: `sensor_lag`, else the bench's `lag`, else 0."""
+    value = sidecar.get("sensor_lag", (sidecar.get("bench") or {}).get("lag", 0.0))
+    try:
+        lag = float(value or 0.0)
+    except (TypeError, ValueError):
+        lag = -1.0
+    if not lag >= 0.0 or not np.isfinite(lag):
+        raise FmuBuilderError(f"{sidecar_path(path)}: sensor lag {value!r} is not a time constant >= 0 s; fix it")
+    return lag
+
+
+def sidecar_path(csv_path: str | os.PathLike) -> Path:
+    """The metadata JSON belonging to a data file: ``<csv path>.json``."""
+    csv_path = Path(csv_path)
+    return csv_path.with_name(csv_path.name + ".json")
+
+
+def read_sidecar(csv_path: str | os.PathLike) -> dict | None:
+    """The metadata of a data file, or None when it has no sidecar."""
+    meta_path = sidecar_path(csv_path)
+    if not meta_path.is_file():
+        return None
+    try:
+        meta = json.loads(meta_path.read_text())
+    except ValueError as exc:
+        raise FmuBuilderError(f"{meta_path} is not valid JSON ({exc}); fix it or regenerate it with "
+                              "`fmubuilder synth`") from None
+    if not isinstance(meta, dict):
+        raise FmuBuilderError(f"{meta_path} holds no JSON object; write {{\"start_values\": {{...}}}} or delete it")
+    return meta
+
+
+def split_uncertainty_columns(names: Sequence[str]) -> tuple[list[str], dict[str, str]]:
+    """Split data columns into signals and spread columns: ``X_std`` is the spread of ``X``
+    when ``X`` is a column too. Returns (signals, {signal: its _std column})."""
+    present = set(names)
+    uncertainty = {n[: -len(UNCERTAINTY_SUFFIX)]: n for n in names
+                   if n.endswith(UNCERTAINTY_SUFFIX) and n[: -len(UNCERTAINTY_SUFFIX)] in present}
+    signals = [n for n in names if n != "time" and n not in uncertainty.values()]
+    return signals, uncertainty
+
+
+def first_order_lag(time: np.ndarray, signal: np.ndarray, tau: float) -> np.ndarray:
+    """The sensor model: output of ``tau * dy/dt = u - y`` with ``y(t0) = u(t0)`` for an input
+    ``u`` linear between the given points. Repeated time points (before/after an event) are a
+    step of the input and leave the output unchanged."""
+    signal = np.asarray(signal, dtype=float)
+    if tau <= 0.0:
+        return signal.copy()
+    h = np.diff(np.asarray(time, dtype=float))
+    decay = np.exp(-h / tau)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # Weight of the input change over a step: 1 - tau/h * (1 - exp(-h/tau)); -> 0 for h -> 0.
+        ramp_gain = np.where(h > 1e-12 * tau, 1.0 - tau / h * -np.expm1(-h / tau), 0.0)
+    start_gain = 1.0 - decay
+    out = np.empty_like(signal)
+    y = out[0] = signal[0]
+    u = signal.tolist()
+    for k, (a, b, c) in enumerate(zip(decay.tolist(), start_gain.tolist(), ramp_gain.tolist())):
+        y = a * y + b * u[k] + c * (u[k + 1] - u[k])
+        out[k + 1] = y
+    return out
+
+
+def _positive_or_none(value) -> float | None:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        return None
+    return number if number > 0 else None
