@@ -56,7 +56,9 @@ Data file convention (read by the training and validation stages):
 * A sidecar JSON file ``<csv path>.json`` (:func:`sidecar_path`) records the truth model,
   start/stop time, the start values (e.g. ``{"cycle": 1}``: pass them again as
   ``--start cycle=1`` when simulating or training against these data), the bench settings
-  and the seed. Everything is deterministic given the seed.
+  and the seed. Parameters that make the truth differ from its FMU (a parameter-mismatch
+  truth) are recorded only under ``truth``, a key the diagnosis never reads: real data come
+  without it. Everything is deterministic given the seed.
 """
 from __future__ import annotations
 
@@ -162,8 +164,13 @@ class Measurement:
 
 def measure(fmu: str | os.PathLike, *, stop_time: float, start_time: float = 0.0,
             start_values: Mapping[str, object] | None = None,
-            settings: BenchSettings = BenchSettings()) -> Measurement:
-    """Simulate the truth FMU and log it as the test bench described in the module docstring."""
+            settings: BenchSettings = BenchSettings(),
+            truth_parameters: Mapping[str, object] | None = None) -> Measurement:
+    """Simulate the truth FMU and log it as the test bench described in the module docstring.
+
+    truth_parameters: values that make the truth differ from the FMU's declared ones (e.g. a
+    heavier car); unlike start_values they are not data a user would pass back to the model,
+    so the sidecar records them only under ``truth``."""
     from .fmi import read_model_info
 
     fmu = Path(fmu)
@@ -172,12 +179,13 @@ def measure(fmu: str | os.PathLike, *, stop_time: float, start_time: float = 0.0
     _check_settings(settings, start_time, stop_time)
     _check_signals(info, settings)
     start_values = _typed_start_values(info, start_values or {})
+    truth_parameters = _typed_start_values(info, truth_parameters or {})
 
     seeds = np.random.SeedSequence(settings.seed).spawn(3)
     stamp_rng, variation_rng, noise_rng = (np.random.default_rng(s) for s in seeds)
     stamps = sample_times(start_time, stop_time, settings.sample_rate, settings.jitter,
                           settings.time_resolution, stamp_rng)
-    run_starts = _run_start_values(info, start_values, settings, variation_rng)
+    run_starts = _run_start_values(info, {**start_values, **truth_parameters}, settings, variation_rng)
 
     runs = {name: np.empty((settings.runs, len(stamps))) for name in settings.signals}
     true = {name: np.empty((settings.runs, len(stamps))) for name in settings.signals}
@@ -194,6 +202,8 @@ def measure(fmu: str | os.PathLike, *, stop_time: float, start_time: float = 0.0
             runs[name][run] = true[name][run] + settings.noise_of(name) * unit_noise(stamps, settings, noise_rng)
 
     metadata = _metadata(fmu, info, start_time, stop_time, start_values, run_starts, settings)
+    if truth_parameters:
+        metadata["truth"] = {"parameters": truth_parameters}
     return Measurement(time=stamps, runs=runs, true=true, metadata=metadata)
 
 
