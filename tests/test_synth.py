@@ -390,12 +390,14 @@ def test_example_folder_holds_fmus_data_and_readme(short_examples, tmp_path):
     folder = short_examples.write_example("vldm", tmp_path / "example")
     names = {p.name for p in (tmp_path / "example").iterdir()}
     assert {"vldm.fmu", "vldm_truth_extra_resistance.fmu", "vldm_truth_extra_loss.fmu", "README.md"} <= names
-    for variant in ("no_effect", "extra_resistance", "extra_loss"):
+    for variant in ("no_effect", "extra_resistance", "extra_loss", "mass_mismatch"):
         for role, cycle, number in (("train", "cadc", 1), ("test", "wltc2", 2)):
             csv = tmp_path / "example" / f"{variant}_{role}_{cycle}.csv"
             meta = json.loads(sidecar_path(csv).read_text())
-            assert meta["start_values"] == {"cycle": number}
+            assert meta["start_values"] == {"cycle": number}       # the mismatch's mass is not a start value
             assert (tmp_path / "example" / meta["truth_model"]["file"]).is_file()
+            assert meta["bench"]["noise_model"] == "lowpass"        # filtered sensors: coloured noise
+            assert meta.get("truth") == ({"parameters": {"mass": 1087.35}} if variant == "mass_mismatch" else None)
     readme = (tmp_path / "example" / "README.md").read_text()
     assert "--start cycle=1" in readme and "--start cycle=2" in readme
     assert folder.generation_seconds > 0
