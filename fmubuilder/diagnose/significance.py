@@ -350,9 +350,3 @@ def _p_value(chi2: float, dof: int, noise_dof: float) -> float:
     if dof <= 0:
         return 1.0
     return float(stats.f.sf(chi2 / dof, dof, max(noise_dof, 1.0)))
-
-
-def noise_level(residual: np.ndarray, spread: np.ndarray | None, runs: int) -> tuple[float, float]:
-    """(standard deviation per sample, degrees of freedom) of a residual's noise."""
-    fit = fit_noise(residual, None, spread, runs)
-    return fit.marginal, fit.dof
