@@ -1,10 +1,13 @@
 """`fmubuilder example NAME`: a ready-to-use folder with FMUs and measured data.
 
 The only example so far is ``vldm``, the electric-car reference case: the declared vehicle
-model, two "truth" variants with an effect the declared model lacks, and for each of the
-three a training set (CADC road cycle) and a test set (WLTC class 2) produced by the test
+model, two "truth" variants with an effect the declared model lacks, a parameter-mismatch
+variant (the declared model with a heavier car: a wrong parameter, no missing term), and for
+each a training set (CADC road cycle) and a test set (WLTC class 2) produced by the test
 bench of :mod:`fmubuilder.synth`. The declared model's own data are the control case: a
-hybrid model trained on them has nothing to learn.
+hybrid model trained on them has nothing to learn. The sensors are filtered, so their noise
+is coloured (:data:`SENSOR_NOISE`: a first-order low-pass, correlation about 0.6 between
+samples), as in most real data.
 
 Data sets are cached under ``<cache>/example_data/<hash>/`` keyed by the truth FMU's bytes,
 the cycle, the bench settings and the generator's source, so a second call only copies
@@ -43,6 +46,11 @@ class Variant:
     key: str          # short name used in file names
     fmu: str          # example FMU name (fmubuilder.build.example_fmu)
     summary: str
+    parameters: tuple[tuple[str, float], ...] = ()   # truth parameters differing from the FMU's
+
+    @property
+    def truth_parameters(self) -> dict[str, float]:
+        return dict(self.parameters)
 
 
 VLDM_CYCLES = (
@@ -56,7 +64,14 @@ VLDM_VARIANTS = (
             "an undeclared speed-dependent driving resistance (the driver compensates it: more energy, same speed)"),
     Variant("extra_loss", "vldm_truth_extra_loss",
             "an undeclared electrical drivetrain loss (more energy, the motion is unchanged)"),
+    Variant("mass_mismatch", "vldm",
+            "the declared model, but the car is 10 % heavier than declared (mass 1087.35 kg instead of "
+            "988.5 kg): a wrong parameter, no missing term", (("mass", 1087.35),)),
 )
+
+# Sensor noise of the bundled data: each sensor filters its noise with a first-order low-pass
+# of 0.2 s, so that successive 10 Hz samples correlate by about exp(-0.5) = 0.6.
+SENSOR_NOISE = dict(noise_model="lowpass", noise_filter_tau=0.2)
 
 EXAMPLES = ("vldm",)
 
@@ -122,6 +137,8 @@ def write_example(name: str, output: Path, *, force: bool = False, workers: int 
 
     fmus = {}
     for variant in VLDM_VARIANTS:
+        if variant.fmu in fmus:
+            continue
         source = example_fmu(variant.fmu)
         fmus[variant.fmu] = output / source.name
         copy_atomically(source, fmus[variant.fmu])
@@ -155,7 +172,7 @@ def _prepare_folder(output: Path, force: bool) -> None:
 
 def bench_settings(data_set: DataSet):
     from .synth import BenchSettings
-    return BenchSettings(seed=data_set.seed)
+    return BenchSettings(seed=data_set.seed, **SENSOR_NOISE)
 
 
 def cached_data(sets: list[DataSet], workers: int | None = None) -> tuple[list[Path], int]:
@@ -188,6 +205,7 @@ def data_cache_dir() -> Path:
 def _cache_folder(fmu: Path, data_set: DataSet) -> Path:
     key = json.dumps({
         "format": _CACHE_FORMAT, "fmu": file_sha256(fmu), "file": data_set.file_name,
+        "truth_parameters": data_set.variant.truth_parameters,
         "stop_time": data_set.stop_time, "start_values": data_set.start_values,
         "bench": bench_settings(data_set).as_dict(), "generator": _generator_source_hash(),
     }, sort_keys=True)
@@ -212,7 +230,7 @@ def _generate(fmu: Path, data_set: DataSet, target: Path) -> None:
         return
     folder.parent.mkdir(parents=True, exist_ok=True)
     measurement = measure(fmu, stop_time=data_set.stop_time, start_values=data_set.start_values,
-                          settings=bench_settings(data_set))
+                          settings=bench_settings(data_set), truth_parameters=data_set.variant.truth_parameters)
     extra = {"example": {"variant": data_set.variant.key, "effect": data_set.variant.summary,
                          "cycle": data_set.cycle.title, "role": data_set.cycle.role}}
     with tempfile.TemporaryDirectory(prefix=".tmp-", dir=folder.parent) as scratch:
@@ -249,7 +267,8 @@ def _readme(sets: list[DataSet], data: dict[str, Path]) -> str:
     rows = []
     for s in sets:
         distance, consumption = consumption_kwh_per_100km(data[s.file_name])
-        rows.append(f"| `{s.file_name}` | `{s.variant.fmu}.fmu` | {s.cycle.title} ({s.cycle.role}) | "
+        changed = "".join(f" with {name}={value:g}" for name, value in s.variant.parameters)
+        rows.append(f"| `{s.file_name}` | `{s.variant.fmu}.fmu`{changed} | {s.cycle.title} ({s.cycle.role}) | "
                     f"`--start cycle={s.cycle.number}` | {s.stop_time:g} | {distance:.2f} | {consumption:.2f} |")
     variants = "\n".join(f"- `{v.fmu}.fmu` ({v.key}): {v.summary}." for v in VLDM_VARIANTS)
     roles = {"train": "training", "test": "test"}
@@ -271,7 +290,10 @@ The FMU parameter `cycle` selects the driving cycle:
 
 Each CSV was made by `fmubuilder synth` from the truth FMU named in the table: speed [m/s],
 electrical power [W] and cumulative electrical energy [J], logged at about 10 Hz with jittered
-time stamps, 0.1 s sensor lag and sensor noise, averaged over two runs. The `<signal>_std`
+time stamps, 0.1 s sensor lag and coloured sensor noise (each sensor's noise passes a 0.2 s
+first-order low-pass: successive samples correlate by about 0.6), averaged over two runs. The
+`mass_mismatch` data come from `vldm.fmu` itself with a 10 % larger mass; their sidecar names
+that mass only under `truth`. The `<signal>_std`
 columns are the spread of the two runs (sample standard deviation, ddof=1): an uncertainty,
 not a signal. Every CSV has a sidecar `<file>.csv.json` with the truth model, start values,
 noise settings and seed.

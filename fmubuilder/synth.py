@@ -17,8 +17,18 @@ The bench model, in the order it is applied:
    first is jittered uniformly by up to ``jitter`` periods (0.25) and rounded to the clock
    resolution ``time_resolution`` (1 ms). The first stamp is the start time, so the first
    row holds the initial state. Stamps are strictly increasing and not equidistant.
-4. **Sensor noise.** Independent Gaussian noise with a per-signal standard deviation
-   (``noise_std``) is added to every sample of every run. Defaults (:data:`DEFAULT_NOISE_STD`):
+4. **Sensor noise.** Gaussian noise with a per-signal standard deviation (``noise_std``) is
+   added to every sample of every run, independent between signals and runs. Its colour
+   (``noise_model``) is one of :data:`NOISE_MODELS`, all with the same standard deviation:
+
+   * ``white``: independent from sample to sample;
+   * ``ar1``: correlated between successive samples, ``e[k] = rho e[k-1] + sqrt(1 - rho^2) w[k]``
+     (``noise_rho``), as a logger's digital smoothing leaves it;
+   * ``lowpass``: white noise through an analogue low-pass of ``noise_filter_order`` first-order
+     stages with time constant ``noise_filter_tau`` [s], sampled at the stamps: the noise
+     of a filtered sensor (one stage of 0.1 s at 10 Hz gives rho = exp(-1) = 0.37).
+
+   Defaults (:data:`DEFAULT_NOISE_STD`):
    speed 0.02 m/s (roller-encoder speed), power 100 W (power analyser on the HV battery:
    0.2 % of a 50 kW range), energy 100 J. The energy is the analyser's
    own integral of its internal high-rate power reading; the white power noise averages
@@ -46,7 +56,9 @@ Data file convention (read by the training and validation stages):
 * A sidecar JSON file ``<csv path>.json`` (:func:`sidecar_path`) records the truth model,
   start/stop time, the start values (e.g. ``{"cycle": 1}``: pass them again as
   ``--start cycle=1`` when simulating or training against these data), the bench settings
-  and the seed. Everything is deterministic given the seed.
+  and the seed. Parameters that make the truth differ from its FMU (a parameter-mismatch
+  truth) are recorded only under ``truth``, a key the diagnosis never reads: real data come
+  without it. Everything is deterministic given the seed.
 """
 from __future__ import annotations
 
@@ -78,6 +90,7 @@ DEFAULT_NOISE_STD = {
 # Relative tolerance of the truth simulation: far below the sensor noise.
 TRUTH_RTOL = 1e-8
 
+NOISE_MODELS = ("white", "ar1", "lowpass")
 FORMAT = "fmubuilder-measurement/1"
 
 
@@ -95,6 +108,10 @@ class BenchSettings:
     run_variation: Mapping[str, float] = field(default_factory=dict)  # parameter -> relative std per run
     fine_step: float = 0.01          # s, grid of the truth simulation
     seed: int = 0
+    noise_model: str = "white"       # one of NOISE_MODELS
+    noise_rho: float = 0.0           # ar1: correlation of successive samples
+    noise_filter_tau: float = 0.0    # lowpass: time constant of each stage [s]
+    noise_filter_order: int = 1      # lowpass: number of first-order stages
 
     def noise_of(self, signal: str) -> float:
         if signal in self.noise_std:
@@ -147,8 +164,13 @@ class Measurement:
 
 def measure(fmu: str | os.PathLike, *, stop_time: float, start_time: float = 0.0,
             start_values: Mapping[str, object] | None = None,
-            settings: BenchSettings = BenchSettings()) -> Measurement:
-    """Simulate the truth FMU and log it as the test bench described in the module docstring."""
+            settings: BenchSettings = BenchSettings(),
+            truth_parameters: Mapping[str, object] | None = None) -> Measurement:
+    """Simulate the truth FMU and log it as the test bench described in the module docstring.
+
+    truth_parameters: values that make the truth differ from the FMU's declared ones (e.g. a
+    heavier car); unlike start_values they are not data a user would pass back to the model,
+    so the sidecar records them only under ``truth``."""
     from .fmi import read_model_info
 
     fmu = Path(fmu)
@@ -157,12 +179,13 @@ def measure(fmu: str | os.PathLike, *, stop_time: float, start_time: float = 0.0
     _check_settings(settings, start_time, stop_time)
     _check_signals(info, settings)
     start_values = _typed_start_values(info, start_values or {})
+    truth_parameters = _typed_start_values(info, truth_parameters or {})
 
     seeds = np.random.SeedSequence(settings.seed).spawn(3)
     stamp_rng, variation_rng, noise_rng = (np.random.default_rng(s) for s in seeds)
     stamps = sample_times(start_time, stop_time, settings.sample_rate, settings.jitter,
                           settings.time_resolution, stamp_rng)
-    run_starts = _run_start_values(info, start_values, settings, variation_rng)
+    run_starts = _run_start_values(info, {**start_values, **truth_parameters}, settings, variation_rng)
 
     runs = {name: np.empty((settings.runs, len(stamps))) for name in settings.signals}
     true = {name: np.empty((settings.runs, len(stamps))) for name in settings.signals}
@@ -176,9 +199,11 @@ def measure(fmu: str | os.PathLike, *, stop_time: float, start_time: float = 0.0
         for name in settings.signals:
             lagged = first_order_lag(fine_time, fine[name], settings.lag)
             true[name][run] = np.interp(stamps, fine_time, lagged)
-            runs[name][run] = true[name][run] + noise_rng.normal(0.0, settings.noise_of(name), len(stamps))
+            runs[name][run] = true[name][run] + settings.noise_of(name) * unit_noise(stamps, settings, noise_rng)
 
     metadata = _metadata(fmu, info, start_time, stop_time, start_values, run_starts, settings)
+    if truth_parameters:
+        metadata["truth"] = {"parameters": truth_parameters}
     return Measurement(time=stamps, runs=runs, true=true, metadata=metadata)
 
 
@@ -199,6 +224,38 @@ def sample_times(start: float, stop: float, rate: float, jitter: float, resoluti
             f"time stamps at {rate:g} Hz with jitter {jitter:g} and resolution {resolution:g} s are not "
             "strictly increasing: lower the jitter or the clock resolution")
     return stamps
+
+
+def unit_noise(stamps: np.ndarray, settings: BenchSettings, rng: np.random.Generator) -> np.ndarray:
+    """Stationary Gaussian noise of unit standard deviation at the stamps, coloured as
+    ``settings.noise_model`` says (see the module docstring)."""
+    count = len(stamps)
+    if settings.noise_model == "white":
+        return rng.standard_normal(count)
+    if settings.noise_model == "ar1":
+        from scipy.signal import lfilter
+        rho = settings.noise_rho
+        innovations = rng.standard_normal(count) * math.sqrt(1.0 - rho ** 2)
+        innovations[0] = rng.standard_normal()           # start in the stationary distribution
+        return lfilter([1.0], [1.0, -rho], innovations)
+    return _lowpass_noise(stamps, settings, rng)
+
+
+def _lowpass_noise(stamps: np.ndarray, settings: BenchSettings, rng: np.random.Generator) -> np.ndarray:
+    """White noise on the fine grid through the cascade of first-order filters, started ten
+    time constants early (settled) and scaled by the cascade's exact stationary gain."""
+    from scipy.signal import lfilter
+    step, tau, order = settings.fine_step, settings.noise_filter_tau, settings.noise_filter_order
+    decay = math.exp(-step / tau)
+    numerator, denominator = [1.0], [1.0]
+    for _ in range(order):
+        numerator = np.convolve(numerator, [1.0 - decay])
+        denominator = np.convolve(denominator, [1.0, -decay])
+    settle = int(math.ceil(10.0 * order * tau / step))
+    grid = stamps[0] + step * np.arange(-settle, int(math.ceil((stamps[-1] - stamps[0]) / step)) + 2)
+    filtered = lfilter(numerator, denominator, rng.standard_normal(grid.size))
+    impulse = lfilter(numerator, denominator, np.r_[1.0, np.zeros(settle + 1)])
+    return np.interp(stamps, grid, filtered) / math.sqrt(float(np.sum(impulse ** 2)))
 
 
 def simulate_fine(fmu: Path, start_time: float, stop_time: float, start_values: Mapping[str, object],
@@ -246,9 +303,23 @@ def _check_settings(settings: BenchSettings, start_time: float, stop_time: float
         if name not in settings.signals:
             raise FmuBuilderError(
                 f"--noise {name}=... names no logged signal: log it with --signals or drop the option")
+    _check_noise_model(settings)
     for name, rel in settings.run_variation.items():
         if not (math.isfinite(rel) and rel >= 0):
             raise FmuBuilderError(f"run variation of '{name}' is {rel!r}: give a relative standard deviation >= 0")
+
+
+def _check_noise_model(settings: BenchSettings) -> None:
+    if settings.noise_model not in NOISE_MODELS:
+        raise FmuBuilderError(f"noise model '{settings.noise_model}' is unknown: choose one of {', '.join(NOISE_MODELS)}")
+    if settings.noise_model == "ar1" and not -1.0 < settings.noise_rho < 1.0:
+        raise FmuBuilderError(f"AR(1) noise correlation {settings.noise_rho:g} must lie strictly between -1 and 1")
+    if settings.noise_model == "lowpass":
+        if not (math.isfinite(settings.noise_filter_tau) and settings.noise_filter_tau > 0):
+            raise FmuBuilderError(
+                f"low-pass noise needs a filter time constant > 0 s, got {settings.noise_filter_tau:g}")
+        if settings.noise_filter_order not in (1, 2, 3, 4):
+            raise FmuBuilderError(f"low-pass noise filter order {settings.noise_filter_order}: choose 1 to 4 stages")
 
 
 def _check_signals(info, settings: BenchSettings) -> None:

@@ -23,6 +23,7 @@ from fmubuilder.synth import (
     sample_times,
     sidecar_path,
     split_uncertainty_columns,
+    unit_noise,
     write_measurement,
 )
 from fmubuilder.simulation.inputs import read_csv_signals
@@ -210,6 +211,79 @@ def test_run_variation_scales_the_parameter_per_run():
 
 
 # ---------------------------------------------------------------------------------------
+# coloured sensor noise
+
+
+def _lag_correlation(noise, lag=1):
+    return float(np.corrcoef(noise[lag:], noise[:-lag])[0, 1])
+
+
+STAMPS = 0.1 * np.arange(40000)     # 10 Hz, equidistant: the correlations below are analytic
+
+
+def test_ar1_noise_has_unit_variance_and_the_given_correlation():
+    noise = unit_noise(STAMPS, BenchSettings(noise_model="ar1", noise_rho=0.7), np.random.default_rng(1))
+    assert noise.std() == pytest.approx(1.0, rel=0.03)
+    assert _lag_correlation(noise) == pytest.approx(0.7, abs=0.02)
+    assert _lag_correlation(noise, 3) == pytest.approx(0.7 ** 3, abs=0.03)
+
+
+def test_lowpass_noise_correlates_like_the_filtered_white_noise():
+    """One first-order stage (time constant tau): rho(h) = exp(-h / tau); two stages:
+    rho(h) = (1 + h / tau) exp(-h / tau)."""
+    rng = np.random.default_rng(2)
+    one = unit_noise(STAMPS, BenchSettings(noise_model="lowpass", noise_filter_tau=0.1), rng)
+    assert one.std() == pytest.approx(1.0, rel=0.05)     # interpolation to the stamps smooths a little
+    assert _lag_correlation(one) == pytest.approx(np.exp(-1.0), abs=0.03)
+    two = unit_noise(STAMPS, BenchSettings(noise_model="lowpass", noise_filter_tau=0.3, noise_filter_order=2), rng)
+    assert two.std() == pytest.approx(1.0, rel=0.05)
+    assert _lag_correlation(two, 2) == pytest.approx((1 + 0.2 / 0.3) * np.exp(-0.2 / 0.3), abs=0.03)
+
+
+def test_white_noise_is_independent_between_samples():
+    noise = unit_noise(STAMPS, BenchSettings(), np.random.default_rng(3))
+    assert abs(_lag_correlation(noise)) < 0.02 and noise.std() == pytest.approx(1.0, rel=0.03)
+
+
+def test_coloured_noise_is_logged_with_the_configured_size():
+    settings = BenchSettings(noise_model="ar1", noise_rho=0.6, seed=4)
+    data = measure(fmu("vldm"), stop_time=WINDOW, start_values=CADC, settings=settings)
+    expected = reference_at("vldm", data.time, 0.1)
+    for s in SIGNALS:
+        error = data.runs[s] - expected[s]
+        assert error.std() == pytest.approx(DEFAULT_NOISE_STD[s], rel=0.2), s
+        assert _lag_correlation(error[0]) == pytest.approx(0.6, abs=0.1), s
+    assert json.loads(json.dumps(data.metadata))["bench"]["noise_model"] == "ar1"
+
+
+@pytest.mark.parametrize("settings, fragment", [
+    (BenchSettings(noise_model="pink"), "choose one of white, ar1, lowpass"),
+    (BenchSettings(noise_model="ar1", noise_rho=1.0), "strictly between -1 and 1"),
+    (BenchSettings(noise_model="lowpass"), "time constant > 0"),
+    (BenchSettings(noise_model="lowpass", noise_filter_tau=0.1, noise_filter_order=7), "choose 1 to 4"),
+])
+def test_bad_noise_settings_are_refused(settings, fragment):
+    with pytest.raises(FmuBuilderError, match=fragment):
+        measure(fmu("vldm"), stop_time=5.0, start_values=CADC, settings=settings)
+
+
+def test_truth_parameters_change_the_truth_and_are_recorded_apart_from_the_start_values(tmp_path):
+    """A heavier car than declared: more energy; the sidecar names the mass only under
+    'truth', never among the start values a user passes back to the model."""
+    settings = BenchSettings(seed=5)
+    heavy = measure(fmu("vldm"), stop_time=60.0, start_values=CADC, settings=settings,
+                    truth_parameters={"mass": 1087.35})
+    truth = simulate_fmu(str(fmu("vldm")), stop_time=60.0, start_values={**CADC, "mass": 1087.35}, output=["energy"],
+                         output_interval=0.01, record_events=True, relative_tolerance=1e-10)
+    lagged = np.interp(heavy.time, truth["time"], first_order_lag(truth["time"], truth["energy"], 0.1))
+    assert np.std(heavy.mean("energy") - lagged) < 1.2 * noise_of_mean("energy")
+    write_measurement(heavy, tmp_path / "heavy.csv")
+    meta = json.loads(sidecar_path(tmp_path / "heavy.csv").read_text())
+    assert meta["start_values"] == CADC and "mass" not in meta["start_options"]
+    assert meta["truth"] == {"parameters": {"mass": 1087.35}}
+
+
+# ---------------------------------------------------------------------------------------
 # the truth effects
 
 
@@ -316,12 +390,14 @@ def test_example_folder_holds_fmus_data_and_readme(short_examples, tmp_path):
     folder = short_examples.write_example("vldm", tmp_path / "example")
     names = {p.name for p in (tmp_path / "example").iterdir()}
     assert {"vldm.fmu", "vldm_truth_extra_resistance.fmu", "vldm_truth_extra_loss.fmu", "README.md"} <= names
-    for variant in ("no_effect", "extra_resistance", "extra_loss"):
+    for variant in ("no_effect", "extra_resistance", "extra_loss", "mass_mismatch"):
         for role, cycle, number in (("train", "cadc", 1), ("test", "wltc2", 2)):
             csv = tmp_path / "example" / f"{variant}_{role}_{cycle}.csv"
             meta = json.loads(sidecar_path(csv).read_text())
-            assert meta["start_values"] == {"cycle": number}
+            assert meta["start_values"] == {"cycle": number}       # the mismatch's mass is not a start value
             assert (tmp_path / "example" / meta["truth_model"]["file"]).is_file()
+            assert meta["bench"]["noise_model"] == "lowpass"        # filtered sensors: coloured noise
+            assert meta.get("truth") == ({"parameters": {"mass": 1087.35}} if variant == "mass_mismatch" else None)
     readme = (tmp_path / "example" / "README.md").read_text()
     assert "--start cycle=1" in readme and "--start cycle=2" in readme
     assert folder.generation_seconds > 0

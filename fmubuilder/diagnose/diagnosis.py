@@ -8,11 +8,15 @@ and where in the model does the missing effect act?
 1. The declared model is simulated over the data's time span with the data's start values
    (the sidecar's, the caller's, and a measured state's first samples when they contradict
    the model's start value), filtered like the sensors and sampled at the data's stamps.
-2. Per signal: MSE, RMS, max |error|, final error, the noise level and a block test
-   (significance.py). The joint test decides whether there is a significant effect.
-3. Only then the effect is traced (trace.py): channel = state derivative, inputs = variables
-   the missing term depends on, and a fitted term when a compact expression explains it.
-   Long data are traced on a leading window so that the trials fit in ``time_budget``.
+2. Per signal: MSE, RMS, max |error|, final error, the noise level and its own test; one
+   joint test of all signals (significance.py, robust to coloured and shared noise) decides
+   whether there is a significant effect.
+3. Only then the effect is traced (trace.py) over the whole data: channel = state derivative,
+   inputs = variables the missing term depends on, and a fitted term when a compact
+   expression explains it. The work is fixed by the model and the data (a fixed list of
+   trials, each abandoned beyond SLOW_TRIAL_FACTOR times the plain run's derivative
+   evaluations), so an idle and a busy machine give the same numbers. ``time_budget`` is only
+   an upper cap on the wall time: when it cuts the tracing short, ``cut_short`` says so.
 """
 from __future__ import annotations
 
@@ -28,8 +32,7 @@ from ..fmi.archive import read_model_info
 from . import significance
 from ..data import MeasuredData, load_data
 from .runs import AddedTerm, ModelRun, ModelRunner, form_text, rms
-from .trace import (FIRST_FORMS, INPUT_FORMS, MAX_CHANNELS, REFINED_VARIABLES, SECOND_CHANNEL_RATIO,
-                    FittedTerm, Tracer, candidate_variables)
+from .trace import MAX_CHANNELS, SECOND_CHANNEL_RATIO, FittedTerm, Tracer, candidate_variables
 
 TERM_MIN_EXPLAINED = 0.8       # a fitted term is offered when it removes this share of the excess chi-square
 AMBIGUOUS = 1.1                # another channel whose best trial leaves less than 1.1 times the
@@ -81,6 +84,7 @@ class Diagnosis:
     window: tuple[float, float]        # data span
     trace_window: tuple[float, float] | None
     failed_trials: list[str] = field(default_factory=list)   # trial terms the model could not run
+    cut_short: str | None = None       # set when the wall-time cap stopped the tracing early
     simulations: int = 0
     wall_time: dict = field(default_factory=dict)
     plots: list[str] = field(default_factory=list)
@@ -94,15 +98,15 @@ class Diagnosis:
 
 
 def diagnose(model_fmu, data_csv, start_values: dict | None = None, plots_dir=None, *,
-             time_budget: float = 60.0, trace_always: bool = False,
+             time_budget: float | None = None, trace_always: bool = False,
              trace_span: float | None = None) -> Diagnosis:
     """Compare the declared model with measured data and trace a significant difference.
 
     start_values: {name: value} for the model (added to those recorded with the data);
-    plots_dir: folder for PNG plots (created); time_budget: seconds the tracing may take
-    (longer data are traced on a leading window); trace_always: trace even when the residual
-    is not significant; trace_span: seconds of data to trace on instead of what the time budget
-    allows (the same data then give the same diagnosis on an idle and on a busy machine).
+    plots_dir: folder for PNG plots (created); time_budget: an upper cap on the seconds the
+    tracing may take (None: no cap); it never changes the numbers unless it cuts the tracing
+    short, which ``cut_short`` then reports; trace_always: trace even when the residual is not
+    significant; trace_span: seconds of data, from the start, to trace on (None: all of it).
     """
     started = wallclock.perf_counter()
     model_fmu = Path(model_fmu)
@@ -127,9 +131,8 @@ def diagnose(model_fmu, data_csv, start_values: dict | None = None, plots_dir=No
             _check_finite(nominal, model_fmu)
         used = dict(runner.start_values)
         runner.output_aliases = derivative_aliases(info, nominal, data.names)
-        errors, tests = signal_errors(data, nominal)
-        p_value = significance.joint_p_value(tests)
-        significant = p_value < significance.SIGNIFICANCE_LEVEL
+        errors, tests, joint = signal_errors(data, nominal)
+        p_value, significant = joint.p_value, joint.significant
         wall = {"nominal": nominal.wall_time}
         diagnosis = Diagnosis(
             model=str(model_fmu), data=str(data_csv), significant=significant, p_value=p_value, channel=None,
@@ -197,7 +200,10 @@ def start_values_from_data(info, data: MeasuredData, given: dict, nominal: Model
             continue
         residual = values - nominal.predicted[name]
         offset = float(np.linalg.lstsq(design, residual[:k], rcond=None)[0][0])
-        noise, _ = significance.noise_level(residual, data.spread.get(name), data.runs)
+        fit = significance.fit_noise(residual, None, data.spread.get(name), data.runs)
+        # Correlated noise moves the first samples together: their intercept is as uncertain
+        # as a mean of k samples, at most sqrt(k) times the white-noise case.
+        noise = min(fit.long_run, math.sqrt(k) * fit.marginal)
         tolerance = START_TOLERANCE * noise * unit_error + significance.NUMERICAL_FLOOR * float(np.ptp(values))
         if abs(offset) > tolerance:
             found[name] = float(var.start) + offset
@@ -221,55 +227,58 @@ def derivative_aliases(info, nominal: ModelRun, measured: list[str]) -> dict[str
 
 
 def signal_errors(data: MeasuredData, nominal: ModelRun):
+    """Per-signal errors and tests, and the joint test of all signals."""
     errors, tests = [], []
     for name, measured in data.signals.items():
         model = nominal.predicted[name]
         residual = measured - model
-        test = significance.block_test(residual, model, data.spread.get(name), data.runs)
+        test = significance.signal_test(residual, model, data.spread.get(name), data.runs)
         tests.append(test)
         errors.append(SignalErrors(
             signal=name, mse=float(np.mean(residual ** 2)), rms=rms(residual),
             max_abs=float(np.max(np.abs(residual))), final=float(residual[-1]), noise=test.noise,
             chi2_per_dof=test.chi2 / test.dof, p_value=test.p_value, significant=test.significant))
-    return errors, tests
+    return errors, tests, _joint_test(data, nominal)
+
+
+def _joint_test(data: MeasuredData, run: ModelRun) -> significance.JointTest:
+    names = data.names
+    return significance.joint_test([data.signals[s] - run.predicted[s] for s in names],
+                                   [run.predicted[s] for s in names], [data.spread.get(s) for s in names], data.runs)
 
 
 def _trace(diagnosis: Diagnosis, info, data: MeasuredData, runner: ModelRunner, nominal: ModelRun,
-           tests, variables, time_budget: float, trace_span: float | None = None) -> FittedTerm | None:
+           tests, variables, time_budget: float | None, trace_span: float | None) -> FittedTerm | None:
+    """Trace the effect over the data (or its first `trace_span` seconds); a time budget only caps
+    the wall time."""
     noise = {e.signal: math.hypot(t.noise, t.floor) for e, t in zip(diagnosis.errors, tests)}
     start, stop = diagnosis.window
-    fraction = min(1.0, time_budget / max(planned_trials(info, nominal, variables) * nominal.wall_time, 1e-9))
-    if trace_span is not None:
-        fraction = min(1.0, trace_span / (stop - start))
     trace_runner, trace_nominal = runner, nominal
-    if fraction < 1.0:
-        trace_stop = start + max(fraction, 0.1) * (stop - start)
-        trace_runner = _runner(runner.fmu.path, runner.start_values, data, start, trace_stop, variables)
+    if trace_span is not None and trace_span < stop - start:
+        trace_runner = _runner(runner.fmu.path, runner.start_values, data, start, start + trace_span, variables)
         trace_runner.output_aliases = runner.output_aliases
         trace_nominal = trace_runner.simulate()
     diagnosis.trace_window = (start, trace_runner.stop)
+    deadline = math.inf
+    if time_budget is not None and math.isfinite(time_budget):
+        deadline = wallclock.perf_counter() + time_budget
     try:
-        return _trace_window(diagnosis, info, data, trace_runner, trace_nominal, noise, variables)
+        return _trace_window(diagnosis, info, data, trace_runner, trace_nominal, noise, variables, deadline)
     finally:
         if trace_runner is not runner:
             runner.runs += trace_runner.runs
             runner.total_wall_time += trace_runner.total_wall_time
             trace_runner.close()
+        if wallclock.perf_counter() > deadline:
+            diagnosis.cut_short = (f"the time budget of {time_budget:g} s ran out while tracing: trials after it "
+                                   "were skipped and the tracing may be incomplete; give a larger budget")
 
 
-def planned_trials(info, nominal: ModelRun, variables) -> int:
-    """Simulations the tracing will run: two per channel, the forms of MAX_CHANNELS channels
-    (first forms of every variable, the others for the leading ones) and the term checks."""
-    forms = Tracer.forms_of(info, nominal, [v for v in variables if v in nominal.trajectories])
-    first = sum(1 for f in forms if f[1] in FIRST_FORMS)
-    refined = REFINED_VARIABLES * (len(INPUT_FORMS) - len(FIRST_FORMS))
-    return 2 * info.n_states + MAX_CHANNELS * (first + refined) + 3
-
-
-def _trace_window(diagnosis, info, data, runner, nominal, noise, variables) -> FittedTerm | None:
+def _trace_window(diagnosis, info, data, runner, nominal, noise, variables, deadline) -> FittedTerm | None:
     in_window = (data.time >= runner.start) & (data.time <= runner.stop)
     measured = {name: values[in_window] for name, values in data.signals.items()}
     tracer = Tracer(runner, nominal, measured, noise)
+    tracer.deadline = deadline
     if not tracer.rr > 0:
         return None     # the model meets the data exactly: nothing to trace
     channels = tracer.screen_channels()
@@ -305,18 +314,16 @@ def _judge_term(diagnosis: Diagnosis, data: MeasuredData, tests, fitted_run: Mod
     remove TERM_MIN_EXPLAINED of the residual's excess over noise (block chi-square minus its
     degrees of freedom, summed over the signals)."""
     before = after = 0.0
-    corrected = []
     for e, test in zip(diagnosis.errors, tests):
         residual = data.signals[e.signal] - fitted_run.predicted[e.signal]
         e.corrected_rms = rms(residual)
-        new = significance.block_test(residual, fitted_run.predicted[e.signal], data.spread.get(e.signal), data.runs)
-        corrected.append(new)
+        new = significance.signal_test(residual, fitted_run.predicted[e.signal], data.spread.get(e.signal), data.runs)
         before += max(0.0, test.chi2 - test.dof)
         after += max(0.0, new.chi2 - new.dof)
     removed = 1.0 - after / before if before > 0 else 0.0
     term = diagnosis.fitted_term
     term["explained_excess"] = float(removed)
-    term["corrected_p_value"] = float(significance.joint_p_value(corrected))
+    term["corrected_p_value"] = float(_joint_test(data, fitted_run).p_value)
     term["offered"] = bool(removed >= TERM_MIN_EXPLAINED)
 
 

@@ -18,6 +18,8 @@ def format_report(d) -> str:
     else:
         lines.append(f"No significant effect: the residual is at the level of the measurement noise "
                      f"(joint p = {d.p_value:.2g} >= {SIGNIFICANCE_LEVEL:g}).")
+    if getattr(d, "cut_short", None):
+        lines.append(f"Warning: {d.cut_short}.")
     if d.channel_scores:
         lines += ["", _channels_table(d), "", _candidates_table(d)]
     if d.channel:

@@ -93,11 +93,13 @@ class TermSystem:
     """A HybridSystem: an FmuSystem whose derivatives get the added terms; everything else
     is the FmuSystem's."""
 
-    def __init__(self, base: FmuSystem, terms: Sequence[AddedTerm], deadline: float = math.inf):
+    def __init__(self, base: FmuSystem, terms: Sequence[AddedTerm], deadline: float = math.inf,
+                 max_calls: float = math.inf):
         self.base = base
         self.terms = list(terms)
         self._start_time = 0.0
-        self._deadline = deadline     # perf_counter() time after which the run is abandoned
+        self._deadline = deadline     # perf_counter() time after which the run is abandoned (a cap only)
+        self._max_calls = max_calls   # derivative evaluations after which the run is abandoned
         self._calls = 0
         info = base.info
         state_index = {v.name: i for i, v in enumerate(info.states)}
@@ -118,8 +120,10 @@ class TermSystem:
 
     def derivatives(self, t: float, x: np.ndarray) -> np.ndarray:
         self._calls += 1
+        if self._calls > self._max_calls:
+            raise TrialTooSlow(f"a run with the added term {self.terms[0].expression()} exceeded its work limit")
         if self._calls % 256 == 0 and wallclock.perf_counter() > self._deadline:
-            raise TrialTooSlow(f"a run with the added term {self.terms[0].expression()} exceeded its time limit")
+            raise TrialTooSlow(f"a run with the added term {self.terms[0].expression()} exceeded the time budget")
         dx = self.base.derivatives(t, x)          # the FMU is now at (t, x)
         for term, reader in zip(self.terms, self._readers):
             if term.variable == TIME:
@@ -138,6 +142,7 @@ class ModelRun:
     predicted: dict[str, np.ndarray]     # measured signals as the sensors would log them, at the data times
     trajectories: dict[str, np.ndarray]  # recorded variables at the data times (no sensor lag)
     wall_time: float
+    derivative_calls: int = 0            # the solver's derivative evaluations: the run's work
 
 
 class ModelRunner:
@@ -170,15 +175,16 @@ class ModelRunner:
         self.fmu.close()
 
     def simulate(self, terms: Sequence[AddedTerm] = (), *, trajectories: bool = True,
-                 time_limit: float = math.inf) -> ModelRun:
+                 time_limit: float = math.inf, max_calls: float = math.inf) -> ModelRun:
         """One run; without `trajectories` only the measured signals are recorded (faster).
-        A run with terms that takes longer than `time_limit` seconds raises TrialTooSlow."""
+        A run with terms that needs more than `max_calls` derivative evaluations, or takes
+        longer than `time_limit` seconds, raises TrialTooSlow."""
         started = wallclock.perf_counter()
         recorded = self.recorded if trajectories else self.measured
         if terms and self.output_aliases:   # the terms' variables, to add them to aliased outputs
             recorded = list(dict.fromkeys([*recorded, *(t.variable for t in terms if t.variable != TIME)]))
         base = FmuSystem(self.fmu, variables=recorded, start_values=self.start_values, tolerance=self.rtol)
-        system = TermSystem(base, terms, started + time_limit) if terms else base
+        system = TermSystem(base, terms, started + time_limit, max_calls) if terms else base
         solver = make_solver("dopri5", rtol=self.rtol, atol=1e-9, max_step=(self.stop - self.start) / 50)
         try:
             # A trial term can drive the model far off (overflow, NaN); the trial's score says so.
@@ -198,7 +204,8 @@ class ModelRunner:
         wall = wallclock.perf_counter() - started
         self.runs += 1
         self.total_wall_time += wall
-        return ModelRun(predicted=predicted, trajectories=sampled, wall_time=wall)
+        return ModelRun(predicted=predicted, trajectories=sampled, wall_time=wall,
+                        derivative_calls=int(result.stats.rhs_evaluations))
 
     def _aliased_terms(self, name: str, terms: Sequence[AddedTerm], result) -> np.ndarray | float:
         """The terms added to the derivatives an output equals (see output_aliases)."""

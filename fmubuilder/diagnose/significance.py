@@ -1,31 +1,44 @@
-"""Is a residual more than measurement noise? Noise levels from the data, and a block test.
+"""Is a residual more than measurement noise? One joint test that coloured noise does not fool.
 
-Noise of a signal (standard deviation per sample of the measured value), the larger of:
+Real sensors are filtered, so their noise is correlated from sample to sample; a test that
+assumes independent noise calls such noise an effect. What separates a model error from
+noise is its spectrum: a missing effect is systematic and slow, so it lifts the lowest
+frequencies of the residual far above the level the faster frequencies predict. The test
+therefore works in the frequency domain, with everything estimated from the residual itself
+(no sensor settings are read):
 
-* the white noise left in the residual, from its second differences
-  ``d[k] = r[k+1] - 2 r[k] + r[k-1]``: for white noise E[d^2] = 6 sigma^2, while a slow model
-  error hardly contributes. Differences beyond CLIP median absolute deviations (the spikes a
-  shifted event leaves) are dropped. The estimate of sigma^2 carries about 0.51 n degrees of
-  freedom (the d[k] are correlated: var(mean d^2) = 140 sigma^4 / n);
-* the spread columns: the per-run spread ``<signal>_std`` over sqrt(runs) is the uncertainty
-  of the mean over the runs; its square carries n (runs - 1) degrees of freedom.
-
-Block test. The residual of each signal is cut into B consecutive blocks (about ten samples
-each, 4 <= B <= 50). If the model is right, a block mean m_j is noise with variance
-
-    v_j = sigma^2 / n_j  +  e_j^2  +  f^2
-
-where n_j is the block's sample count, e_j^2 the part of the spread in that block beyond the
-white noise and its chance fluctuation (runs that differ systematically, e.g. by a parameter,
-excuse a residual of that size) and f = NUMERICAL_FLOOR * (range of the signal) the agreement
-expected from two different numerical solvers. Q = sum_j m_j^2 / v_j would be chi-square with
-B degrees of freedom for a known sigma; with sigma estimated, Q / B follows the F distribution
-with (B, nu) degrees of freedom, nu those of the noise estimate. The signals' p-values are
-combined with Fisher's method (-2 sum ln p is chi-square with 2 S degrees of freedom). The
-residual is a significant effect when the joint p-value is below SIGNIFICANCE_LEVEL (1e-6,
-strict because real noise has heavier tails than a Gaussian). Averaging over blocks makes the
-test sensitive to slow deviations: an offset of half a noise standard deviation over a few
-hundred samples is significant.
+1. **Bands.** Of the residual's Fourier frequencies ``j = 0 .. n/2`` the lowest ``m`` (the
+   effect band, ``m = n // SAMPLES_PER_FREQUENCY`` within [1, MAX_EFFECT_FREQUENCIES]) are
+   where an effect would show; those from ``GUARD * m`` on (the noise band) are taken as noise.
+2. **Noise spectrum per signal.** The residual, a straight line removed and a Hann taper
+   applied (so that a drift does not leak into the noise band), gives a periodogram on the
+   noise band. The family ``S(w) = a + b g(w)^k`` with ``g = (1 - rho)^2 / |1 - rho e^{-iw}|^2``
+   (white noise plus noise through k = 1 or 2 first-order low-passes: white, AR(1), a sensor
+   lag, a filtered sensor and their sums) is fitted to it by the Whittle likelihood over a
+   grid of poles rho (corners 1 - rho down to SLOWEST_CORNER times the noise band's lowest
+   frequency: noise that decorrelates more slowly than that cannot be told from an effect in
+   a record of this length), a and b >= 0 by iteratively reweighted least squares. The
+   spectrum used in the effect band is, at each frequency, the largest of all fits whose BIC
+   lies within 2 CONFIDENCE of the best: how far the noise band can be extrapolated to the
+   lowest frequencies is uncertain, most of all for short data and slowly decorrelating noise.
+3. **Dependence between signals.** The coherence of the signals' noise (their DFTs divided
+   by their spectra's square roots) over the noise band gives one correlation matrix, so
+   signals whose noise is shared (a power and the energy integrated from it) count once.
+4. **Run-to-run spread** (``<signal>_std`` columns, when present): its mean square over the
+   runs is the noise variance of the mean. The noise is capped a chance margin above it (an
+   effect with fast parts reaching into the noise band would otherwise pass for noise: the
+   spread does not contain the effect); spread beyond the noise and its chance fluctuation
+   (runs that differ systematically, e.g. by a parameter) excuses a residual of that size.
+   Without spread columns the test relies on the residual alone.
+5. **Joint statistic.** With ``z_j`` the DFT vector of all signals at frequency j, each
+   divided by the square root of its spectrum, and ``C_j`` its covariance under "no effect"
+   (the noise coherence, plus the numerical floor ``NUMERICAL_FLOOR * range`` of each signal
+   and the excused spread), ``Q = z_0^T C_0^-1 z_0 + sum_{j=1..m} 2 z_j^H C_j^-1 z_j`` is
+   chi-square with ``S (2m + 1)`` degrees of freedom for S signals. With the noise estimated,
+   ``Q / dof`` is taken F-distributed with (dof, noise-band degrees of freedom). The residual
+   is a significant effect when the p-value is below SIGNIFICANCE_LEVEL (1e-6, strict because
+   real noise has heavier tails than a Gaussian). The same statistic for one signal alone
+   gives the per-signal p-values of the report.
 """
 from __future__ import annotations
 
@@ -33,93 +46,307 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
+from scipy import optimize, stats
 
 SIGNIFICANCE_LEVEL = 1e-6
 NUMERICAL_FLOOR = 1e-5
-SAMPLES_PER_BLOCK = 10
-MIN_BLOCKS, MAX_BLOCKS = 4, 50
-CLIP = 5.0
-_MAD_TO_SIGMA = 1.4826
-_SECOND_DIFFERENCE_DOF = 36.0 / 70.0   # degrees of freedom of the estimate per difference
+SAMPLES_PER_FREQUENCY = 125    # effect band: one Fourier frequency per this many samples ...
+MAX_EFFECT_FREQUENCIES = 25    # ... at most this many (a few dozen degrees of freedom per signal)
+GUARD = 2                      # the noise band starts at GUARD times the effect band's edge
+MIN_NOISE_FREQUENCIES = 8
+CONFIDENCE = 2.5               # BIC units (x2) within which a noise fit counts as plausible
+POLE_COUNT = 30               # poles on the grid, from white (rho = 0) ...
+SLOWEST_CORNER = 0.5         # ... to a corner 1 - rho at this share of the noise band's lowest frequency
+LOWPASS_ORDERS = (1, 2)
+MAX_BINS = 160                 # the noise band's periodogram is averaged into at most this many bins
+SPREAD_CHANCE = 3.0            # standard errors of the spread's mean square counted as chance
+_HANN_VARIANCE_INFLATION = 35.0 / 18.0   # periodogram ordinates one Hann-tapered ordinate is worth
+_REWEIGHTING_STEPS = 8
+
+
+@dataclass
+class Spectrum:
+    """S(w) = a + b g(w)^k, g = (1 - rho)^2 / |1 - rho e^{-iw}|^2 (per sample, S(0) = a + b)."""
+    white: float
+    coloured: float
+    pole: float
+    order: int
+
+    def at(self, omega: np.ndarray) -> np.ndarray:
+        return self.white + self.coloured * _lowpass(omega, self.pole) ** self.order
+
+
+def _lowpass(omega: np.ndarray, pole: float) -> np.ndarray:
+    return (1.0 - pole) ** 2 / (1.0 - 2.0 * pole * np.cos(omega) + pole ** 2)
+
+
+@dataclass
+class NoiseFit:
+    """Noise of one signal's residual as the test sees it."""
+    spectra: list[Spectrum]   # the best fit first, then the others within CONFIDENCE
+    marginal: float           # standard deviation of the noise per sample (best fit)
+    excused: float            # systematic run-to-run spread excusing a residual of this size
+    floor: float              # numerical agreement tolerance
+    dof: float                # degrees of freedom of the noise estimate
+    variance_cap: float = math.inf   # no plausible noise has a larger variance per sample (spread)
+
+    def spectrum(self, omega: np.ndarray) -> np.ndarray:
+        """The noise spectrum the test assumes: the largest of the plausible fits, each
+        scaled down to the variance cap."""
+        omega = np.asarray(omega, dtype=float)
+        if not self.spectra:
+            return np.zeros(omega.size)
+        capped = [s.at(omega) * min(1.0, self.variance_cap / max(_marginal_variance(s), 1e-300))
+                  for s in self.spectra]
+        return np.max(capped, axis=0)
+
+    @property
+    def long_run(self) -> float:
+        """Standard deviation of a long mean times sqrt(n): sqrt of the spectrum at zero."""
+        return math.sqrt(float(self.spectrum(np.zeros(1))[0]))
 
 
 @dataclass
 class SignalTest:
     noise: float          # standard deviation of the measured value's noise (per sample)
     floor: float          # numerical agreement tolerance
-    chi2: float           # Q
-    dof: int              # B
+    chi2: float           # Q of this signal alone
+    dof: int
     p_value: float
+    long_run_noise: float = 0.0   # noise of a mean over n samples is this / sqrt(n)
 
     @property
     def significant(self) -> bool:
         return self.p_value < SIGNIFICANCE_LEVEL
 
 
-def white_noise_level(residual: np.ndarray) -> tuple[float, float]:
-    """(standard deviation, degrees of freedom) of the white noise in a residual."""
-    if residual.size < 5:
-        return 0.0, 1.0
-    second = residual[2:] - 2.0 * residual[1:-1] + residual[:-2]
-    center = float(np.median(second))
-    mad = _MAD_TO_SIGMA * float(np.median(np.abs(second - center)))
-    kept = second[np.abs(second - center) <= CLIP * mad] if mad > 0 else second
-    sigma = math.sqrt(float(np.mean(kept ** 2)) / 6.0)
-    return sigma, max(1.0, _SECOND_DIFFERENCE_DOF * kept.size)
+@dataclass
+class JointTest:
+    chi2: float
+    dof: int
+    p_value: float
+    signals: int
+
+    @property
+    def significant(self) -> bool:
+        return self.p_value < SIGNIFICANCE_LEVEL
 
 
-def noise_level(residual: np.ndarray, spread: np.ndarray | None, runs: int) -> tuple[float, float]:
-    """(standard deviation, degrees of freedom): the larger of the two estimates above."""
-    sigma, dof = white_noise_level(residual)
-    if spread is not None and spread.size and runs > 1:
-        from_spread = math.sqrt(float(np.mean(spread ** 2)) / runs)
-        if from_spread > sigma:
-            sigma, dof = from_spread, float(spread.size * (runs - 1))
-    return sigma, dof
+# ---------------------------------------------------------------------------------------
+# Bands and the noise fit
 
 
-def systematic_spread(spread: np.ndarray, sigma: float, runs: int) -> float:
-    """The part of a block's run-to-run spread (as uncertainty of the mean) beyond the white
-    noise sigma, counted only beyond three standard errors of a block of white noise: the
-    spread of two noisy runs alone fluctuates that much."""
-    n = spread.size
-    mean_square = float(np.mean(spread ** 2)) / runs
-    chance = sigma ** 2 * (1.0 + 3.0 * math.sqrt(2.0 / max(n * (runs - 1), 1)))
-    return math.sqrt(max(0.0, mean_square - chance))
+def effect_band(n: int) -> int:
+    """m: how many non-zero Fourier frequencies form the effect band of n samples."""
+    noise_room = (n - 1) // 2 - MIN_NOISE_FREQUENCIES
+    return int(max(1, min(n // SAMPLES_PER_FREQUENCY, MAX_EFFECT_FREQUENCIES, noise_room // GUARD)))
 
 
-def block_edges(n: int) -> np.ndarray:
-    """Indices splitting n samples into B nearly equal consecutive blocks."""
-    blocks = int(np.clip(n // SAMPLES_PER_BLOCK, MIN_BLOCKS, MAX_BLOCKS))
-    blocks = min(blocks, n)
-    return np.linspace(0, n, blocks + 1).round().astype(int)
+def _noise_band(n: int) -> np.ndarray:
+    m = effect_band(n)
+    return np.arange(min(GUARD * m + 1, max((n - 1) // 2, 1)), (n - 1) // 2 + 1)
 
 
-def block_test(residual: np.ndarray, model_values: np.ndarray, spread: np.ndarray | None,
-               runs: int) -> SignalTest:
-    """The block test of one signal's residual (see the module docstring)."""
-    sigma, noise_dof = noise_level(residual, spread, runs)
-    span = float(np.ptp(model_values)) if model_values.size else 0.0
-    floor = NUMERICAL_FLOOR * span
-    edges = block_edges(residual.size)
+def _tapered_dft(residual: np.ndarray) -> tuple[np.ndarray, float]:
+    """DFT of the residual with a straight line removed and a Hann taper, and the taper's sum
+    of squares (the periodogram's normalisation)."""
+    n = residual.size
+    k = np.arange(n)
+    line = np.polynomial.polynomial.polyfit(k, residual, 1)
+    detrended = residual - np.polynomial.polynomial.polyval(k, line)
+    taper = np.hanning(n + 2)[1:-1]
+    return np.fft.rfft(detrended * taper), float(np.sum(taper ** 2))
+
+
+def fit_noise(residual: np.ndarray, model_values: np.ndarray | None = None,
+              spread: np.ndarray | None = None, runs: int = 2) -> NoiseFit:
+    """The noise of a residual (see the module docstring, steps 2 and 4)."""
+    residual = np.asarray(residual, dtype=float)
+    n = residual.size
+    span = float(np.ptp(model_values)) if model_values is not None and np.size(model_values) else 0.0
+    band = _noise_band(n)
+    dft, norm = _tapered_dft(residual)
+    omega, periodogram, weight = _binned(2.0 * math.pi * band / n, np.abs(dft[band]) ** 2 / norm)
+    effective = max(band.size / _HANN_VARIANCE_INFLATION, 1.0)
+    poles = 1.0 - np.geomspace(1.0, SLOWEST_CORNER * float(omega[0]), POLE_COUNT) if omega.size else np.zeros(1)
+    spectra = _plausible_spectra(omega, periodogram, weight / _HANN_VARIANCE_INFLATION, poles)
+    fit = NoiseFit(spectra=spectra, marginal=0.0, excused=0.0, floor=NUMERICAL_FLOOR * span,
+                   dof=2.0 * effective)
+    fit.marginal = math.sqrt(_marginal_variance(spectra[0])) if spectra else 0.0
+    if spread is not None and np.size(spread) and runs > 1:
+        _apply_spread(fit, np.asarray(spread, dtype=float), runs)
+    return fit
+
+
+def _binned(omega: np.ndarray, periodogram: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The periodogram averaged over consecutive frequencies into at most MAX_BINS bins, and
+    how many ordinates each bin holds (the Whittle fit weighs a bin by that count)."""
+    if omega.size <= MAX_BINS:
+        return omega, periodogram, np.ones(omega.size)
+    edges = np.linspace(0, omega.size, MAX_BINS + 1).round().astype(int)
+    counts = np.diff(edges).astype(float)
+    return (np.add.reduceat(omega, edges[:-1]) / counts, np.add.reduceat(periodogram, edges[:-1]) / counts, counts)
+
+
+def _plausible_spectra(omega: np.ndarray, periodogram: np.ndarray, weight: np.ndarray,
+                       poles: np.ndarray) -> list[Spectrum]:
+    """Whittle fits over the grid of poles and orders, ranked by BIC (white noise has one
+    parameter, a coloured part two more): the best first, then every other fit whose BIC
+    is within 2 CONFIDENCE of it."""
+    if not np.any(periodogram > 0):
+        return []
+    penalty = math.log(max(float(np.sum(weight)), 2.0))
+    fits = [(_white_bic(periodogram, weight, penalty), Spectrum(float(np.average(periodogram, weights=weight)),
+                                                                0.0, 0.0, 1))]
+    for order in LOWPASS_ORDERS:
+        for pole in poles:
+            shape = _lowpass(omega, pole) ** order
+            white, coloured = _whittle_weights(shape, periodogram, weight)
+            spectrum = white + coloured * shape
+            log_likelihood = -float(np.sum(weight * (np.log(spectrum) + periodogram / spectrum)))
+            fits.append((-2.0 * log_likelihood + 3.0 * penalty, Spectrum(white, coloured, float(pole), order)))
+    fits.sort(key=lambda f: f[0])
+    best = fits[0][0]
+    return [spectrum for bic, spectrum in fits if bic <= best + 2.0 * CONFIDENCE]
+
+
+def _white_bic(periodogram: np.ndarray, weight: np.ndarray, penalty: float) -> float:
+    level = float(np.average(periodogram, weights=weight))
+    return 2.0 * float(np.sum(weight * (math.log(level) + periodogram / level))) + penalty
+
+
+def _whittle_weights(shape: np.ndarray, periodogram: np.ndarray, weight: np.ndarray) -> tuple[float, float]:
+    """a, b >= 0 maximising the Whittle likelihood of S = a + b shape: least squares of the
+    periodogram on (1, shape) weighted by 1 / S^2, S updated from the fit."""
+    design = np.column_stack([np.ones(shape.size), shape])
+    spectrum = np.full(shape.size, float(np.average(periodogram, weights=weight)))
+    coefficients = np.array([spectrum[0], 0.0])
+    for _ in range(_REWEIGHTING_STEPS):
+        root = np.sqrt(weight) / spectrum
+        coefficients, _ = optimize.nnls(design * root[:, None], periodogram * root)
+        updated = design @ coefficients
+        if not np.all(updated > 0):
+            break
+        spectrum = updated
+    return float(coefficients[0]), float(coefficients[1])
+
+
+def _marginal_variance(spectrum: Spectrum, points: int = 513) -> float:
+    """Variance per sample: the mean of the spectrum over all frequencies."""
+    omega = np.linspace(0.0, math.pi, points)
+    return float(np.trapezoid(spectrum.at(omega), omega) / math.pi)
+
+
+def _apply_spread(fit: NoiseFit, spread: np.ndarray, runs: int) -> None:
+    """Cap the noise a chance margin above the spread's level and excuse spread beyond the
+    noise (step 4). The cap matters when an effect with fast parts reaches into the noise
+    band: the runs' spread does not contain the effect. Spread beyond the residual's noise
+    cannot be noise of the mean (the residual would show it): the runs differ systematically."""
+    spread_variance = float(np.mean(spread ** 2)) / runs
+    # The spread's mean square fluctuates more when the noise is correlated.
+    pole = max([sp.pole for sp in fit.spectra if sp.coloured > 0], default=0.0)
+    independent = spread.size * (runs - 1) * (1.0 - pole ** 2) / (1.0 + pole ** 2)
+    chance = 1.0 + SPREAD_CHANCE * math.sqrt(2.0 / max(independent, 1.0))
+    fit.variance_cap = spread_variance * chance
+    fit.marginal = min(fit.marginal, math.sqrt(fit.variance_cap))
+    fit.excused = math.sqrt(max(0.0, spread_variance - chance * fit.marginal ** 2))
+
+
+# ---------------------------------------------------------------------------------------
+# The statistic
+
+
+def joint_test(residuals, model_values=None, spreads=None, runs: int = 2,
+               fits: list[NoiseFit] | None = None) -> JointTest:
+    """One test of all signals' residuals together (the module docstring, steps 3 and 5).
+    residuals: equally long arrays, one per signal; model_values / spreads: matching lists
+    (entries may be None)."""
+    residuals = [np.asarray(r, dtype=float) for r in residuals]
+    if not residuals:
+        return JointTest(chi2=0.0, dof=0, p_value=1.0, signals=0)
+    count = len(residuals)
+    model_values = model_values or [None] * count
+    spreads = spreads or [None] * count
+    if fits is None:
+        fits = [fit_noise(r, v, s, runs) for r, v, s in zip(residuals, model_values, spreads)]
+    n = residuals[0].size
+    m = effect_band(n)
+    coherence = _noise_coherence(residuals, fits)
+    omega = 2.0 * math.pi * np.arange(m + 1) / n
+    spectra = np.array([f.spectrum(omega) for f in fits])                     # (S, m + 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        root = np.where(spectra > 0, 1.0 / np.sqrt(spectra), 0.0)
+        z = np.array([np.fft.rfft(r)[: m + 1] for r in residuals]) * root
+        systematic = np.array([f.floor ** 2 + f.excused ** 2 for f in fits])[:, None] * root ** 2
+    silent = spectra <= 0          # no noise at all: any residual beyond the floor is an effect
     chi2 = 0.0
-    for a, b in zip(edges[:-1], edges[1:]):
-        mean = float(np.mean(residual[a:b]))
-        variance = sigma ** 2 / (b - a) + floor ** 2
-        if spread is not None and runs > 1:
-            variance += systematic_spread(spread[a:b], sigma, runs) ** 2
-        chi2 += mean ** 2 / variance if variance > 0 else (0.0 if mean == 0 else math.inf)
-    dof = len(edges) - 1
-    p_value = float(stats.f.sf(chi2 / dof, dof, noise_dof)) if math.isfinite(chi2) else 0.0
-    return SignalTest(noise=sigma, floor=floor, chi2=float(chi2), dof=dof, p_value=p_value)
+    for j in range(m + 1):
+        if np.any(silent[:, j]):
+            raw = np.fft.rfft(np.array(residuals)[silent[:, j]], axis=1)[:, j]
+            floors = np.array([f.floor for f in fits])[silent[:, j]]
+            if np.any(np.abs(raw) > n * floors * (1.0 + 1e-9)):
+                chi2 = math.inf
+                break
+        keep = ~silent[:, j]
+        covariance = n * coherence[np.ix_(keep, keep)] + n ** 2 * np.diag(systematic[keep, j])
+        weight = 1.0 if j == 0 else 2.0
+        chi2 += weight * _quadratic_form(z[keep, j], covariance)
+    dof = count * (2 * m + 1)
+    noise_dof = min(f.dof for f in fits) - count
+    return JointTest(chi2=float(chi2), dof=dof, p_value=_p_value(chi2, dof, noise_dof), signals=count)
 
 
-def joint_p_value(tests: list[SignalTest]) -> float:
-    """p-value of all signals together (Fisher's method)."""
-    if not tests:
-        return 1.0
-    p_values = np.array([t.p_value for t in tests])
-    if np.any(p_values <= 0.0):
+def signal_test(residual: np.ndarray, model_values: np.ndarray, spread: np.ndarray | None,
+                runs: int) -> SignalTest:
+    """The test of one signal's residual alone (for the per-signal columns of the report)."""
+    fit = fit_noise(residual, model_values, spread, runs)
+    joint = joint_test([residual], [model_values], [spread], runs, fits=[fit])
+    return SignalTest(noise=fit.marginal, floor=fit.floor, chi2=joint.chi2, dof=joint.dof,
+                      p_value=joint.p_value, long_run_noise=fit.long_run)
+
+
+def _noise_coherence(residuals: list[np.ndarray], fits: list[NoiseFit]) -> np.ndarray:
+    """Correlation of the signals' noise: their tapered DFTs on the noise band, each divided
+    by the square root of its best-fit spectrum."""
+    count = len(residuals)
+    if count == 1:
+        return np.ones((1, 1))
+    n = residuals[0].size
+    band = _noise_band(n)
+    omega = 2.0 * math.pi * band / n
+    normalised = []
+    for r, f in zip(residuals, fits):
+        dft, norm = _tapered_dft(r)
+        level = f.spectra[0].at(omega) if f.spectra else np.zeros(omega.size)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            normalised.append(np.where(level > 0, dft[band] / np.sqrt(norm * level), 0.0))
+    normalised = np.array(normalised)
+    covariance = np.real(normalised @ normalised.conj().T)
+    own = np.sqrt(np.diag(covariance))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        correlation = np.where(np.outer(own, own) > 0, covariance / np.outer(own, own), 0.0)
+    np.fill_diagonal(correlation, 1.0)
+    return correlation
+
+
+def _quadratic_form(z: np.ndarray, covariance: np.ndarray) -> float:
+    """z^H C^-1 z, infinite when z has a part where C has no variance."""
+    scale = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
+    silent = scale == 0
+    if np.any(np.abs(z[silent]) > 0):
+        return math.inf
+    keep = ~silent
+    if not np.any(keep):
         return 0.0
-    return float(stats.chi2.sf(-2.0 * float(np.sum(np.log(p_values))), 2 * len(tests)))
+    scaled = z[keep] / scale[keep]
+    correlation = covariance[np.ix_(keep, keep)] / np.outer(scale[keep], scale[keep])
+    correlation += 1e-12 * np.eye(correlation.shape[0])
+    return float(np.real(np.conj(scaled) @ np.linalg.solve(correlation, scaled)))
+
+
+def _p_value(chi2: float, dof: int, noise_dof: float) -> float:
+    if not math.isfinite(chi2):
+        return 0.0
+    if dof <= 0:
+        return 1.0
+    return float(stats.f.sf(chi2 / dof, dof, max(noise_dof, 1.0)))

@@ -47,12 +47,13 @@ destabilise the loop) is repeated ten times smaller, at most twice, and then ski
 from __future__ import annotations
 
 import math
+import time as wallclock
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..errors import FmuBuilderError
-from .runs import TIME, AddedTerm, ModelRun, ModelRunner, basis_values, rms
+from .runs import TIME, AddedTerm, ModelRun, ModelRunner, TrialTooSlow, basis_values, rms
 
 MAX_SNR = 10.0                 # precision weights give a signal at most this signal-to-noise ratio
 MAX_CHANNELS = 2
@@ -66,7 +67,8 @@ PAIR_GAIN = 0.01               # explained variance a second form of the variabl
 TOP_VARIABLES_FOR_TERM = 3
 VERIFIED = 2                   # fitted options checked by simulation
 RETRIES, RETRY_SHRINK = 2, 10.0
-SLOW_TRIAL_FACTOR = 10.0       # a trial slower than this many plain runs is abandoned
+SLOW_TRIAL_FACTOR = 10.0       # a trial needing this many times the plain run's work is abandoned
+MIN_TRIAL_CALLS = 1000         # derivative evaluations a trial may always use (times the factor)
 SCREEN_SIZE = 1e-3             # trial constant, relative to the derivative's RMS
 _ALIAS = 1.0 - 1e-9            # squared cosine of two forms that are the same trial
 _KIND_ORDER = {"state": 0, "output": 1, "input": 2, "local": 3, "derivative": 4}
@@ -132,14 +134,18 @@ class Tracer:
         self.r_precise = self.by_precision.stack(residual)
         self.rr_precise = float(self.r_precise @ self.r_precise)
         self.start = runner.start
-        # A trial may take this much longer than the plain run before it is abandoned.
-        self.time_limit = max(SLOW_TRIAL_FACTOR * nominal.wall_time, 1.0)
+        # A trial may do this much more work than the plain run before it is abandoned.
+        self.max_calls = SLOW_TRIAL_FACTOR * max(nominal.derivative_calls, MIN_TRIAL_CALLS)
+        self.deadline = math.inf      # perf_counter() time: the caller's wall-time cap, if any
         self.failed: list[str] = []
 
     # -- responses ------------------------------------------------------------------------
     def response(self, terms: list[AddedTerm]) -> dict[str, np.ndarray]:
         """Change of the measured signals when the terms are added."""
-        run = self.runner.simulate(terms, trajectories=False, time_limit=self.time_limit)
+        time_left = self.deadline - wallclock.perf_counter()
+        if time_left <= 0:
+            raise TrialTooSlow("the time budget is spent")
+        run = self.runner.simulate(terms, trajectories=False, time_limit=time_left, max_calls=self.max_calls)
         return {s: run.predicted[s] - self.nominal.predicted[s] for s in self.signals}
 
     def trial(self, channel: int, variable: str | None, basis: str, center: float, size: float) -> Trial | None:

@@ -137,7 +137,7 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
         say(f"[1/5] diagnosing {model_fmu.name} against {first.label} ...")
         from ..diagnose import diagnose
         diagnosis = diagnose(model_fmu, first.samples(), first.start_values, plots_dir=report_dir / "diagnosis",
-                             time_budget=math.inf, trace_span=TRACE_SPAN)
+                             trace_span=TRACE_SPAN)
         for part in (*roles.train, *roles.validation):     # the diagnosis' start values belong to its run
             if part.data is first.data:
                 part.start_values = {**part.start_values, **diagnosis.start_values}

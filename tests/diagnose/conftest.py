@@ -4,10 +4,12 @@ import pytest
 
 from fmubuilder import synth
 from fmubuilder.build import example_fmu
+from fmubuilder.examples_zoo import SENSOR_NOISE
 
 DC_DRIVE_BENCH = dict(signals=("speed", "current", "power", "temperature"),
                       noise_std={"speed": 0.1, "current": 0.02, "power": 1.0, "temperature": 0.02})
-VLDM_BENCH = dict(signals=("speed", "power", "energy"))   # synth's default noise levels
+# synth's default noise levels, coloured like the bundled example data's
+VLDM_BENCH = dict(signals=("speed", "power", "energy"), **SENSOR_NOISE)
 
 
 def measure(folder, truth: str, *, stop_time: float, bench: dict, seed: int = 0, start_values=None):

@@ -61,3 +61,15 @@ def test_a_column_that_is_no_model_variable_is_a_one_line_error(tmp_path):
 def test_a_negative_time_budget_is_rejected(heating_data):
     with pytest.raises(FmuBuilderError, match="time-budget"):
         _run([str(example_fmu("dc_drive")), "--data", str(heating_data), "--time-budget", "-1"])
+
+
+def test_diagnose_calls_ar1_sensor_noise_without_an_effect_no_effect(data_dir, capsys):
+    """The declared DC drive's own data with sensor noise correlated between samples (AR(1),
+    rho 0.7, the variance of the white default): noise, not an effect."""
+    folder = data_dir / "cli_ar1"
+    folder.mkdir()
+    bench = {**DC_DRIVE_BENCH, "noise_model": "ar1", "noise_rho": 0.7}
+    data = measure(folder, "dc_drive", stop_time=15.0, bench=bench, seed=3)
+    _run([str(example_fmu("dc_drive")), "--data", str(data)])
+    out = capsys.readouterr().out
+    assert "No significant effect" in out and "Significant effect" not in out

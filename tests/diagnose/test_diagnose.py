@@ -73,16 +73,65 @@ def test_dc_drive_extra_heating_is_traced_to_the_temperature_derivative(dc_drive
 
 def test_an_effect_below_the_noise_of_single_samples_is_found(data_dir):
     """Ten times the sensor noise: the windage residual is about as large as the noise of a
-    sample (RMS below twice the noise), yet the block test finds it and the trace holds."""
+    sample (RMS at most 2.5 times the noise), yet the test finds it and the trace holds."""
     bench = dict(signals=("speed", "current", "power"), noise_std={"speed": 0.5, "current": 0.5, "power": 20.0})
     folder = data_dir / "noisy"
     folder.mkdir()
     d = _diagnose("dc_drive", measure(folder, "dc_drive_truth_windage", stop_time=10.0, bench=bench))
-    assert all(e.rms < 2.0 * e.noise for e in d.errors)
+    assert all(e.rms < 2.5 * e.noise for e in d.errors)
     assert d.significant
     assert d.channel == "der(speed)" and d.inputs[0] == "speed"
     control = _diagnose("dc_drive", measure(folder, "dc_drive", stop_time=10.0, bench=bench))
     assert not control.significant
+
+
+# ---------------------------------------------------------------------------------------
+# Coloured sensor noise: real sensors are filtered, their noise correlated between samples
+
+COLOURED_NOISE = {
+    "ar1 0.7": dict(noise_model="ar1", noise_rho=0.7),
+    "ar1 0.9": dict(noise_model="ar1", noise_rho=0.9),
+    "low-pass 0.3 s x2": dict(noise_model="lowpass", noise_filter_tau=0.3, noise_filter_order=2),
+    "sensor lag 0.1 s": dict(noise_model="lowpass", noise_filter_tau=0.1),
+}
+
+
+@pytest.mark.parametrize("noise", list(COLOURED_NOISE))
+def test_coloured_noise_without_an_effect_is_no_effect(data_dir, noise):
+    folder = data_dir / f"coloured_{noise.replace(' ', '_')}"
+    folder.mkdir()
+    bench = {**DC_DRIVE_BENCH, **COLOURED_NOISE[noise]}
+    for seed in range(3):
+        d = _diagnose("dc_drive", measure(folder, "dc_drive", stop_time=DC_DRIVE_WINDOW, bench=bench, seed=seed))
+        assert not d.significant, (noise, seed, d.p_value)
+
+
+@pytest.mark.parametrize("noise", ["ar1 0.7", "low-pass 0.3 s x2"])
+def test_effects_are_found_in_coloured_noise(data_dir, noise):
+    folder = data_dir / f"coloured_effects_{noise.replace(' ', '_')}"
+    folder.mkdir()
+    bench = {**DC_DRIVE_BENCH, **COLOURED_NOISE[noise]}
+    windage = _diagnose("dc_drive", measure(folder, "dc_drive_truth_windage", stop_time=DC_DRIVE_WINDOW, bench=bench))
+    assert windage.significant and windage.channel == "der(speed)"
+    heating = _diagnose("dc_drive", measure(folder, "dc_drive_truth_extra_heating", stop_time=DC_DRIVE_WINDOW,
+                                            bench=bench))
+    assert heating.significant and heating.channel == "der(temperature)"
+
+
+def test_the_time_budget_does_not_change_the_numbers(dc_drive_data):
+    """The tracing's work is fixed: a generous budget and none give the same diagnosis; a
+    budget too small to finish says that it cut the tracing short."""
+    data = dc_drive_data["dc_drive_truth_extra_heating"]
+    free = diagnose(example_fmu("dc_drive"), data)
+    capped = diagnose(example_fmu("dc_drive"), data, time_budget=1e6)
+    assert free.cut_short is None and capped.cut_short is None
+    assert capped.p_value == free.p_value and capped.simulations == free.simulations
+    assert capped.fitted_term == free.fitted_term and capped.candidates == free.candidates
+    assert capped.trace_window == free.window
+    tiny = diagnose(example_fmu("dc_drive"), data, time_budget=1e-9)
+    assert tiny.p_value == free.p_value and tiny.significant
+    assert tiny.cut_short is not None and "time budget" in tiny.cut_short
+    assert "Warning: the time budget" in tiny.report()
 
 
 # ---------------------------------------------------------------------------------------
