@@ -264,18 +264,21 @@ def _embedded_spec(hybrid_fmu: Path, folder: Path) -> tuple[HybridSpec, dict[str
         original_xml = hybrid.read(prefix + EMBEDDED_ORIGINAL_XML)
         (folder / EMBEDDED_ONNX).write_bytes(hybrid.read(prefix + EMBEDDED_ONNX))
         identifier = _model_identifier(original_xml)
-        library = f"{identifier}.so"
+        # The original's binaries folder (its library and the files beside it) sits in resources/.
+        binaries = set(data.get("original_binaries", [f"{identifier}.so"]))
         original = folder / "original.fmu"
         with zipfile.ZipFile(original, "w", zipfile.ZIP_DEFLATED) as out:
             out.writestr("modelDescription.xml", original_xml)
-            out.writestr(f"binaries/{binary_platform()}/{library}", hybrid.read(f"resources/{library}"))
+            for name in sorted(binaries):
+                out.writestr(f"binaries/{binary_platform()}/{name}", hybrid.read(f"resources/{name}"))
             for name in names:
                 if name.startswith("resources/") and not name.endswith("/") and not name.startswith(prefix) \
-                        and name != f"resources/{library}":
+                        and name.removeprefix("resources/") not in binaries:
                     out.writestr(name, hybrid.read(name))
     spec = HybridSpec(original_fmu=original, original_guid=data["original_guid"], channels=data["channels"],
                       inputs=data["inputs"], onnx=folder / EMBEDDED_ONNX, p_ann=data["p_ann"], p_fmu=data["p_fmu"],
-                      aliases=data.get("aliases", {}))
+                      aliases=data.get("aliases", {}), term=data.get("term", "network"),
+                      expression=data.get("expression", ""))
     gates = {}
     for c, entry in enumerate(data.get("gates", [])):
         gates[entry["p_ann"]] = (c, "p_ann")
