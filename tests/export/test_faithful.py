@@ -90,3 +90,13 @@ def test_memory_management_flag_is_kept_and_honoured(with_sibling, tmp_path):
     assert not fmpy.read_model_description(str(ball)).modelExchange.canNotUseMemoryManagementFunctions
     found, message = instantiate_without_memory_functions(ball)
     assert not found and "allocateMemory and freeMemory are required" in message
+
+
+def test_round_trip_from_the_embedded_spec_finds_the_sibling(with_sibling, tmp_path):
+    """`fmubuilder validate HYBRID.fmu` (no --against) rebuilds the original from the hybrid:
+    with its sibling library, or the original's binary cannot load."""
+    from fmubuilder.export import validate_hybrid
+    _, hybrid = make_hybrid(tmp_path, with_sibling, ["der(x)"], ["x"], seed=3)
+    report = validate_hybrid(hybrid, stop_time=0.5)
+    assert report.passed, report.format_table()
+    assert any(not c.informational for c in report.comparisons)
