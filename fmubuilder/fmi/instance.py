@@ -25,12 +25,14 @@ from .model import ModelInfo, Variable
 _instance_counter = itertools.count(1)
 # Breadcrumbs (breadcrumb.py): CALL[0] = +code before a call into the binary, -code after it.
 # The hot-path calls use their codes as module constants: a dict lookup per call would cost.
-_SETTIME = CODE["fmi2SetTime"]
-_GETCONTINUOUSSTATES = CODE["fmi2GetContinuousStates"]
-_SETCONTINUOUSSTATES = CODE["fmi2SetContinuousStates"]
-_GETDERIVATIVES = CODE["fmi2GetDerivatives"]
-_GETEVENTINDICATORS = CODE["fmi2GetEventIndicators"]
+# Their negatives are constants too (negating at run time allocates an int per call).
+_SETTIME, _SETTIME_DONE = CODE["fmi2SetTime"], -CODE["fmi2SetTime"]
+_GETCONTINUOUSSTATES, _GETCONTINUOUSSTATES_DONE = CODE["fmi2GetContinuousStates"], -CODE["fmi2GetContinuousStates"]
+_SETCONTINUOUSSTATES, _SETCONTINUOUSSTATES_DONE = CODE["fmi2SetContinuousStates"], -CODE["fmi2SetContinuousStates"]
+_GETDERIVATIVES, _GETDERIVATIVES_DONE = CODE["fmi2GetDerivatives"], -CODE["fmi2GetDerivatives"]
+_GETEVENTINDICATORS, _GETEVENTINDICATORS_DONE = CODE["fmi2GetEventIndicators"], -CODE["fmi2GetEventIndicators"]
 _COMPLETEDINTEGRATORSTEP = CODE["fmi2CompletedIntegratorStep"]
+_COMPLETEDINTEGRATORSTEP_DONE = -CODE["fmi2CompletedIntegratorStep"]
 
 
 class FmuCallError(FmuBuilderError):
@@ -245,13 +247,13 @@ class FmuInstance:
         out = ffi.new("double[]", max(n, 1))
         view = np.frombuffer(ffi.buffer(out), dtype=np.float64)[:n]
         get_real, component, check = self._lib.fmi2GetReal, self.component, self._check
-        code = CODE["fmi2GetReal"]
+        code, done = CODE["fmi2GetReal"], -CODE["fmi2GetReal"]
 
         def read() -> np.ndarray:
             if n:
                 CALL[0] = code
                 status = get_real(component, c_vrs, n, out)
-                CALL[0] = -code
+                CALL[0] = done
                 if status > 1:
                     check(status, "fmi2GetReal")
             return view.copy()
@@ -264,14 +266,14 @@ class FmuInstance:
         buffer = ffi.new("double[]", max(n, 1))
         view = np.frombuffer(ffi.buffer(buffer), dtype=np.float64)[:n]
         set_real, component, check = self._lib.fmi2SetReal, self.component, self._check
-        code = CODE["fmi2SetReal"]
+        code, done = CODE["fmi2SetReal"], -CODE["fmi2SetReal"]
 
         def write(values) -> None:
             if n:
                 view[:] = values
                 CALL[0] = code
                 status = set_real(component, c_vrs, n, buffer)
-                CALL[0] = -code
+                CALL[0] = done
                 if status > 1:
                     check(status, "fmi2SetReal")
         return write
@@ -281,14 +283,14 @@ class FmuInstance:
         TIME[0] = t
         CALL[0] = _SETTIME
         status = self._lib.fmi2SetTime(self.component, t)
-        CALL[0] = -_SETTIME
+        CALL[0] = _SETTIME_DONE
         if status > 1:
             self._check(status, "fmi2SetTime")
 
     def get_continuous_states(self) -> np.ndarray:
         CALL[0] = _GETCONTINUOUSSTATES
         status = self._lib.fmi2GetContinuousStates(self.component, self._x, self._n_states)
-        CALL[0] = -_GETCONTINUOUSSTATES
+        CALL[0] = _GETCONTINUOUSSTATES_DONE
         if status > 1:
             self._check(status, "fmi2GetContinuousStates")
         return self._x_view.copy()
@@ -297,14 +299,14 @@ class FmuInstance:
         self._x_view[:] = x
         CALL[0] = _SETCONTINUOUSSTATES
         status = self._lib.fmi2SetContinuousStates(self.component, self._x, self._n_states)
-        CALL[0] = -_SETCONTINUOUSSTATES
+        CALL[0] = _SETCONTINUOUSSTATES_DONE
         if status > 1:
             self._check(status, "fmi2SetContinuousStates")
 
     def get_derivatives(self) -> np.ndarray:
         CALL[0] = _GETDERIVATIVES
         status = self._lib.fmi2GetDerivatives(self.component, self._dx, self._n_states)
-        CALL[0] = -_GETDERIVATIVES
+        CALL[0] = _GETDERIVATIVES_DONE
         if status > 1:
             self._check(status, "fmi2GetDerivatives")
         return self._dx_view.copy()
@@ -312,7 +314,7 @@ class FmuInstance:
     def get_event_indicators(self) -> np.ndarray:
         CALL[0] = _GETEVENTINDICATORS
         status = self._lib.fmi2GetEventIndicators(self.component, self._z, self._n_indicators)
-        CALL[0] = -_GETEVENTINDICATORS
+        CALL[0] = _GETEVENTINDICATORS_DONE
         if status > 1:
             self._check(status, "fmi2GetEventIndicators")
         return self._z_view.copy()
@@ -327,7 +329,7 @@ class FmuInstance:
         flags = self._flags
         CALL[0] = _COMPLETEDINTEGRATORSTEP
         status = self._lib.fmi2CompletedIntegratorStep(self.component, no_set_fmu_state_prior, flags, flags + 1)
-        CALL[0] = -_COMPLETEDINTEGRATORSTEP
+        CALL[0] = _COMPLETEDINTEGRATORSTEP_DONE
         if status > 1:
             self._check(status, "fmi2CompletedIntegratorStep")
         return bool(flags[0]), bool(flags[1])
