@@ -9,7 +9,7 @@ from __future__ import annotations
 from .._lazy import lazy_exports
 
 _EXPORTS = {
-    "FrozenNetwork": "freeze", "freeze": "freeze",
+    "FrozenNetwork": "onnx_freeze", "freeze": "onnx_freeze",
     "SUPPORTED_OPS": "kernel", "GeneratedKernel": "kernel", "generate_kernel": "kernel",
     "HybridSpec": "spec",
     "ValidationReport": "validate", "validate_hybrid": "validate",

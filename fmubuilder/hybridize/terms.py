@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from ..errors import FmuBuilderError
-from ..export.freeze import freeze
+from ..export import freeze
 from ..export.spec import HybridSpec
 
 DTYPE = torch.float64

@@ -34,8 +34,6 @@ def check_common(fmu, md, added, gate: str):
 
 
 def test_a_fitted_term_hybrid_calls_itself_a_fitted_term(tmp_path):
-    # Imported here: importing the submodule fmubuilder.export.freeze at collection would shadow
-    # the function fmubuilder.export.freeze that other test modules import.
     from fmubuilder.hybridize.terms import spec_from_fitted_term
     fmu = example_fmu("bouncing_ball")
     spec = spec_from_fitted_term(FITTED, fmu, read_model_info(fmu).guid, tmp_path)

@@ -32,7 +32,7 @@ def fitted_reference(h, v):
 
 
 def test_fitted_term_network_matches_the_expression(tmp_path):
-    from fmubuilder.export.freeze import freeze
+    from fmubuilder.export import freeze
     network = FittedTerm(TERMS, ["v", "h"])
     freeze(network.eval(), 2, tmp_path / "term.onnx")
     session = onnxruntime.InferenceSession(str(tmp_path / "term.onnx"))

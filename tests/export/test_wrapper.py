@@ -33,7 +33,7 @@ def make_network(path: Path, n_inputs: int, n_outputs: int, seed: int) -> Path:
     """A small random MLP as float64 ONNX: freeze() when torch is there, else onnx.helper."""
     try:
         import torch
-        from fmubuilder.export.freeze import freeze
+        from fmubuilder.export import freeze
     except ImportError:
         return _onnx_mlp(path, n_inputs, n_outputs, seed)
     torch.manual_seed(seed)
