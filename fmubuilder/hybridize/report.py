@@ -8,7 +8,6 @@ import numpy as np
 
 from ..files import write_atomically
 from .evaluate import relative_mse
-from .workflow import VALIDATION_SHARE
 
 
 ROLES = ("train", "validation", "test")
@@ -29,9 +28,7 @@ def write_report(folder: Path, *, model_fmu, diagnosis, plain, candidates, chose
             "data": roles.train[0].label,
             "trace_window": list(diagnosis.trace_window) if diagnosis.trace_window else None,
         },
-        "data": {**roles.describe(),
-                 "validation_from": (f"the last {VALIDATION_SHARE:.0%} of each training run, held out of the fit"
-                                     if roles.held_out_of_training else "a separate run")},
+        "data": roles.describe(),
         "scoring": scoring.describe(),
         "training": training,
         "selection": selection,

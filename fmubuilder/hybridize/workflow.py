@@ -83,8 +83,11 @@ class Roles:
     held_out_of_training: bool       # validation = the late share of each training run
 
     def describe(self) -> dict:
-        return {role: [p.label for p in parts] for role, parts in
-                (("train", self.train), ("validation", self.validation), ("test", [self.test]))}
+        parts = {role: [p.label for p in parts] for role, parts in
+                 (("train", self.train), ("validation", self.validation), ("test", [self.test]))}
+        parts["validation_from"] = (f"the last {VALIDATION_SHARE:.0%} of each training run, held out of the fit"
+                                    if self.held_out_of_training else "a separate run")
+        return parts
 
 
 @dataclass
