@@ -41,7 +41,7 @@ AMBIGUOUS = 1.1                # another channel whose best trial leaves less th
                                # unexplained variance of the best one explains the data about as well
 START_ESTIMATE_SAMPLES = 5
 START_TOLERANCE = 4.0          # standard errors between a measured start and the model's
-TRACE_SAMPLES = 3000           # the tracing's trials cover at most this many leading samples (300 s at 10 Hz)
+TRACE_SAMPLES = 1000           # the tracing's trials cover at most this many leading samples (100 s at 10 Hz)
 
 
 @dataclass
