@@ -11,12 +11,14 @@ and where in the model does the missing effect act?
 2. Per signal: MSE, RMS, max |error|, final error, the noise level and its own test; one
    joint test of all signals (significance.py, robust to coloured and shared noise) decides
    whether there is a significant effect.
-3. Only then the effect is traced (trace.py) over the whole data: channel = state derivative,
-   inputs = variables the missing term depends on, and a fitted term when a compact
-   expression explains it. The work is fixed by the model and the data (a fixed list of
-   trials, each abandoned beyond SLOW_TRIAL_FACTOR times the plain run's derivative
-   evaluations), so an idle and a busy machine give the same numbers. ``time_budget`` is only
-   an upper cap on the wall time: when it cuts the tracing short, ``cut_short`` says so.
+3. Only then the effect is traced (trace.py): channel = state derivative, inputs = variables
+   the missing term depends on, and a fitted term when a compact expression explains it.
+   The tracing covers the whole data up to TRACE_SAMPLES samples (longer data: their first
+   TRACE_SAMPLES samples, ``trace_window``). Its work is fixed by the model and the data (a
+   fixed list of trials, each abandoned beyond SLOW_TRIAL_FACTOR times the plain run's
+   derivative evaluations), so an idle and a busy machine give the same numbers.
+   ``time_budget`` is only an upper cap on the wall time: when it cuts the tracing short,
+   ``cut_short`` says so.
 """
 from __future__ import annotations
 
@@ -39,6 +41,7 @@ AMBIGUOUS = 1.1                # another channel whose best trial leaves less th
                                # unexplained variance of the best one explains the data about as well
 START_ESTIMATE_SAMPLES = 5
 START_TOLERANCE = 4.0          # standard errors between a measured start and the model's
+TRACE_SAMPLES = 1000           # the tracing's trials cover at most this many leading samples (100 s at 10 Hz)
 
 
 @dataclass
@@ -98,15 +101,14 @@ class Diagnosis:
 
 
 def diagnose(model_fmu, data_csv, start_values: dict | None = None, plots_dir=None, *,
-             time_budget: float | None = None, trace_always: bool = False,
-             trace_span: float | None = None) -> Diagnosis:
+             time_budget: float | None = None, trace_always: bool = False) -> Diagnosis:
     """Compare the declared model with measured data and trace a significant difference.
 
     start_values: {name: value} for the model (added to those recorded with the data);
     plots_dir: folder for PNG plots (created); time_budget: an upper cap on the seconds the
     tracing may take (None: no cap); it never changes the numbers unless it cuts the tracing
     short, which ``cut_short`` then reports; trace_always: trace even when the residual is not
-    significant; trace_span: seconds of data, from the start, to trace on (None: all of it).
+    significant.
     """
     started = wallclock.perf_counter()
     model_fmu = Path(model_fmu)
@@ -141,8 +143,7 @@ def diagnose(model_fmu, data_csv, start_values: dict | None = None, plots_dir=No
         fitted_run = None
         if significant or trace_always:
             trace_started = wallclock.perf_counter()
-            fitted_term = _trace(diagnosis, info, data, runner, nominal, tests, variables, time_budget,
-                                 trace_span)
+            fitted_term = _trace(diagnosis, info, data, runner, nominal, tests, variables, time_budget)
             wall["trace"] = wallclock.perf_counter() - trace_started
             if fitted_term is not None:
                 fitted_run = runner.simulate(fitted_term.terms, trajectories=False)
@@ -248,20 +249,21 @@ def _joint_test(data: MeasuredData, run: ModelRun) -> significance.JointTest:
 
 
 def _trace(diagnosis: Diagnosis, info, data: MeasuredData, runner: ModelRunner, nominal: ModelRun,
-           tests, variables, time_budget: float | None, trace_span: float | None) -> FittedTerm | None:
-    """Trace the effect over the data (or its first `trace_span` seconds); a time budget only caps
+           tests, variables, time_budget: float | None) -> FittedTerm | None:
+    """Trace the effect over the data's first TRACE_SAMPLES samples; a time budget only caps
     the wall time."""
     noise = {e.signal: math.hypot(t.noise, t.floor) for e, t in zip(diagnosis.errors, tests)}
-    start, stop = diagnosis.window
-    trace_runner, trace_nominal = runner, nominal
-    if trace_span is not None and trace_span < stop - start:
-        trace_runner = _runner(runner.fmu.path, runner.start_values, data, start, start + trace_span, variables)
-        trace_runner.output_aliases = runner.output_aliases
-        trace_nominal = trace_runner.simulate()
-    diagnosis.trace_window = (start, trace_runner.stop)
     deadline = math.inf
     if time_budget is not None and math.isfinite(time_budget):
         deadline = wallclock.perf_counter() + time_budget
+    trace_runner, trace_nominal = runner, nominal
+    if data.time.size > TRACE_SAMPLES:
+        start = diagnosis.window[0]
+        trace_runner = _runner(runner.fmu.path, runner.start_values, data, start,
+                               float(data.time[TRACE_SAMPLES - 1]), variables)
+        trace_runner.output_aliases = runner.output_aliases
+        trace_nominal = trace_runner.simulate()
+    diagnosis.trace_window = (trace_runner.start, trace_runner.stop)
     try:
         return _trace_window(diagnosis, info, data, trace_runner, trace_nominal, noise, variables, deadline)
     finally:

@@ -39,9 +39,6 @@ from .evaluate import Evaluation, Scoring, evaluate, read_data, relative_mse, si
 # Share of each training run (its end) held out of the fit for validation, when no separate
 # validation run is given.
 VALIDATION_SHARE = 0.2
-# Seconds of the training data the diagnosis traces the effect on (the significance test uses all).
-# On the VLDM demo 120 s trace the resistance to der(speed); 200 s lead the tracing to der(energy).
-TRACE_SPAN = 120.0
 # NeuralFMU epochs (one optimizer step each, see MAX_ELEMENT_LENGTH).
 DEFAULT_EPOCHS = 10
 # Seconds of the test data replayed by the round-trip validation (fmpy Euler and CVode).
@@ -139,8 +136,7 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
         first = roles.train[0]
         say(f"[1/5] diagnosing {model_fmu.name} against {first.label} ...")
         from ..diagnose import diagnose
-        diagnosis = diagnose(model_fmu, first.samples(), first.start_values, plots_dir=report_dir / "diagnosis",
-                             trace_span=TRACE_SPAN)
+        diagnosis = diagnose(model_fmu, first.samples(), first.start_values, plots_dir=report_dir / "diagnosis")
         for part in (*roles.train, *roles.validation):     # the diagnosis' start values belong to its run
             if part.data is first.data:
                 part.start_values = {**part.start_values, **diagnosis.start_values}

@@ -185,3 +185,16 @@ def test_a_measured_start_that_contradicts_the_model_is_taken_from_the_data(data
     assert set(d.start_values_from_data) == {"temperature"}
     assert d.start_values_from_data["temperature"] == pytest.approx(313.15, abs=0.05)
     assert not d.significant
+
+
+def test_long_data_are_traced_on_a_fixed_number_of_leading_samples(dc_drive_data, monkeypatch):
+    """The tracing's share of the data is a sample count, not a time: the same on any machine."""
+    import numpy as np
+    from fmubuilder.diagnose import diagnosis as diagnosis_module
+    monkeypatch.setattr(diagnosis_module, "TRACE_SAMPLES", 100)
+    data = dc_drive_data["dc_drive_truth_extra_heating"]
+    stamps = np.loadtxt(data, delimiter=",", skiprows=1, usecols=0)
+    d = diagnose(example_fmu("dc_drive"), data)
+    assert d.window == (stamps[0], stamps[-1])
+    assert d.trace_window == (stamps[0], stamps[99])
+    assert d.significant and d.channel == "der(temperature)" and d.cut_short is None
