@@ -19,7 +19,7 @@ from fmubuilder import synth
 from fmubuilder.build import example_fmu
 from fmubuilder.fmi import read_model_info
 from fmubuilder.hybridize import hybridize
-from fmubuilder.hybridize.cli import add_hybridize_parser
+from fmubuilder.cli.hybridize import add_hybridize_parser
 from fmubuilder.hybridize.workflow import VALIDATION_SHARE, Scores, _assign_roles, _select
 
 BENCH = dict(signals=("speed", "current", "power", "temperature"),
