@@ -190,6 +190,20 @@ def test_no_effect_no_hybrid(runs):
     assert summary(result).startswith("no hybrid FMU written: no significant effect")
 
 
+@pytest.mark.parametrize("noise", [dict(noise_model="ar1", noise_rho=0.7),
+                                   dict(noise_model="lowpass", noise_filter_tau=0.3, noise_filter_order=2)])
+def test_no_effect_in_coloured_noise_no_hybrid(noise, tmp_path):
+    """Sensor noise correlated from sample to sample is not an effect: nothing is published."""
+    bench = dict(BENCH, **noise)
+    train = measure(tmp_path, "dc_drive", TRAIN_WINDOW, 5, bench=bench)
+    test = measure(tmp_path, "dc_drive", TEST_WINDOW, 6, bench=bench)
+    result = hybridize(example_fmu("dc_drive"), train, test, tmp_path / "hybrid.fmu", tmp_path / "report",
+                       progress=False)
+    assert not result.report["diagnosis"]["significant"], result.report["diagnosis"]
+    assert result.hybrid_fmu is None and not (tmp_path / "hybrid.fmu").exists()
+    assert result.report["models"] == []
+
+
 # ---------------------------------------------------------------------------------------
 # VLDM: the first 30 s of the training cycle (CADC road) and of the test cycle (WLTC class 2)
 
