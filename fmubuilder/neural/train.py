@@ -10,7 +10,13 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    compensates an unmodelled load), and their transient at each element start would dominate the
    loss. So after pre-training the starts are captured again from a simulation of the hybrid, and
    during training each element's final FMU state becomes the next element's start (carry-over),
-   so the starts follow the model as it learns.
+   so the starts follow the model as it learns. An FMU that cannot save its state
+   (canGetAndSetFMUstate="false", as most OpenModelica exports) gets the same starts without
+   snapshots (solve.Replay): a carried-over start is the FMU instance that computed it, left standing
+   there (no cost); a captured start, or one used a second time (a rewind), is replayed from the data's
+   start or from the latest start still held, without gradient (one simulation of the span replayed).
+   The starts are the same as with snapshots up to rounding; what such an FMU cannot give is the
+   gradient through its discrete states at events (solve.py, item 3).
 2. Neutral-initialisation pre-training (NIPT): the ANN part is fitted to leave the hybrid unchanged
    (the FMU's channel derivative for gates, zero for residual) on inputs from the reference.
 3. Optional collocation pre-training (CCPT) for channels der(s) whose state s is measured: the FMU is

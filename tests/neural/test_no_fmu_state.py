@@ -1,0 +1,98 @@
+"""An FMU that cannot save its state (canGetAndSetFMUstate="false", as most OpenModelica exports):
+element starts are replayed or continued in the instance that reached them (solve.Replay). The
+reference is the same C model compiled with FMU-state support, where the starts are snapshots."""
+import numpy as np
+import pytest
+import torch
+
+from fmubuilder.build import example_fmu
+from fmubuilder.errors import FmuBuilderError
+from fmubuilder.fmi.binding import ffi
+from fmubuilder.neural import ElementStart, NeuralFMU, TopologyConfig, simulate
+from fmubuilder.neural.train import train_neural_fmu
+
+from .conftest import plant_data
+
+pytestmark = pytest.mark.filterwarnings("ignore:sampled_plant cannot get/set its FMU state")
+
+CONFIG = TopologyConfig(channels=["der(w)"], inputs=["w"], hidden=[4], kind="residual")
+
+
+@pytest.fixture(scope="module")
+def plant_without_state():
+    return example_fmu("sampled_plant_no_fmu_state")
+
+
+@pytest.fixture(scope="module")
+def plant_data_set(plant_fmu):
+    data, _ = plant_data(plant_fmu, [0, 1, 1.001, 2.5, 2.501, 4], [1, 1, 2, 2, 0.5, 0.5], 4.0, seed=0)
+    return data
+
+
+def test_the_binary_refuses_fmu_state_calls(plant_without_state):
+    with NeuralFMU(plant_without_state, CONFIG) as model:
+        assert not model.info.capabilities.can_get_and_set_fmu_state
+        inst = model.instances(1)[0]
+        inst.setup_experiment(start_time=0.0)
+        inst.enter_initialization_mode()
+        inst.exit_initialization_mode()
+        with pytest.raises(FmuBuilderError, match="does not support getting/setting its state"):
+            inst.get_fmu_state()
+        handle = ffi.new("fmi2FMUstate*", ffi.NULL)   # past the declared capability: the binary refuses
+        with pytest.raises(FmuBuilderError):
+            inst._call("fmi2GetFMUstate", inst.component, handle)
+
+
+def _captured_and_continued(fmu):
+    """Starts captured inside one run, then every element simulated from them twice (the second
+    time the starts are replayed) and once more from the first pass' final states (carry-over)."""
+    torch.manual_seed(0)
+    with NeuralFMU(fmu, CONFIG) as model, torch.no_grad():
+        for p in model.topology.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+        run = simulate(model, 1.6, 0.004, starts=[ElementStart(0.0, states={"w": 0.2})], capture=[0, 100, 250],
+                       record=["w", "i"])
+        starts = [run.captured[k][0] for k in (0, 100, 250)]
+        first = simulate(model, 0.8, 0.004, starts=starts, record=["w", "i", "u"], keep_final_state=True)
+        again = simulate(model, 0.8, 0.004, starts=starts, record=["w", "i", "u"])
+        carried = simulate(model, 0.4, 0.004, starts=first.final_starts, record=["w", "i", "u"])
+        return run.values.numpy(), first.values.numpy(), again.values.numpy(), carried.values.numpy()
+
+
+def test_replayed_and_carried_starts_equal_the_snapshots(plant_fmu, plant_without_state):
+    with_snapshots = _captured_and_continued(plant_fmu)
+    without = _captured_and_continued(plant_without_state)
+    for reference, replayed in zip(with_snapshots, without):
+        np.testing.assert_allclose(replayed, reference, rtol=1e-12, atol=1e-12)
+    # the elements really start inside the run: the sampled PI integral is not at its start value
+    assert np.abs(with_snapshots[1][0, 1, 2] - with_snapshots[1][0, 0, 2]) > 1e-3
+
+
+@pytest.mark.parametrize("order", ["random", "sequential"])
+def test_training_sees_the_same_losses_as_with_snapshots(plant_fmu, plant_without_state, plant_data_set, order):
+    """With the parameters held (learning rate 0) every epoch's loss depends on the element starts
+    only: captured, carried over, measured twice and replayed, they must agree exactly."""
+    common = dict(targets=["der(w)"], inputs=["w"], hidden=[4], epochs=3, element_length=1.0, order=order,
+                  step_size=0.004, learning_rate=0.0, progress=False)
+    losses = []
+    for fmu in (plant_fmu, plant_without_state):
+        result = train_neural_fmu(fmu, plant_data_set, **common)
+        losses.append([h["loss"] for h in result.history])
+        result.model.close()
+    np.testing.assert_allclose(losses[1], losses[0], rtol=1e-10)
+
+
+def test_training_without_snapshots_reaches_the_same_quality(plant_fmu, plant_without_state, plant_data_set):
+    """Learning: the starts are the same; the gradient lacks the path through the sampled PI's
+    discrete state at events (that needs snapshots), which barely changes the result here."""
+    common = dict(targets=["der(w)"], inputs=["w", "der(w)"], hidden=[8], epochs=8, element_length=1.0,
+                  step_size=0.004, learning_rate=2e-2, progress=False)
+    mse = []
+    for fmu in (plant_fmu, plant_without_state):
+        result = train_neural_fmu(fmu, plant_data_set, **common)
+        errors = result.metrics["errors"]
+        mse.append((errors["before"]["w"]["mse"], errors["after"]["w"]["mse"]))
+        result.model.close()
+    assert mse[0][0] == pytest.approx(mse[1][0], rel=1e-12)      # the plain FMU: identical
+    assert mse[1][1] < 0.6 * mse[1][0]                           # the training helps ...
+    assert mse[1][1] == pytest.approx(mse[0][1], rel=0.02)      # ... as much as with snapshots
