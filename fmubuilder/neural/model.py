@@ -36,6 +36,7 @@ class NeuralFMU(nn.Module):
         self.topology = Topology(config, self.info, parameter_values)
         self._instances: list[FmuInstance] = []
         self._holders: dict[int, weakref.ref] = {}   # id(instance) -> the element start it stands at
+        self.replays = {"runs": 0, "simulated_seconds": 0.0}   # element starts replayed (solve.Replay)
         n_knowns = self.info.n_states + len(config.parameters)
         self.event_sensitivity = EventSensitivity(n_knowns)
 

@@ -214,6 +214,8 @@ def _replay(model: NeuralFMU, start: ElementStart, origin: ElementStart) -> None
             model.topology.load_state_dict(current)
     start.next_event_time = final.next_event_time
     model.hold(final.instance, start)
+    model.replays["runs"] += 1
+    model.replays["simulated_seconds"] += recipe.duration
 
 
 def _x0_values(x0: torch.Tensor, B: int, n: int) -> np.ndarray:

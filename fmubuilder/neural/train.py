@@ -141,7 +141,7 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
                    "seconds": time.perf_counter() - started, "epochs": trainer.epochs_done,
                    "epochs_planned": settings.epochs, "cut_short_by_time_budget": trainer.cut_short,
                    "loss": trainer.history[-1]["loss"] if trainer.history else None,
-                   "settings": asdict(settings)}
+                   "settings": asdict(settings), "element_start_replays": dict(model.replays)}
         if test_data is not None:
             test = test_data if isinstance(test_data, MeasuredData) else load_data(test_data, model.info)
             if test_start_values is None:

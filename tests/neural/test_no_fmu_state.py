@@ -96,3 +96,38 @@ def test_training_without_snapshots_reaches_the_same_quality(plant_fmu, plant_wi
     assert mse[0][0] == pytest.approx(mse[1][0], rel=1e-12)      # the plain FMU: identical
     assert mse[1][1] < 0.6 * mse[1][0]                           # the training helps ...
     assert mse[1][1] == pytest.approx(mse[0][1], rel=0.02)      # ... as much as with snapshots
+
+
+def _losses_across_a_rewind(fmu, data):
+    """Element losses with carry-over under changing parameters, then again from the starts of an
+    earlier pass (what a rewind does): those starts were consumed and must be replayed."""
+    from fmubuilder.neural.train import Trainer, TrainSettings
+    settings = TrainSettings(element_length=0.5, step_size=0.004, progress=False, sensor_lag=0.0)
+    torch.manual_seed(5)
+    with NeuralFMU(fmu, CONFIG) as model, torch.no_grad():
+        trainer = Trainer(model, data, settings, 0.0)
+        trainer.prepare()
+        losses = []
+        saved = None
+        for shift in (0.3, -0.2, 0.1):
+            for p in model.topology.ann.parameters():
+                p.add_(shift * torch.randn_like(p))
+            if len(losses) == 1:   # the second pass: starts carried over from the first, then consumed
+                saved = ([e.start for e in trainer.elements], {k: v.clone() for k, v in model.topology.state_dict().items()})
+            losses.append(float(trainer.batch_loss(trainer.elements)))
+        starts, state = saved      # back to the second pass' parameters and starts
+        model.topology.load_state_dict(state)
+        for element, start in zip(trainer.elements, starts):
+            element.start = start
+        losses.append(float(trainer.batch_loss(trainer.elements)))
+        losses.append(float(trainer.batch_loss(trainer.elements[3:5])))
+        return losses, dict(model.replays)
+
+
+def test_rewound_starts_are_replayed_exactly(plant_fmu, plant_without_state, plant_data_set):
+    with_snapshots, _ = _losses_across_a_rewind(plant_fmu, plant_data_set)
+    without, replays = _losses_across_a_rewind(plant_without_state, plant_data_set)
+    assert len(set(np.round(with_snapshots[:3], 6))) == 3          # the three passes differ
+    assert with_snapshots[3] == pytest.approx(with_snapshots[1], rel=1e-12)   # the rewind repeats the second
+    np.testing.assert_allclose(without, with_snapshots, rtol=1e-10)
+    assert replays["runs"] > 0
