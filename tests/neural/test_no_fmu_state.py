@@ -131,3 +131,18 @@ def test_rewound_starts_are_replayed_exactly(plant_fmu, plant_without_state, pla
     assert with_snapshots[3] == pytest.approx(with_snapshots[1], rel=1e-12)   # the rewind repeats the second
     np.testing.assert_allclose(without, with_snapshots, rtol=1e-10)
     assert replays["runs"] > 0
+
+
+def test_the_hybrid_of_an_fmu_without_state_exports_and_validates(plant_without_state, plant_data_set, tmp_path):
+    from fmubuilder.export import export_hybrid, validate_hybrid
+    from fmubuilder.fmi import read_model_info
+    from fmubuilder.hybridize.terms import spec_from_neural
+    result = train_neural_fmu(plant_without_state, plant_data_set, targets=["der(w)"], inputs=["w"], hidden=[4],
+                              epochs=2, element_length=1.0, step_size=0.004, learning_rate=2e-2, progress=False)
+    try:
+        hybrid = export_hybrid(spec_from_neural(result.model, tmp_path), tmp_path / "hybrid.fmu")
+    finally:
+        result.model.close()
+    assert not read_model_info(hybrid).capabilities.can_get_and_set_fmu_state
+    report = validate_hybrid(hybrid, stop_time=1.0, step_size=0.004)
+    assert report.passed, report.format_table()
