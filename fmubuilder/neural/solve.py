@@ -517,7 +517,7 @@ class _Run:
     def _save_states(self, t: np.ndarray, x: torch.Tensor, tau: float, final: bool = False) -> list[ElementStart]:
         """Every element's start at its current point, tau seconds into the run."""
         if not self.snapshots:
-            return self._replayable_states(t, tau, final)
+            return self._replayable_states(t, x, tau, final)
         saved = []
         x_np = x.detach().numpy()
         for b, inst in enumerate(self.instances):
@@ -530,16 +530,18 @@ class _Run:
             saved.append(ElementStart(float(t[b]), data, float(self.next_event[b])))
         return saved
 
-    def _replayable_states(self, t: np.ndarray, tau: float, final: bool) -> list[ElementStart]:
+    def _replayable_states(self, t: np.ndarray, x: torch.Tensor, tau: float, final: bool) -> list[ElementStart]:
         """Starts at the elements' current points for an FMU without saved states (see Replay); at
         the end of the run each keeps its element's instance, which the run leaves there."""
         parameters = {name: value.detach().clone() for name, value in self.topology.state_dict().items()}
+        x_np = x.detach().numpy()
         saved = []
         for b, origin in enumerate(self.starts):
             recipe = Replay(origin, float(tau), parameters, self.h, "rk4" if self.rk4 else "euler",
                             self.inputs)
             start = ElementStart(float(t[b]), next_event_time=float(self.next_event[b]), replay=recipe)
             if final:
+                self.ev.set_point(b, t[b], x_np[b], self._u(b, t[b]))
                 self.model.hold(self.instances[b], start)
             saved.append(start)
         return saved
