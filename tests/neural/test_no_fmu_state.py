@@ -146,3 +146,33 @@ def test_the_hybrid_of_an_fmu_without_state_exports_and_validates(plant_without_
     assert not read_model_info(hybrid).capabilities.can_get_and_set_fmu_state
     report = validate_hybrid(hybrid, stop_time=1.0, step_size=0.004)
     assert report.passed, report.format_table()
+
+
+def test_a_third_party_fmu_declared_without_state(tmp_path):
+    """The Reference FMUs' BouncingBall (state events with a reset) declared
+    canGetAndSetFMUstate="false": with the parameters held, the epoch losses equal those with
+    snapshots; with learning, the loss falls, more slowly (the reset's gradient needs snapshots)."""
+    from tests.fmi.broken_fmus import rewrite_fmu
+    from tests.reference_fmus import reference_fmu
+    original = reference_fmu("BouncingBall")
+    declared = rewrite_fmu(original, tmp_path / "BouncingBall.fmu", xml=lambda text: text.replace(
+        'canGetAndSetFMUstate="true"', 'canGetAndSetFMUstate="false"'))
+    with NeuralFMU(original, TopologyConfig(channels=["der(v)"], inputs=["v"], hidden=[4])) as plain:
+        from fmubuilder.neural.system import simulate_hybrid
+        run = simulate_hybrid(plain, start_time=0.0, stop_time=2.0, variables=["h"], solver="rk4",
+                              step_size=0.001, output_interval=0.01)
+    from fmubuilder.data import MeasuredData
+    data = MeasuredData(run.time, {"h": 0.9 * run["h"]}, source="ball")   # a ball that bounces lower
+    common = dict(targets=["der(v)"], inputs=["v"], hidden=[4], epochs=3, element_length=0.5, step_size=0.005,
+                  progress=False)
+    for learning_rate in (0.0, 1e-2):
+        losses = []
+        for fmu in (original, declared):
+            result = train_neural_fmu(fmu, data, learning_rate=learning_rate, **common)
+            losses.append([h["loss"] for h in result.history])
+            result.model.close()
+        if learning_rate == 0.0:
+            np.testing.assert_allclose(losses[1], losses[0], rtol=1e-10)
+        else:   # the same starts, but no gradient through the reset (v+ = -e v-): it learns more slowly
+            assert losses[1][0] == pytest.approx(losses[0][0], rel=1e-10)
+            assert losses[1][-1] < 0.8 * losses[1][0] and losses[0][-1] < 0.8 * losses[0][0]
