@@ -13,7 +13,7 @@ from fmubuilder.neural.train import train_neural_fmu
 
 from .conftest import plant_data
 
-pytestmark = pytest.mark.filterwarnings("ignore:sampled_plant cannot get/set its FMU state")
+pytestmark = pytest.mark.filterwarnings("ignore:.* cannot get/set its FMU state")
 
 CONFIG = TopologyConfig(channels=["der(w)"], inputs=["w"], hidden=[4], kind="residual")
 
