@@ -13,8 +13,13 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    so the starts follow the model as it learns. An FMU that cannot save its state
    (canGetAndSetFMUstate="false", as most OpenModelica exports) gets the same starts without
    snapshots (solve.Replay): a carried-over start is the FMU instance that computed it, left standing
-   there (no cost); a captured start, or one used a second time (a rewind), is replayed from the data's
-   start or from the latest start still held, without gradient (one simulation of the span replayed).
+   there (no cost); a captured start, or one used a second time (a rewind), is replayed without
+   gradient through the runs that reached it. With K elements of length L that costs, in simulated
+   time without gradient: K(K-1)/2 L after each capture (twice in the preparation), K(K-1)/2 L per
+   rewind (each start's carry-over chain), and with random mini-batches the starts an element reuses
+   from the epoch before; sequential elements replay only the captures. On sampled_plant
+   (benchmarks/bench_no_fmu_state.py) that made training 0.5-1.35 times as long as with snapshots,
+   which pay for the discrete-state gradients instead.
    The starts are the same as with snapshots up to rounding; what such an FMU cannot give is the
    gradient through its discrete states at events (solve.py, item 3).
 2. Neutral-initialisation pre-training (NIPT): the ANN part is fitted to leave the hybrid unchanged
