@@ -139,6 +139,14 @@ static bool array_ok(ModelInstance *m, const void *array, size_t n, const char *
 
 static bool size_matches(ModelInstance *m, size_t given, size_t expected, const char *argument,
                          const char *function) {
+#ifdef REJECT_EMPTY_ARRAYS
+    /* Some tools' FMUs answer the state and indicator calls with an error when the array is
+     * empty; importers must not make them (test models build this switch). */
+    if (given == 0) {
+        model_log(m, fmi2Error, "logStatusError", "%s: called with %s = 0.", function, argument);
+        return false;
+    }
+#endif
     if (given == expected) {
         return true;
     }
@@ -472,6 +480,58 @@ fmi2Status fmi2SetString(fmi2Component c, const fmi2ValueReference vr[], size_t 
     return fmi2OK;
 }
 
+#ifdef FMU_STATE_UNSUPPORTED
+/* ---------------------------------------------------------------------------------------
+ * FMU state refused: compiled with FMU_STATE_UNSUPPORTED, the model behaves like the many FMUs
+ * exported with canGetAndSetFMUstate="false" (every call is an error with a logged message).
+ */
+static fmi2Status fmu_state_refused(fmi2Component c, const char *function) {
+    ModelInstance *m = checked(c, MASK_FMU_STATE, function);
+    if (m != NULL) {
+        model_log(m, fmi2Error, "logStatusError",
+                  "%s: this FMU does not support getting and setting its state.", function);
+    }
+    return fmi2Error;
+}
+
+fmi2Status fmi2GetFMUstate(fmi2Component c, fmi2FMUstate *FMUstate) {
+    (void)FMUstate;
+    return fmu_state_refused(c, "fmi2GetFMUstate");
+}
+
+fmi2Status fmi2SetFMUstate(fmi2Component c, fmi2FMUstate FMUstate) {
+    (void)FMUstate;
+    return fmu_state_refused(c, "fmi2SetFMUstate");
+}
+
+fmi2Status fmi2FreeFMUstate(fmi2Component c, fmi2FMUstate *FMUstate) {
+    (void)FMUstate;
+    return fmu_state_refused(c, "fmi2FreeFMUstate");
+}
+
+fmi2Status fmi2SerializedFMUstateSize(fmi2Component c, fmi2FMUstate FMUstate, size_t *size) {
+    (void)FMUstate;
+    (void)size;
+    return fmu_state_refused(c, "fmi2SerializedFMUstateSize");
+}
+
+fmi2Status fmi2SerializeFMUstate(fmi2Component c, fmi2FMUstate FMUstate, fmi2Byte serializedState[],
+                                 size_t size) {
+    (void)FMUstate;
+    (void)serializedState;
+    (void)size;
+    return fmu_state_refused(c, "fmi2SerializeFMUstate");
+}
+
+fmi2Status fmi2DeSerializeFMUstate(fmi2Component c, const fmi2Byte serializedState[], size_t size,
+                                   fmi2FMUstate *FMUstate) {
+    (void)serializedState;
+    (void)size;
+    (void)FMUstate;
+    return fmu_state_refused(c, "fmi2DeSerializeFMUstate");
+}
+
+#else
 /* ---------------------------------------------------------------------------------------
  * FMU state: ModelData holds no pointers, so a snapshot is a plain copy.
  */
@@ -638,6 +698,8 @@ fmi2Status fmi2DeSerializeFMUstate(fmi2Component c, const fmi2Byte serializedSta
     *FMUstate = s;
     return fmi2OK;
 }
+
+#endif /* FMU_STATE_UNSUPPORTED */
 
 /* ---------------------------------------------------------------------------------------
  * Directional derivatives: dvUnknown_i = sum_j d unknown_i / d known_j * dvKnown_j.

@@ -287,7 +287,11 @@ class FmuInstance:
         if status > 1:
             self._check(status, "fmi2SetTime")
 
+    # With no states (or no indicators) the array calls below are not made: fmpy and fmusim skip
+    # them, and some tools' FMUs answer nx = 0 with an error.
     def get_continuous_states(self) -> np.ndarray:
+        if not self._n_states:
+            return self._x_view.copy()
         CALL[0] = _GETCONTINUOUSSTATES
         status = self._lib.fmi2GetContinuousStates(self.component, self._x, self._n_states)
         CALL[0] = _GETCONTINUOUSSTATES_DONE
@@ -296,6 +300,8 @@ class FmuInstance:
         return self._x_view.copy()
 
     def set_continuous_states(self, x) -> None:
+        if not self._n_states:
+            return
         self._x_view[:] = x
         CALL[0] = _SETCONTINUOUSSTATES
         status = self._lib.fmi2SetContinuousStates(self.component, self._x, self._n_states)
@@ -304,6 +310,8 @@ class FmuInstance:
             self._check(status, "fmi2SetContinuousStates")
 
     def get_derivatives(self) -> np.ndarray:
+        if not self._n_states:
+            return self._dx_view.copy()
         CALL[0] = _GETDERIVATIVES
         status = self._lib.fmi2GetDerivatives(self.component, self._dx, self._n_states)
         CALL[0] = _GETDERIVATIVES_DONE
@@ -312,6 +320,8 @@ class FmuInstance:
         return self._dx_view.copy()
 
     def get_event_indicators(self) -> np.ndarray:
+        if not self._n_indicators:
+            return self._z_view.copy()
         CALL[0] = _GETEVENTINDICATORS
         status = self._lib.fmi2GetEventIndicators(self.component, self._z, self._n_indicators)
         CALL[0] = _GETEVENTINDICATORS_DONE
@@ -320,6 +330,8 @@ class FmuInstance:
         return self._z_view.copy()
 
     def get_nominals_of_continuous_states(self) -> np.ndarray:
+        if not self.info.n_states:
+            return np.zeros(0)
         out = ffi.new("double[]", max(self.info.n_states, 1))
         self._call("fmi2GetNominalsOfContinuousStates", self.component, out, self.info.n_states)
         return np.frombuffer(ffi.buffer(out), dtype=np.float64)[: self.info.n_states].copy()

@@ -1,6 +1,7 @@
 """A NeuralFMU: one FMU (kept loaded, with a pool of instances) plus a trainable topology."""
 from __future__ import annotations
 
+import weakref
 from pathlib import Path
 
 from torch import nn
@@ -34,6 +35,8 @@ class NeuralFMU(nn.Module):
         parameter_values = [float(self.start_values.get(p, self.info.variable(p).start or 0.0)) for p in config.parameters]
         self.topology = Topology(config, self.info, parameter_values)
         self._instances: list[FmuInstance] = []
+        self._holders: dict[int, weakref.ref] = {}   # id(instance) -> the element start it stands at
+        self.replays = {"runs": 0, "simulated_seconds": 0.0}   # element starts replayed (solve.Replay)
         n_knowns = self.info.n_states + len(config.parameters)
         self.event_sensitivity = EventSensitivity(n_knowns)
 
@@ -46,9 +49,45 @@ class NeuralFMU(nn.Module):
         return self.info.guid
 
     def instances(self, count: int) -> list[FmuInstance]:
-        while len(self._instances) < count:
-            self._instances.append(self.fmu.instantiate())
-        return self._instances[:count]
+        """`count` instances that no element start holds (see hold)."""
+        idle = [inst for inst in self._instances if not self._held(inst)]
+        while len(idle) < count:
+            idle.append(self.fmu.instantiate())
+            self._instances.append(idle[-1])
+        return idle[:count]
+
+    def instances_for(self, starts) -> list[FmuInstance]:
+        """One instance per element start: the instance a start holds (taken from it: the run moves
+        it on), else an idle one."""
+        chosen = []
+        for start in starts:
+            inst = start.instance if self.holds(start) else None
+            if inst is not None:
+                start.instance = None
+                del self._holders[id(inst)]
+            chosen.append(inst)
+        taken = {id(inst) for inst in chosen if inst is not None}
+        idle = [inst for inst in self._instances if id(inst) not in taken and not self._held(inst)]
+        while len(idle) < sum(inst is None for inst in chosen):
+            idle.append(self.fmu.instantiate())
+            self._instances.append(idle[-1])
+        spare = iter(idle)
+        return [inst if inst is not None else next(spare) for inst in chosen]
+
+    def hold(self, instance: FmuInstance, start) -> None:
+        """`instance` stands at the element start `start` and is kept for it while `start` lives
+        and still names it (an FMU without saved states continues there, see solve.Replay)."""
+        start.instance = instance
+        self._holders[id(instance)] = weakref.ref(start)
+
+    def holds(self, start) -> bool:
+        return start.instance is not None and self._held(start.instance) and \
+            self._holders[id(start.instance)]() is start
+
+    def _held(self, instance: FmuInstance) -> bool:
+        ref = self._holders.get(id(instance))
+        holder = ref() if ref is not None else None
+        return holder is not None and holder.instance is instance
 
     def start_values_with_parameters(self) -> dict[str, object]:
         """Start values plus the current values of the trained FMU parameters."""
@@ -64,6 +103,7 @@ class NeuralFMU(nn.Module):
         for inst in self._instances:
             inst.free()
         self._instances.clear()
+        self._holders.clear()
         self.fmu.close()
 
     def __enter__(self):

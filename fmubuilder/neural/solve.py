@@ -86,11 +86,38 @@ def time_tolerance(t) -> float:
 
 @dataclass
 class ElementStart:
-    """Where one batch element starts: a fresh initialization at t0, or a saved FMU state."""
+    """Where one batch element starts: a fresh initialization at t0, a saved FMU state, or (for an
+    FMU that cannot save its state) a replay of the run that reached it (see Replay)."""
     t0: float
     fmu_state: bytes | None = None            # serialized FMU state (continuous-time mode) at t0
     next_event_time: float = math.inf         # the FMU's time event pending at the saved state
     states: dict[str, float] | None = None    # continuous states to override (e.g. measured values)
+    replay: "Replay | None" = None            # how to reach this start again without a saved state
+    instance: object = field(default=None, repr=False, compare=False)  # an FMU instance standing at
+                                              # this start (continuous-time mode); one run takes it
+
+
+@dataclass
+class Replay:
+    """How an FMU without fmi2GetFMUstate reaches a start again: the hybrid with the topology's
+    parameters `parameters` simulated without gradient for `duration` seconds from `origin`.
+
+    The run that ends at a start leaves its FMU instance standing there (ElementStart.instance):
+    the next run that starts there continues that instance, at no cost (carry-over from element
+    to element, sequential elements). Only a start used a second time (a rewind, the same starts
+    measured twice) or saved in the middle of a run (captured element starts) is replayed, which
+    costs one simulation without gradient from the origin, recursively back to a start that still
+    holds its instance or is a fresh initialization. The replay repeats the original run's steps,
+    events and FMU calls, so it reaches the same FMU state (continuous and discrete), up to
+    rounding (a run with gradient evaluates the ANN in torch, a replay in numpy) and to the step
+    splits that the time events of other elements of a batch cause (none when the events lie on
+    the step grid)."""
+    origin: ElementStart
+    duration: float
+    parameters: dict
+    step_size: float
+    solver: str
+    inputs: InputSignals | None
 
 
 @dataclass
@@ -130,13 +157,65 @@ def simulate(model: NeuralFMU, duration: float, step_size: float, *, starts: Seq
     forcing: (state indices, f(t [B]) -> values [B, len(indices)]): those states are set to the given
     values after every step, before the events are detected (no gradient; used by collocation).
     """
-    run = _Run(model, list(starts) if starts else [ElementStart(float(t_start))], duration, step_size,
+    starts = list(starts) if starts else [ElementStart(float(t_start))]
+    if not can_snapshot(model.info):
+        starts = [_reachable(model, start) for start in starts]
+    run = _Run(model, starts, duration, step_size,
                solver, list(record), inputs, x0, keep_final_state, set(capture), event_gradients, sensitivity,
                forcing)
     try:
         return run.run()
     finally:
         run.ev.free()
+
+
+def can_snapshot(info) -> bool:
+    """Whether element starts are saved FMU states (else they are replays, see Replay)."""
+    caps = info.capabilities
+    return caps.can_get_and_set_fmu_state and caps.can_serialize_fmu_state
+
+
+def _reachable(model: NeuralFMU, start: ElementStart) -> ElementStart:
+    """`start` made ready for a run of an FMU without saved states: a fresh start, or one whose
+    FMU instance stands at it (replayed here when no instance holds it any more)."""
+    start = _without_empty_replay(start)
+    chain = [start]   # back to a start that is fresh or still held
+    while chain[-1].replay is not None and not model.holds(chain[-1]):
+        chain.append(_without_empty_replay(chain[-1].replay.origin))
+    for position in range(len(chain) - 2, -1, -1):
+        _replay(model, chain[position], chain[position + 1])
+    return start
+
+
+def _without_empty_replay(start: ElementStart) -> ElementStart:
+    """A start captured at the very beginning of a run is that run's start (with both overrides)."""
+    while start.replay is not None and start.replay.duration <= 0 and start.instance is None:
+        origin = start.replay.origin
+        start = ElementStart(origin.t0, origin.fmu_state, origin.next_event_time,
+                             {**(origin.states or {}), **(start.states or {})}, origin.replay)
+    return start
+
+
+def _replay(model: NeuralFMU, start: ElementStart, origin: ElementStart) -> None:
+    """Run start.replay from `origin` (ready: fresh or held) and leave the instance standing at `start`."""
+    recipe = start.replay
+    current = {name: value.detach().clone() for name, value in model.topology.state_dict().items()}
+    try:
+        with torch.no_grad():
+            model.topology.load_state_dict(recipe.parameters)
+            run = _Run(model, [origin], recipe.duration, recipe.step_size, recipe.solver, [], recipe.inputs,
+                       None, True, set(), False, EventSensitivity(model.event_sensitivity.n_knowns))
+            try:
+                final = run.run().final_starts[0]
+            finally:
+                run.ev.free()
+    finally:
+        with torch.no_grad():
+            model.topology.load_state_dict(current)
+    start.next_event_time = final.next_event_time
+    model.hold(final.instance, start)
+    model.replays["runs"] += 1
+    model.replays["simulated_seconds"] += recipe.duration
 
 
 def _x0_values(x0: torch.Tensor, B: int, n: int) -> np.ndarray:
@@ -171,7 +250,8 @@ class _Run:
         self.inputs = inputs
         self.keep_final_state = keep_final_state
         self.capture = capture
-        self.instances = model.instances(self.B)
+        self.snapshots = can_snapshot(self.info)
+        self.instances = model.instances_for(starts)
         self.rows = list(range(self.B))
         state_names = model.state_names()
         derivative_names = [v.name for v in self.info.derivatives]
@@ -233,7 +313,9 @@ class _Run:
             overrides = dict(start.states or {})
             if x0_values is not None:
                 overrides.update(zip(self.model.state_names(), x0_values[b]))
-            if start.fmu_state is None:
+            if start.fmu_state is None and start.replay is not None:
+                x[b] = self._continue(b, start, overrides)
+            elif start.fmu_state is None:
                 x[b], self.next_event[b] = self._fresh_init(b, overrides)
                 if init_sens:
                     init_outcomes[b] = self._init_sensitivity(b, overrides, x[b])
@@ -313,6 +395,12 @@ class _Run:
             inst.set_fmu_state(state)
         finally:
             inst.free_fmu_state(state)
+        return self._continue(b, start, overrides)
+
+    def _continue(self, b: int, start: ElementStart, overrides: dict) -> np.ndarray:
+        """Element b from its instance standing at `start` (restored or held): the trained FMU
+        parameters and the state overrides applied."""
+        inst = self.instances[b]
         if self.ev.P:
             inst.enter_event_mode()
             inst.set_real(self.ev.param_vrs, self.p.detach().tolist())
@@ -394,7 +482,7 @@ class _Run:
             h = np.where(active, end - t, 0.0)
             at_grid_start = tau == self.grid[k]
             if at_grid_start and k in self.capture:
-                captured[k] = self._save_states(t, x)
+                captured[k] = self._save_states(t, x, tau)
             x_new, dx1, out1 = self.step(self.rows, t, x, h, c)
             if self.forcing is not None:
                 x_new = self._forced(end, x_new)
@@ -406,10 +494,10 @@ class _Run:
             if hit_grid:
                 k += 1
         if self.K in self.capture:
-            captured[self.K] = self._save_states(t, x)
+            captured[self.K] = self._save_states(t, x, tau)
         dx, out = self.rhs(self.rows, t, x, c)
         records.append(self._record(x, dx, out))
-        final_starts = self._save_states(t, x) if self.keep_final_state else None
+        final_starts = self._save_states(t, x, tau, final=True) if self.keep_final_state else None
         stats = dict(self.counts, seconds=_time.perf_counter() - started,
                      fmu_evaluations=self.ev.n_evaluations, jacobian_columns=self.ev.n_jacobian_columns)
         if self.event_grad:
@@ -426,7 +514,10 @@ class _Run:
     def _record(self, x, dx, out) -> torch.Tensor:
         return torch.cat([x, dx, out[:, self.n:]], dim=1).index_select(1, self.record_index)
 
-    def _save_states(self, t: np.ndarray, x: torch.Tensor) -> list[ElementStart]:
+    def _save_states(self, t: np.ndarray, x: torch.Tensor, tau: float, final: bool = False) -> list[ElementStart]:
+        """Every element's start at its current point, tau seconds into the run."""
+        if not self.snapshots:
+            return self._replayable_states(t, x, tau, final)
         saved = []
         x_np = x.detach().numpy()
         for b, inst in enumerate(self.instances):
@@ -437,6 +528,22 @@ class _Run:
             finally:
                 inst.free_fmu_state(state)
             saved.append(ElementStart(float(t[b]), data, float(self.next_event[b])))
+        return saved
+
+    def _replayable_states(self, t: np.ndarray, x: torch.Tensor, tau: float, final: bool) -> list[ElementStart]:
+        """Starts at the elements' current points for an FMU without saved states (see Replay); at
+        the end of the run each keeps its element's instance, which the run leaves there."""
+        parameters = {name: value.detach().clone() for name, value in self.topology.state_dict().items()}
+        x_np = x.detach().numpy()
+        saved = []
+        for b, origin in enumerate(self.starts):
+            recipe = Replay(origin, float(tau), parameters, self.h, "rk4" if self.rk4 else "euler",
+                            self.inputs)
+            start = ElementStart(float(t[b]), next_event_time=float(self.next_event[b]), replay=recipe)
+            if final:
+                self.ev.set_point(b, t[b], x_np[b], self._u(b, t[b]))
+                self.model.hold(self.instances[b], start)
+            saved.append(start)
         return saved
 
     # -- events ------------------------------------------------------------------------------

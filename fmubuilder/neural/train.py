@@ -10,7 +10,18 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    compensates an unmodelled load), and their transient at each element start would dominate the
    loss. So after pre-training the starts are captured again from a simulation of the hybrid, and
    during training each element's final FMU state becomes the next element's start (carry-over),
-   so the starts follow the model as it learns.
+   so the starts follow the model as it learns. An FMU that cannot save its state
+   (canGetAndSetFMUstate="false", as most OpenModelica exports) gets the same starts without
+   snapshots (solve.Replay): a carried-over start is the FMU instance that computed it, left standing
+   there (no cost); a captured start, or one used a second time (a rewind), is replayed without
+   gradient through the runs that reached it. With K elements of length L that costs, in simulated
+   time without gradient: K(K-1)/2 L after each capture (twice in the preparation), K(K-1)/2 L per
+   rewind (each start's carry-over chain), and with random mini-batches the starts an element reuses
+   from the epoch before; sequential elements replay only the captures. On sampled_plant
+   (benchmarks/bench_no_fmu_state.py) that made training 0.5-1.35 times as long as with snapshots,
+   which pay for the discrete-state gradients instead.
+   The starts are the same as with snapshots up to rounding; what such an FMU cannot give is the
+   gradient through its discrete states at events (solve.py, item 3).
 2. Neutral-initialisation pre-training (NIPT): the ANN part is fitted to leave the hybrid unchanged
    (the FMU's channel derivative for gates, zero for residual) on inputs from the reference.
 3. Optional collocation pre-training (CCPT) for channels der(s) whose state s is measured: the FMU is
@@ -135,7 +146,7 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
                    "seconds": time.perf_counter() - started, "epochs": trainer.epochs_done,
                    "epochs_planned": settings.epochs, "cut_short_by_time_budget": trainer.cut_short,
                    "loss": trainer.history[-1]["loss"] if trainer.history else None,
-                   "settings": asdict(settings)}
+                   "settings": asdict(settings), "element_start_replays": dict(model.replays)}
         if test_data is not None:
             test = test_data if isinstance(test_data, MeasuredData) else load_data(test_data, model.info)
             if test_start_values is None:

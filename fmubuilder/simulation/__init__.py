@@ -113,6 +113,7 @@ def _inputs(input_csv, inputs, info) -> InputSignals | None:
 
 
 def _default_variables(info) -> list[str]:
-    names = [v.name for v in info.outputs]
+    """Outputs, then states; String outputs have no column in a numeric result."""
+    names = [v.name for v in info.outputs if v.api_type != "String"]
     names += [v.name for v in info.states if v.name not in names]
     return names
