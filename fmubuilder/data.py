@@ -86,6 +86,10 @@ class MeasuredData:
                        inputs=cut(self.inputs), source=f"{self.source} [{start:g}, {stop:g}] s")
 
 
+# Errors are compared as mean squares: larger values overflow float64 when squared and summed.
+MAX_MAGNITUDE = 1e150
+
+
 def load_data(path: str | os.PathLike, info, *, min_samples: int = 2) -> MeasuredData:
     """Read a data CSV and its sidecar, checked against the FMU's variables (`info`: ModelInfo)."""
     from .simulation.inputs import read_csv_signals
@@ -102,6 +106,10 @@ def load_data(path: str | os.PathLike, info, *, min_samples: int = 2) -> Measure
                                   "measured signals must be Real variables")
         if not np.all(np.isfinite(columns[name])):
             raise FmuBuilderError(f"{path}: column '{name}' holds non-finite values; remove or fill them")
+        largest = float(np.max(np.abs(columns[name]))) if columns[name].size else 0.0
+        if largest > MAX_MAGNITUDE:
+            raise FmuBuilderError(f"{path}: column '{name}' holds values up to {largest:.3g}, beyond {MAX_MAGNITUDE:g}, "
+                                  "whose squared errors overflow; check the column's values and units")
         if var.causality == "input":
             inputs[name] = columns[name]
         elif var.is_parameter:

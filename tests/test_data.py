@@ -49,6 +49,7 @@ def test_a_declared_sensor_lag_wins_and_no_sidecar_means_no_lag(info, tmp_path):
     ("time,sped\n0,1\n1,2\n", None, "sped"),
     ("time,speed\n0,1\n1,nan\n", None, "not a finite number"),
     ("time,speed\n0,1\n", None, "at least 2"),
+    ("time,speed\n0,1e300\n1,2e300\n", None, "up to 2e\\+300.*overflow"),
 ])
 def test_bad_data_is_one_clear_error(info, tmp_path, text, sidecar, fragment):
     with pytest.raises(FmuBuilderError, match=fragment):

@@ -295,6 +295,7 @@ class Trainer:
         starts = plan_elements(self.data.start, self.data.stop, self.settings.element_length, self.step)
         self.element_duration = min(self.settings.element_length, self.data.stop - self.data.start)
         self.reference = self._reference(starts)
+        self._check_finite_scale()
         self.model.topology.initialise_scaling(*self._scaling_samples())
         if self.settings.nipt_iterations and self.model.topology.has_ann and self.model.config.kind == "gates":
             neutral_pretraining(self.model, *self._scaling_samples(), iterations=self.settings.nipt_iterations)
@@ -302,6 +303,16 @@ class Trainer:
             collocation_pretraining(self)
         if not self.model.topology.is_neutral():
             self._capture_starts(plain=False)
+
+    def _check_finite_scale(self) -> None:
+        """A loss scale that overflowed (values near the float range) makes every loss inf or nan:
+        stop before training on it."""
+        broken = [name for name, value in self.scale.items() if not math.isfinite(value)]
+        if broken:
+            raise FmuBuilderError(
+                f"the plain FMU's error on {', '.join(broken)} in {self.data.source} is not a finite number "
+                "(values far outside the float range, or a simulation that diverged); check the data's values "
+                "and units")
 
     def _reference(self, starts: list[float]):
         """Plain-FMU simulation over the data; FMU states saved at the element starts."""
