@@ -152,7 +152,8 @@ def diagnose(model_fmu, data_csv, start_values: dict | None = None, plots_dir=No
         if plots_dir is not None:
             from .plots import write_plots
             plot_started = wallclock.perf_counter()
-            diagnosis.plots = [str(p) for p in write_plots(Path(plots_dir), diagnosis, data, nominal, fitted_run)]
+            diagnosis.plots = [str(p) for p in write_plots(Path(plots_dir), diagnosis, data, nominal, fitted_run,
+                                                           info=info)]
             wall["plots"] = wallclock.perf_counter() - plot_started
     finally:
         runner.close()

@@ -1,22 +1,44 @@
-"""The hybridize report: report.json for tools, report.md with tables and plots for people."""
+"""The hybridize report: report.json for tools; report.md and report.html (the same page, its plots
+inline) for people.
+
+The page reads top-down in a minute: one summary line (what was found, what was shipped, the
+held-out gain), the data's roles, the diagnosis, the candidates, the errors per role, the round trip
+of the published FMU, the plots. Every quantity carries the unit its modelDescription declares.
+"""
 from __future__ import annotations
 
+import base64
+import html
 import json
+import re
 from pathlib import Path
 
 import numpy as np
 
+from ..diagnose.plots import RESIDUAL, cumulative_signals, units_of
+from ..errors import FmuBuilderError
 from ..files import write_atomically
+from ..fmi import read_model_info
 from .evaluate import relative_mse
 
-
 ROLES = ("train", "validation", "test")
+ROLE_TITLES = {"train": "training (the samples the fit saw)",
+               "validation": "validation (chose the candidate and decided to publish)",
+               "test": "test (touched once, after everything was decided)"}
+TEST_NOTE = ("The test numbers were computed once, after the candidate and the decision to publish were fixed "
+             "on the validation data; they chose nothing.")
 
 
 def write_report(folder: Path, *, model_fmu, diagnosis, plain, candidates, chosen, selection, roundtrip, hybrid_fmu,
                  roles, scoring, training, seconds: float, timings: dict | None = None) -> dict:
+    info = read_model_info(model_fmu)
+    first = roles.train[0]
+    units = _units(info, first.data.names, diagnosis)
+    cumulative = cumulative_signals(first.data.names, plain.runs[id(first.data)].predicted,
+                                    {s.name for s in info.states})
     after = chosen.scores if chosen else plain
     report = {
+        "summary": "",
         "diagnosis": {
             "significant": bool(diagnosis.significant),
             "p_value": float(diagnosis.p_value),
@@ -25,9 +47,11 @@ def write_report(folder: Path, *, model_fmu, diagnosis, plain, candidates, chose
             "candidates": [{"channel": c.channel, "inputs": list(c.inputs), "score": float(c.score),
                             "form": c.form} for c in diagnosis.candidates],
             "fitted_term": diagnosis.fitted_term,
-            "data": roles.train[0].label,
+            "data": first.label,
             "trace_window": list(diagnosis.trace_window) if diagnosis.trace_window else None,
         },
+        "units": units,
+        "cumulative_signals": sorted(cumulative),
         "data": roles.describe(),
         "scoring": scoring.describe(),
         "training": training,
@@ -51,21 +75,25 @@ def write_report(folder: Path, *, model_fmu, diagnosis, plain, candidates, chose
         "seconds": seconds,
         "timings": dict(timings or {}),     # wall seconds per stage
     }
-    first = roles.train[0]
-    plots = [_plot_signals(folder / "train.png", first.data, plain.runs[id(first.data)],
-                           chosen.scores.runs[id(first.data)] if chosen else None, chosen, "training",
-                           roles.validation[0].window if roles.held_out_of_training else None),
-             _plot_signals(folder / "test.png", roles.test.data, plain.runs[id(roles.test.data)],
-                           chosen.scores.runs[id(roles.test.data)] if chosen else None, chosen, "test", None)]
-    report["plots"] = [str(p.relative_to(folder)) for p in plots] + \
-        [str(Path("diagnosis") / Path(p).name) for p in diagnosis.plots]
+    report["summary"] = summary_line(report)
+    if roundtrip and hybrid_fmu:
+        # The file validated was the candidate in a work folder, since deleted; the published FMU is
+        # its byte copy, so the table names that.
+        roundtrip = {**roundtrip, "table": roundtrip["table"].replace(str(chosen.fmu), str(hybrid_fmu))}
+    report["plots"], report["plot_notes"] = _plots(folder, report, diagnosis, plain, chosen, roles, scoring,
+                                                   model_fmu, units)
+    page = markdown(report, roundtrip)
     write_atomically(folder / "report.json", json.dumps(report, indent=2, default=_json_default) + "\n")
-    write_atomically(folder / "report.md", markdown(report, roundtrip))
+    write_atomically(folder / "report.md", page)
+    write_atomically(folder / "report.html", to_html(page, folder))
     return report
 
 
-TEST_NOTE = ("The test numbers were computed once, after the candidate and the decision to publish were fixed "
-             "on the validation data; they chose nothing.")
+def _units(info, signals, diagnosis) -> dict[str, str]:
+    """Units of the signals, the traced variables and the corrected channel ("" if undeclared)."""
+    known = units_of(info)
+    names = [*signals, *diagnosis.inputs, *([diagnosis.channel] if diagnosis.channel else [])]
+    return {name: known.get(name, "") for name in dict.fromkeys(names)}
 
 
 def _factors(before: dict, after: dict) -> dict:
@@ -82,20 +110,67 @@ def _json_default(value):
     return str(value)
 
 
+# -- the page ----------------------------------------------------------------------------------
+
+def _with_unit(name: str, units: dict) -> str:
+    unit = units.get(name)
+    return f"`{name}` [{unit}]" if unit else f"`{name}`"
+
+
+def _gain(ratio: float) -> str:
+    """A mean MSE ratio after/before as the factor it improves by."""
+    if not np.isfinite(ratio):
+        return "diverged"
+    if ratio <= 0:
+        return "exact"
+    return f"{1 / ratio:.3g}× lower" if ratio < 1 else f"{ratio:.3g}× higher"
+
+
+def summary_line(report: dict) -> str:
+    d, units = report["diagnosis"], report["units"]
+    if not d["significant"]:
+        return (f"**No effect found** beyond the measurement noise (joint p = {d['p_value']:.2g}). "
+                "**Shipped: nothing**, the declared FMU explains the data.")
+    inputs = ", ".join(_with_unit(v, units) for v in d["inputs"][:2])
+    found = f"**Found** an effect on {_with_unit(d['channel'], units)} depending on {inputs} (joint p = {d['p_value']:.2g})."
+    chosen = next((m for m in report["models"] if m["chosen"]), None)
+    if chosen is None:
+        best = min((m["validation_relative_mse"] for m in report["models"]), default=float("nan"))
+        return (f"{found} **Shipped: nothing**: no candidate beat the declared FMU on the validation data "
+                f"(best MSE ratio {best:.3g}).")
+    what = (f"the fitted term `{chosen['description']}`" if chosen["name"] == "fitted term"
+            else f"a neural network ({chosen['description']})")
+    return (f"{found} **Shipped** `{Path(report['hybrid_fmu']).name}` with {what}. **Held-out gain** (MSE, mean "
+            f"over the signals): {_gain(chosen['validation_relative_mse'])} on validation, "
+            f"{_gain(chosen['test_relative_mse'])} on test.")
+
+
 def markdown(report: dict, roundtrip: dict | None) -> str:
-    d, data = report["diagnosis"], report["data"]
-    lines = ["# fmubuilder hybridize report", "",
-             f"Model: `{Path(report['model_fmu']).name}`; wall time {report['seconds']:.0f} s.", "",
-             "## Data and their roles", "",
-             f"- training (the diagnosis and the fit): {', '.join(f'`{x}`' for x in data['train'])}",
-             f"- validation (the choice and the decision to publish; {data['validation_from']}): "
-             f"{', '.join(f'`{x}`' for x in data['validation'])}",
-             f"- test (touched once, after everything was decided): {', '.join(f'`{x}`' for x in data['test'])}",
-             f"- every model simulated the same way: {report['scoring']}", "",
-             "## Diagnosis", ""]
+    lines = ["# fmubuilder hybridize report", "", report["summary"], "",
+             f"Model: `{Path(report['model_fmu']).name}`; wall time {report['seconds']:.0f} s."]
+    for section in (_data_section, _diagnosis_section, _candidates_section, _errors_section):
+        lines += ["", *section(report)]
+    lines += ["", *_roundtrip_section(report, roundtrip), "", *_plots_section(report)]
+    return "\n".join(lines) + "\n"
+
+
+def _data_section(report: dict) -> list[str]:
+    data = report["data"]
+    return ["## Data and their roles", "",
+            f"- training (the diagnosis and the fit): {', '.join(f'`{x}`' for x in data['train'])}",
+            f"- validation (the choice and the decision to publish; {data['validation_from']}): "
+            f"{', '.join(f'`{x}`' for x in data['validation'])}",
+            f"- test (touched once, after everything was decided): {', '.join(f'`{x}`' for x in data['test'])}",
+            f"- every model simulated the same way: {report['scoring']}"]
+
+
+def _diagnosis_section(report: dict) -> list[str]:
+    d, units = report["diagnosis"], report["units"]
+    lines = ["## Diagnosis", ""]
     if d["significant"]:
         lines.append(f"The residual exceeds the measurement noise (joint p = {d['p_value']:.2g}). It is traced to "
-                     f"**{d['channel']}**, depending most likely on {', '.join(f'`{v}`' for v in d['inputs'][:3])}.")
+                     f"**{_with_unit(d['channel'], units)}**, depending most likely on "
+                     f"{', '.join(_with_unit(v, units) for v in d['inputs'][:3])}.")
         if d["fitted_term"]:
             lines.append(f"Fitted term: `{d['fitted_term']['expression']}`.")
     else:
@@ -107,76 +182,190 @@ def markdown(report: dict, roundtrip: dict | None) -> str:
                if training["cut_short_by_time_budget"] else "")
         lines.append(f"\nThe NeuralFMU trained {training['epochs_done']} of {training['epochs']} epochs "
                      f"(seed {training['seed']}) on `{training['trained_on']}`.{cut}")
-    if report["models"]:
-        selection = report["selection"]
-        lines += ["", "## Candidates", "",
-                  "MSE after/before, mean over the signals (below 1: better than the plain FMU).", "",
-                  "| model | description | train | validation (chooses) | test (touched once) | chosen |",
-                  "|---|---|---|---|---|---|"]
-        for m in report["models"]:
-            lines.append(f"| {m['name']} | {m['description']} | {m['train_relative_mse']:.3g} | "
-                         f"{m['validation_relative_mse']:.3g} | {m['test_relative_mse']:.3g} | "
-                         f"{'yes' if m['chosen'] else 'no'} |")
-        lines.append(f"\nChosen on the validation data: **{selection['chosen'] or 'none (no candidate improved it)'}** "
-                     f"({selection['rule']}). {report['test_note']}")
-    lines += ["", "## Errors before and after", "",
-              "Before: the plain FMU; after: the published hybrid. Train: the samples the fit saw.", "",
-              "| data | signal | MSE before | MSE after | factor | max abs before | max abs after | final before | final after |",
-              "|---|---|---|---|---|---|---|---|---|"]
-    for part in ROLES:
-        errors = report["errors"][part]
+    return lines
+
+
+def _candidates_section(report: dict) -> list[str]:
+    if not report["models"]:
+        return []
+    selection = report["selection"]
+    lines = ["## Candidates", "",
+             "MSE after / MSE before, mean over the signals (below 1: better than the declared FMU).", "",
+             "| candidate | what it adds | train | validation (chooses) | test (touched once) | chosen | note |",
+             "|---|---|---|---|---|---|---|"]
+    for m in report["models"]:
+        lines.append(f"| {m['name']} | {_cell(m['description'])} | {m['train_relative_mse']:.3g} | "
+                     f"{m['validation_relative_mse']:.3g} | {m['test_relative_mse']:.3g} | "
+                     f"{'**yes**' if m['chosen'] else 'no'} | {_candidate_note(m, report.get('training'))} |")
+    lines.append(f"\nChosen on the validation data: **{selection['chosen'] or 'none (no candidate improved it)'}** "
+                 f"({selection['rule']}). {report['test_note']}")
+    return lines
+
+
+def _cell(text: str) -> str:
+    """Text for a markdown table cell: a '|' (as in |speed|) would end the cell."""
+    return str(text).replace("|", "\\|")
+
+
+def _candidate_note(model: dict, training: dict | None) -> str:
+    """Why a row looks the way it does."""
+    notes = []
+    if model["name"] == "neural":
+        done = model.get("epochs")
+        asked = (training or {}).get("epochs")
+        notes.append(f"trained {done} of {asked} epochs" if asked is not None else f"trained {done} epochs")
+        if done == 0:
+            notes.append("the wall-clock cap ran out before the first epoch ended"
+                         if (training or {}).get("cut_short_by_time_budget") else "no epochs were asked for")
+        elif (training or {}).get("cut_short_by_time_budget"):
+            notes.append("cut short by the wall-clock cap")
+    else:
+        notes.append(f"fitted by the diagnosis on `{model.get('fitted_on', 'the training data')}`, no training")
+    if all(model[f"{role}_relative_mse"] == 1.0 for role in ROLES):
+        notes.append("it adds nothing yet: the same errors as the declared FMU")
+    return "; ".join(notes)
+
+
+def _errors_section(report: dict) -> list[str]:
+    """One table per role; the final error only for accumulating signals (for the others it is one
+    noisy sample, says nothing the RMS does not)."""
+    units, cumulative = report["units"], set(report["cumulative_signals"])
+    hybrid = report["chosen"] is not None
+    lines = ["## Errors per data role", "",
+             f"Errors are {RESIDUAL}, in the signal's unit. FMU: the declared model"
+             + ("; hybrid: the published FMU. Factor: MSE FMU / MSE hybrid (above 1: the hybrid is better)."
+                if hybrid else "; no hybrid was published.")]
+    final = bool(cumulative)
+    header = ["signal", "RMS FMU"] + (["RMS hybrid", "factor"] if hybrid else []) + ["max abs FMU"] + \
+        (["max abs hybrid"] if hybrid else [])
+    if final:
+        header += ["final FMU"] + (["final hybrid"] if hybrid else [])
+    for role in ROLES:
+        errors = report["errors"][role]
+        files = report["data"][role]
+        lines += ["", f"### {ROLE_TITLES[role]}", "", "Data: " + ", ".join(f"`{x}`" for x in files), "",
+                  "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
         for signal, b in errors["before"].items():
             a = errors["after"][signal]
-            lines.append(f"| {part} | {signal} | {b['mse']:.4g} | {a['mse']:.4g} | {report['mse_factor'][part][signal]:.3g} | "
-                         f"{b['max_abs']:.4g} | {a['max_abs']:.4g} | {b['final']:.4g} | {a['final']:.4g} |")
-    if roundtrip:
-        verdict = "passed" if roundtrip["passed"] else "FAILED"
-        lines += ["", "## Round trip", "",
-                  f"The exported FMU `{Path(report['hybrid_fmu']).name}` against the Python reference over "
-                  f"{roundtrip['span'][0]:g} to {roundtrip['span'][1]:g} s: max relative difference "
-                  f"{roundtrip['max_rel_error']:.2g} over the rows compared ({verdict})."]
-        if roundtrip["not_compared"]:
-            lines.append(f"Not compared (no samples left): {'; '.join(roundtrip['not_compared'])}.")
-        lines += ["", "```", roundtrip["table"], "```"]
-    lines += ["", "## Plots", ""] + [f"![{Path(p).stem}]({p})" for p in report["plots"]]
-    return "\n".join(lines) + "\n"
+            row = [_with_unit(signal, units), f"{np.sqrt(b['mse']):.4g}"]
+            if hybrid:
+                row += [f"{np.sqrt(a['mse']):.4g}", _factor(report["mse_factor"][role][signal])]
+            row.append(f"{b['max_abs']:.4g}")
+            if hybrid:
+                row.append(f"{a['max_abs']:.4g}")
+            if final:
+                shown = signal in cumulative
+                row.append(f"{b['final']:.4g}" if shown else "–")
+                if hybrid:
+                    row.append(f"{a['final']:.4g}" if shown else "–")
+            lines.append("| " + " | ".join(row) + " |")
+    if final:
+        lines.append(f"\nFinal: the error at the last sample, shown for the signals that accumulate "
+                     f"({', '.join(sorted(cumulative))}).")
+    return lines
 
 
-def _plot_signals(path: Path, data, before, after, chosen, part: str, held_out: tuple | None) -> Path:
-    """Measured, plain and hybrid over a whole run; `held_out`: the validation window, shaded."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def _factor(value: float) -> str:
+    text = f"{value:.3g}"
+    return f"**{text}**" if value >= 2 else text
 
-    names = data.names
-    fig, axes = plt.subplots(len(names), 2, figsize=(12, 2.6 * len(names)), sharex=True, squeeze=False)
-    label = f"hybrid ({chosen.name})" if chosen else "hybrid"
-    measured_time = data.time
-    for row, name in enumerate(names):
-        measured = np.interp(before.time, measured_time, data.signals[name])
-        ax = axes[row, 0]
-        ax.plot(measured_time, data.signals[name], color="black", lw=0.8, label="measured")
-        ax.plot(before.time, before.predicted[name], color="tab:red", lw=0.8, label="FMU")
-        if chosen:
-            ax.plot(after.time, after.predicted[name], color="tab:blue", lw=0.8, ls="--", label=label)
-        ax.set_ylabel(name)
-        ax.grid(alpha=0.3)
-        ax = axes[row, 1]
-        ax.plot(before.time, before.predicted[name] - measured, color="tab:red", lw=0.8, label="FMU - measured")
-        if chosen:
-            ax.plot(after.time, after.predicted[name] - measured, color="tab:blue", lw=0.8,
-                    label=f"{label} - measured")
-        ax.set_ylabel(f"error of {name}")
-        ax.grid(alpha=0.3)
-        if held_out is not None:
-            for ax in axes[row]:
-                ax.axvspan(*held_out, color="0.85", zorder=0, label="validation (held out of the fit)")
-    axes[0, 0].legend(loc="best", fontsize=8)
-    axes[0, 1].legend(loc="best", fontsize=8)
-    axes[-1, 0].set_xlabel("time [s]")
-    axes[-1, 1].set_xlabel("time [s]")
-    fig.suptitle(f"{part} data: measured, plain FMU and hybrid")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+
+def _roundtrip_section(report: dict, roundtrip: dict | None) -> list[str]:
+    if not roundtrip:
+        return []
+    verdict = "passed" if roundtrip["passed"] else "FAILED"
+    lines = ["## Round trip of the published FMU", "",
+             f"The published FMU `{report['hybrid_fmu']}` against the Python reference (the network or term run "
+             f"by onnxruntime) over {roundtrip['span'][0]:g} to {roundtrip['span'][1]:g} s of the test data: "
+             f"max relative difference {roundtrip['max_rel_error']:.2g} over the rows compared ({verdict})."]
+    if roundtrip["not_compared"]:
+        lines.append(f"Not compared (no samples left): {'; '.join(roundtrip['not_compared'])}.")
+    return lines + ["", "```", roundtrip["table"], "```"]
+
+
+def _plots_section(report: dict) -> list[str]:
+    lines = ["## Plots", ""]
+    for plot in report["plots"]:
+        lines += [f"![{PLOT_CAPTIONS.get(Path(plot).name, Path(plot).stem)}]({plot})", ""]
+    lines += [f"- {note}" for note in report["plot_notes"]]
+    return lines
+
+
+PLOT_CAPTIONS = {"train.png": "training data: measured, declared FMU and hybrid",
+                 "test.png": "test data: measured, declared FMU and hybrid",
+                 "effect.png": "the learned effect against its inputs",
+                 "signals.png": "diagnosis: signals", "residuals.png": "diagnosis: residuals over time",
+                 "residual_vs_inputs.png": "diagnosis: residuals against the traced variables"}
+
+
+# -- plots ------------------------------------------------------------------------------------
+
+def _plots(folder: Path, report, diagnosis, plain, chosen, roles, scoring, model_fmu, units) -> tuple[list, list]:
+    from .plots import plot_effect, plot_signals
+    first, test = roles.train[0], roles.test
+    label = f"hybrid ({chosen.name})" if chosen else None
+    held_out = roles.validation[0].window if roles.held_out_of_training else None
+    paths = [plot_signals(folder / "train.png", first.data, plain.runs[id(first.data)],
+                          chosen.scores.runs[id(first.data)] if chosen else None, label, units,
+                          f"Training run {_file_name(first.data)}", held_out),
+             plot_signals(folder / "test.png", test.data, plain.runs[id(test.data)],
+                          chosen.scores.runs[id(test.data)] if chosen else None, label, units,
+                          f"Test run {_file_name(test.data)} (touched once)")]
+    notes = []
+    if chosen is not None:
+        try:
+            from .effect import effect_of
+            effect = effect_of(chosen.spec_dir / "spec.json", Path(model_fmu), first.data, first.start_values,
+                               scoring.step)
+            paths.append(plot_effect(folder / "effect.png", effect, {**units_of(read_model_info(model_fmu)),
+                                                                     **{k: v for k, v in units.items() if v}},
+                                     f"What the {chosen.name} adds to {effect.channel}"))
+            notes.append("The learned effect is evaluated along the declared FMU's run over the training data"
+                         + (f"; the true effect is that of {effect.truth_source}, the model that made the data "
+                            "(derivatives at the same states)." if effect.truth is not None
+                            else f"; no true effect drawn: {effect.truth_source}."))
+        except FmuBuilderError as exc:
+            notes.append(f"The learned effect could not be drawn: {exc}")
+    plots = [str(p.relative_to(folder)) for p in paths] + \
+        [str(Path("diagnosis") / Path(p).name) for p in diagnosis.plots]
+    return plots, notes
+
+
+def _file_name(data) -> str:
+    return Path(str(data.path)).name if data.path else data.source
+
+
+# -- HTML ---------------------------------------------------------------------------------------
+
+STYLE = """
+body { font-family: system-ui, -apple-system, "Segoe UI", sans-serif; max-width: 1180px; margin: 2em auto;
+       padding: 0 1em; color: #222; line-height: 1.45; }
+h1 { border-bottom: 2px solid #ddd; padding-bottom: .2em; }
+h2 { margin-top: 1.8em; border-bottom: 1px solid #eee; }
+table { border-collapse: collapse; margin: .6em 0; font-size: .92em; }
+th, td { border: 1px solid #ccc; padding: .25em .6em; text-align: right; }
+th { background: #f3f3f3; }
+td:first-child, th:first-child, td:nth-child(2) { text-align: left; }
+code { background: #f4f4f4; padding: 0 .2em; border-radius: 3px; }
+pre { background: #f7f7f7; padding: .8em; overflow-x: auto; font-size: .85em; }
+img { max-width: 100%; border: 1px solid #e4e4e4; margin: .4em 0; }
+body > p:first-of-type { background: #eef5ff; border-left: 4px solid #1f77b4; padding: .6em .9em; }
+"""
+
+
+def to_html(page: str, folder: Path) -> str:
+    """The markdown page as one self-contained HTML file: the plots embedded as base64 PNG."""
+    import markdown as md
+    body = md.markdown(page, extensions=["tables", "fenced_code"], output_format="html")
+
+    def inline(match: re.Match) -> str:
+        path = folder / html.unescape(match.group(1))
+        if not path.is_file():
+            return match.group(0)
+        data = base64.b64encode(path.read_bytes()).decode("ascii")
+        return f'src="data:image/png;base64,{data}"'
+
+    body = re.sub(r'src="([^"]+\.png)"', inline, body)
+    return ("<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n"
+            "<title>fmubuilder hybridize report</title>\n"
+            f"<style>{STYLE}</style>\n</head>\n<body>\n{body}\n</body>\n</html>\n")
