@@ -20,9 +20,9 @@ COLOURS = {"measured": "0.45", "fmu": "tab:red", "hybrid": "tab:blue", "truth": 
 RESIDUAL = "model − measured"
 # Share of points that may lie outside the y-limits at each end.
 CLIP_PERCENTILE = 0.5
-# Measured samples as dots under the lines; the FMU wide and pale below the hybrid's dashes, so
+# Measured samples as small dots over the lines; the FMU wide and pale below the hybrid's dashes, so
 # neither hides the other where they agree.
-MEASURED_STYLE = dict(ls="none", marker=".", ms=2.5, color=COLOURS["measured"], alpha=0.6, zorder=1)
+MEASURED_STYLE = dict(ls="none", marker=".", ms=2.5, color=COLOURS["measured"], alpha=0.6, zorder=4)
 FMU_STYLE = dict(color=COLOURS["fmu"], lw=2.0, alpha=0.85, zorder=2)
 HYBRID_STYLE = dict(color=COLOURS["hybrid"], lw=1.1, ls="--", zorder=3)
 
@@ -100,8 +100,9 @@ def units_of(info) -> dict[str, str]:
     return {name: v.unit for name, v in info.variables.items() if getattr(v, "unit", None)}
 
 
-def _figure(plt, rows: int, columns: int = 1):
-    fig, axes = plt.subplots(rows, columns, figsize=(4.5 * columns + 3, 2.4 * rows + 0.6), squeeze=False)
+def _figure(plt, rows: int, columns: int = 1, **options):
+    fig, axes = plt.subplots(rows, columns, figsize=(4.5 * columns + 3, 2.4 * rows + 0.6), squeeze=False,
+                             **options)
     return fig, axes
 
 
@@ -152,7 +153,8 @@ def _residuals(plt, folder, data, nominal, fitted_run, noise, units) -> Path:
 
 
 def _residual_vs_inputs(plt, folder, data, nominal, inputs, shown, left_out, units) -> Path:
-    fig, axes = _figure(plt, len(shown), len(inputs))
+    # constrained layout: it leaves room for the colourbar, tight_layout does not
+    fig, axes = _figure(plt, len(shown), len(inputs), layout="constrained")
     points = None
     for i, name in enumerate(shown):
         residual = nominal.predicted[name] - data.signals[name]
@@ -170,8 +172,7 @@ def _residual_vs_inputs(plt, folder, data, nominal, inputs, shown, left_out, uni
     if left_out:
         title += f"\n(left out, they accumulate over time: {', '.join(left_out)})"
     fig.suptitle(title, fontsize=11)
-    fig.tight_layout()
-    bar = fig.colorbar(points, ax=axes.ravel().tolist(), fraction=0.03, pad=0.02)
+    bar = fig.colorbar(points, ax=axes, fraction=0.03, pad=0.01)
     bar.set_label("time [s]")
     path = folder / "residual_vs_inputs.png"
     fig.savefig(path, dpi=110)

@@ -131,8 +131,8 @@ def summary_line(report: dict) -> str:
     if not d["significant"]:
         return (f"**No effect found** beyond the measurement noise (joint p = {d['p_value']:.2g}). "
                 "**Shipped: nothing**, the declared FMU explains the data.")
-    inputs = ", ".join(_with_unit(v, units) for v in d["inputs"][:2])
-    found = f"**Found** an effect on {_with_unit(d['channel'], units)} depending on {inputs} (joint p = {d['p_value']:.2g})."
+    leading = f" depending most likely on {_with_unit(d['inputs'][0], units)}" if d["inputs"] else ""
+    found = f"**Found** an effect on {_with_unit(d['channel'], units)}{leading} (joint p = {d['p_value']:.2g})."
     chosen = next((m for m in report["models"] if m["chosen"]), None)
     if chosen is None:
         best = min((m["validation_relative_mse"] for m in report["models"]), default=float("nan"))
@@ -151,6 +151,8 @@ def markdown(report: dict, roundtrip: dict | None) -> str:
     for section in (_data_section, _diagnosis_section, _candidates_section, _errors_section):
         lines += ["", *section(report)]
     lines += ["", *_roundtrip_section(report, roundtrip), "", *_plots_section(report)]
+    if roundtrip:
+        lines += ["", "## Appendix: the round trip in detail", "", "```", roundtrip["table"], "```"]
     return "\n".join(lines) + "\n"
 
 
@@ -172,7 +174,7 @@ def _diagnosis_section(report: dict) -> list[str]:
                      f"**{_with_unit(d['channel'], units)}**, depending most likely on "
                      f"{', '.join(_with_unit(v, units) for v in d['inputs'][:3])}.")
         if d["fitted_term"]:
-            lines.append(f"Fitted term: `{d['fitted_term']['expression']}`.")
+            lines += ["", f"Fitted term: `{d['fitted_term']['expression']}`."]
     else:
         lines.append(f"No significant effect: the residual is at the level of the measurement noise "
                      f"(joint p = {d['p_value']:.2g}). No hybrid FMU was written.")
@@ -280,7 +282,7 @@ def _roundtrip_section(report: dict, roundtrip: dict | None) -> list[str]:
              f"max relative difference {roundtrip['max_rel_error']:.2g} over the rows compared ({verdict})."]
     if roundtrip["not_compared"]:
         lines.append(f"Not compared (no samples left): {'; '.join(roundtrip['not_compared'])}.")
-    return lines + ["", "```", roundtrip["table"], "```"]
+    return lines + ["", "Each comparison, signal by signal: in the appendix."]
 
 
 def _plots_section(report: dict) -> list[str]:

@@ -1,0 +1,188 @@
+"""The hybridize report as a person reads it: the summary line, units from the modelDescription, the
+published FMU's name, a self-contained report.html, and the plots, including the effect the hybrid
+learned drawn against its inputs and against the truth that made the data.
+
+References: units from fmpy's reading of the modelDescription; the learned network evaluated by
+torch (the report runs its ONNX export with onnxruntime); the true windage term from the C source
+of examples/dc_drive (WINDAGE = 3e-6 N.m.s2/rad2, inertia 0.01 kg.m2).
+"""
+import base64
+import re
+from html.parser import HTMLParser
+
+import numpy as np
+import pytest
+import torch
+from fmpy import read_model_description
+
+from fmubuilder import synth
+from fmubuilder.build import example_fmu
+from fmubuilder.data import load_data
+from fmubuilder.diagnose.plots import cumulative_signals, pyplot, robust_ylim
+from fmubuilder.export import freeze
+from fmubuilder.export.spec import HybridSpec
+from fmubuilder.fmi import read_model_info
+from fmubuilder.hybridize import hybridize
+from fmubuilder.hybridize.effect import effect_of
+from fmubuilder.hybridize.plots import plot_effect
+from fmubuilder.hybridize.report import _candidate_note
+
+BENCH = dict(signals=("speed", "current", "power", "temperature"),
+             noise_std={"speed": 0.1, "current": 0.02, "power": 1.0, "temperature": 0.02})
+TRUTH = "dc_drive_truth_windage"
+WINDAGE_PER_INERTIA = 3e-6 / 0.01      # der(speed) += -WINDAGE / inertia * speed * |speed|
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def measure(folder, window, seed):
+    settings = synth.BenchSettings(seed=seed, **BENCH)
+    measurement = synth.measure(example_fmu(TRUTH), start_time=window[0], stop_time=window[1], settings=settings)
+    return synth.write_measurement(measurement, folder / f"{TRUTH}_{window[0]:g}-{window[1]:g}_{seed}.csv")
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("report_data")
+    return {"train": measure(folder, (0.0, 10.0), 0), "test": measure(folder, (20.5, 26.0), 1)}
+
+
+@pytest.fixture(scope="module")
+def published(files, tmp_path_factory):
+    """A small hybridize run (one epoch): the fitted term is published."""
+    folder = tmp_path_factory.mktemp("report")
+    result = hybridize(example_fmu("dc_drive"), files["train"], files["test"], folder / "windage_hybrid.fmu",
+                       folder / "report", epochs=1, progress=False)
+    assert result.hybrid_fmu is not None, "the windage must be found and published for these tests"
+    return result
+
+
+def section(markdown: str, title: str) -> str:
+    match = re.search(rf"^## {re.escape(title)}\n(.*?)(?=^## |\Z)", markdown, flags=re.S | re.M)
+    assert match, f"no section {title!r}"
+    return match.group(1)
+
+
+def test_units_from_the_model_description_appear_for_every_signal_and_the_channel(published):
+    markdown = (published.report_dir / "report.md").read_text()
+    declared = {v.name: v.unit or (v.declaredType.unit if v.declaredType else None)
+                for v in read_model_description(str(example_fmu("dc_drive"))).modelVariables}
+    for signal in BENCH["signals"]:
+        assert declared[signal], signal
+        # in every table of errors per role
+        assert markdown.count(f"| `{signal}` [{declared[signal]}] |") == 3, signal
+    assert f"`der(speed)` [{declared['der(speed)']}]" in markdown.splitlines()[2]    # the summary line
+
+
+def test_the_summary_line_says_what_was_found_shipped_and_gained(published):
+    report = published.report
+    summary = (published.report_dir / "report.md").read_text().splitlines()[2]
+    assert summary == report["summary"]
+    chosen = next(m for m in report["models"] if m["chosen"])
+    assert "**Found**" in summary and "der(speed)" in summary and "`speed`" in summary
+    assert f"**Shipped** `{published.hybrid_fmu.name}`" in summary and chosen["name"] in summary
+    for role in ("validation", "test"):
+        assert f"{1 / chosen[f'{role}_relative_mse']:.3g}× lower on {role}" in summary
+
+
+def test_the_round_trip_names_the_published_fmu_not_a_temporary_file(published):
+    markdown = (published.report_dir / "report.md").read_text()
+    assert f"`{published.hybrid_fmu}`" in section(markdown, "Round trip of the published FMU")
+    assert f"validation of {published.hybrid_fmu}" in section(markdown, "Appendix: the round trip in detail")
+    assert "fmubuilder-hybridize-" not in markdown
+
+
+def test_the_candidate_table_explains_each_row(published):
+    candidates = section((published.report_dir / "report.md").read_text(), "Candidates")
+    neural = next(line for line in candidates.splitlines() if line.startswith("| neural |"))
+    assert "trained 1 of 1 epochs" in neural
+    fitted = next(line for line in candidates.splitlines() if line.startswith("| fitted term |"))
+    assert "speed*\\|speed\\|" in fitted and fitted.count(" | ") == 6   # the term's bars do not split the row
+
+
+def test_a_network_that_trained_zero_epochs_says_why():
+    row = {"name": "neural", "epochs": 0, **{f"{r}_relative_mse": 1.0 for r in ("train", "validation", "test")}}
+    note = _candidate_note(row, {"epochs": 10, "cut_short_by_time_budget": True})
+    assert "trained 0 of 10 epochs" in note and "cap ran out before the first epoch" in note
+    assert "adds nothing" in note
+
+
+def test_no_final_error_column_for_signals_that_do_not_accumulate(published):
+    markdown = (published.report_dir / "report.md").read_text()
+    assert published.report["cumulative_signals"] == []    # speed, current, power, temperature all turn
+    assert "final" not in section(markdown, "Errors per data role")
+
+
+class _Links(HTMLParser):
+    def __init__(self):
+        super().__init__()
+        self.images, self.links = [], []
+
+    def handle_starttag(self, tag, attrs):
+        attrs = dict(attrs)
+        if tag == "img":
+            self.images.append(attrs.get("src", ""))
+        for key in ("href", "src"):
+            if key in attrs and tag != "img":
+                self.links.append(attrs[key])
+
+
+def test_report_html_is_one_self_contained_page_with_every_plot(published):
+    folder = published.report_dir
+    page = (folder / "report.html").read_text()
+    parser = _Links()
+    parser.feed(page)
+    assert parser.links == []
+    assert len(parser.images) == len(published.report["plots"]) >= 6
+    for src, plot in zip(parser.images, published.report["plots"]):
+        assert src.startswith("data:image/png;base64,"), src[:60]
+        assert base64.b64decode(src.split(",", 1)[1]) == (folder / plot).read_bytes()
+    assert "<table>" in page and published.report["models"][0]["name"] in page
+
+
+def test_the_plots_of_a_fitted_term_hybrid_are_pngs_with_the_effect(published):
+    plots = published.report["plots"]
+    assert {"train.png", "test.png", "effect.png"} <= set(plots)
+    for plot in plots:
+        assert (published.report_dir / plot).read_bytes().startswith(PNG), plot
+    notes = " ".join(published.report["plot_notes"])
+    assert f"{TRUTH}.fmu" in notes      # the truth was found and drawn
+
+
+def test_the_effect_of_a_network_against_the_truth(files, tmp_path):
+    """A small network frozen to ONNX as a hybrid spec: the effect the report draws is the network's
+    output (checked with torch) and the truth's is the windage term of the C source."""
+    torch.manual_seed(0)
+    network = torch.nn.Sequential(torch.nn.Linear(1, 5), torch.nn.Tanh(), torch.nn.Linear(5, 1)).double()
+    freeze(network, 1, tmp_path / "network.onnx")
+    info = read_model_info(example_fmu("dc_drive"))
+    HybridSpec(original_fmu=example_fmu("dc_drive"), original_guid=info.guid, channels=["der(speed)"],
+               inputs=["speed"], onnx=tmp_path / "network.onnx", p_ann=[0.5]).save(tmp_path / "spec.json")
+    data = load_data(files["train"], info)
+    effect = effect_of(tmp_path / "spec.json", example_fmu("dc_drive"), data, {}, step=1e-3)
+    speed = effect.inputs["speed"]
+    assert effect.kind == "network" and speed.min() < 1.0 and speed.max() > 140.0
+    with torch.no_grad():
+        expected = 0.5 * network(torch.from_numpy(speed[:, None])).numpy().ravel()
+    np.testing.assert_allclose(effect.learned, expected, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(effect.truth, -WINDAGE_PER_INERTIA * speed * np.abs(speed), rtol=1e-6, atol=1e-9)
+    path = plot_effect(tmp_path / "effect.png", effect, {"speed": "rad/s", "der(speed)": "rad/s2"}, "network")
+    assert path.read_bytes().startswith(PNG)
+
+
+def test_one_spike_does_not_set_the_y_range_and_the_plot_says_so():
+    plt = pyplot()
+    fig, ax = plt.subplots()
+    values = np.sin(np.linspace(0.0, 6.0, 400))
+    values[200] = 1e3
+    assert robust_ylim(ax, values) == 1
+    low, high = ax.get_ylim()
+    assert -1.3 < low < -0.9 and 0.9 < high < 1.3
+    assert any("1 point outside" in t.get_text() for t in ax.texts)
+    plt.close(fig)
+
+
+def test_cumulative_signals_are_monotone_states():
+    ramp, wave = np.linspace(0.0, 5.0, 50), np.sin(np.linspace(0.0, 6.0, 50))
+    found = cumulative_signals(["energy", "speed", "distance_output"],
+                               {"energy": ramp, "speed": wave, "distance_output": ramp}, {"energy", "speed"})
+    assert found == {"energy"}
