@@ -18,8 +18,10 @@ MAX_INPUT_COLUMNS = 3
 # One colour per model, the same in every plot fmubuilder draws.
 COLOURS = {"measured": "0.45", "fmu": "tab:red", "hybrid": "tab:blue", "truth": "tab:green"}
 RESIDUAL = "model − measured"
-# Share of points that may lie outside the y-limits at each end.
+# The central range: between these percentiles; values more than OUTLIER_SPANS times its width
+# beyond it are left outside the y-limits.
 CLIP_PERCENTILE = 0.5
+OUTLIER_SPANS = 1.0
 # Measured samples as small dots over the lines; the FMU wide and pale below the hybrid's dashes, so
 # neither hides the other where they agree.
 MEASURED_STYLE = dict(ls="none", marker=".", ms=2.5, color=COLOURS["measured"], alpha=0.6, zorder=4)
@@ -47,14 +49,20 @@ def robust_ylim(ax, *series, percentile: float = CLIP_PERCENTILE) -> int:
     if values.size == 0:
         return 0
     low, high = np.percentile(values, [percentile, 100.0 - percentile])
+    span = high - low if high > low else max(abs(high), 1.0) * 0.1
+    # The extremes stay in view unless they lie more than a span beyond the central range: a
+    # genuine peak is kept, an isolated spike is cut off.
     full_low, full_high = float(values.min()), float(values.max())
-    margin = 0.08 * (high - low) if high > low else max(abs(high), 1.0) * 0.05
-    low, high = max(low - margin, full_low - margin), min(high + margin, full_high + margin)
+    low = full_low if full_low >= low - OUTLIER_SPANS * span else low
+    high = full_high if full_high <= high + OUTLIER_SPANS * span else high
+    margin = 0.06 * (high - low if high > low else span)
+    low, high = low - margin, high + margin
     outside = int(np.sum((values < low) | (values > high)))
     ax.set_ylim(low, high)
     if outside:
-        ax.text(0.99, 0.02, f"{outside} point{'s' if outside > 1 else ''} outside the y-range", transform=ax.transAxes, ha="right",
-                va="bottom", fontsize=7, color="0.3", bbox=dict(fc="white", ec="0.7", lw=0.5, alpha=0.8))
+        note = f"{outside} point{'s' if outside > 1 else ''} outside the y-range"
+        ax.text(0.99, 0.02, note, transform=ax.transAxes, ha="right", va="bottom", fontsize=7, color="0.3",
+                bbox=dict(fc="white", ec="0.7", lw=0.5, alpha=0.8))
     return outside
 
 

@@ -347,7 +347,7 @@ h2 { margin-top: 1.8em; border-bottom: 1px solid #eee; }
 table { border-collapse: collapse; margin: .6em 0; font-size: .92em; }
 th, td { border: 1px solid #ccc; padding: .25em .6em; text-align: right; }
 th { background: #f3f3f3; }
-td:first-child, th:first-child, td:nth-child(2) { text-align: left; }
+td:first-child, th:first-child, td:nth-child(2), td:last-child, th:last-child { text-align: left; }
 code { background: #f4f4f4; padding: 0 .2em; border-radius: 3px; }
 pre { background: #f7f7f7; padding: .8em; overflow-x: auto; font-size: .85em; }
 img { max-width: 100%; border: 1px solid #e4e4e4; margin: .4em 0; }

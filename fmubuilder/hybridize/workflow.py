@@ -13,7 +13,7 @@ The data play three roles, and each number in the report comes from one of them:
                   symbolic term when the diagnosis offers one; each exported as a hybrid FMU
     selection  -> the candidate with the lower validation error, if it beats the plain FMU there
     round trip -> of the chosen hybrid FMU (fmpy vs the Python reference)
-    report     -> DIR/report.json, DIR/report.md and plots
+    report     -> DIR/report.json, DIR/report.md, DIR/report.html (plots inline) and the plots
 
 The work is counted, not timed: the diagnosis traces a fixed span of data and the NeuralFMU trains
 a fixed number of epochs, so the same command gives the same numbers on an idle and a busy machine.

@@ -164,10 +164,10 @@ def test_report_json_and_markdown(runs, truth):
                 assert set(values) == ERROR_KEYS and all(np.isfinite(v) for v in values.values())
     assert isinstance(on_disk["roundtrip"]["max_rel_error"], float)
     markdown = (result.report_dir / "report.md").read_text()
-    assert "| data | signal | MSE before | MSE after |" in markdown
-    for part in ("train", "test"):
-        for signal in BENCH["signals"]:
-            assert f"| {part} | {signal} |" in markdown
+    # one table per role, a row per signal with its unit
+    assert markdown.count("| signal | RMS FMU | RMS hybrid | factor |") == 3
+    for signal in BENCH["signals"]:
+        assert markdown.count(f"| `{signal}` [") == 3, signal
     for plot in on_disk["plots"]:
         assert (result.report_dir / plot).read_bytes().startswith(b"\x89PNG")
 
