@@ -194,7 +194,7 @@ def _candidates_section(report: dict) -> list[str]:
     lines = ["## Candidates", "",
              "MSE after / MSE before, mean over the signals (below 1: better than the declared FMU).", "",
              "| candidate | what it adds | train | validation (chooses) | test (touched once) | chosen | note |",
-             "|---|---|---|---|---|---|---|"]
+             "|:---|:---|---:|---:|---:|:---|:---|"]
     for m in report["models"]:
         lines.append(f"| {m['name']} | {_cell(m['description'])} | {m['train_relative_mse']:.3g} | "
                      f"{m['validation_relative_mse']:.3g} | {m['test_relative_mse']:.3g} | "
@@ -246,7 +246,7 @@ def _errors_section(report: dict) -> list[str]:
         errors = report["errors"][role]
         files = report["data"][role]
         lines += ["", f"### {ROLE_TITLES[role]}", "", "Data: " + ", ".join(f"`{x}`" for x in files), "",
-                  "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+                  "| " + " | ".join(header) + " |", "|:---|" + "---:|" * (len(header) - 1)]
         for signal, b in errors["before"].items():
             a = errors["after"][signal]
             row = [_with_unit(signal, units), f"{np.sqrt(b['mse']):.4g}"]
@@ -345,9 +345,8 @@ body { font-family: system-ui, -apple-system, "Segoe UI", sans-serif; max-width:
 h1 { border-bottom: 2px solid #ddd; padding-bottom: .2em; }
 h2 { margin-top: 1.8em; border-bottom: 1px solid #eee; }
 table { border-collapse: collapse; margin: .6em 0; font-size: .92em; }
-th, td { border: 1px solid #ccc; padding: .25em .6em; text-align: right; }
+th, td { border: 1px solid #ccc; padding: .25em .6em; }
 th { background: #f3f3f3; }
-td:first-child, th:first-child, td:nth-child(2), td:last-child, th:last-child { text-align: left; }
 code { background: #f4f4f4; padding: 0 .2em; border-radius: 3px; }
 pre { background: #f7f7f7; padding: .8em; overflow-x: auto; font-size: .85em; }
 img { max-width: 100%; border: 1px solid #e4e4e4; margin: .4em 0; }
