@@ -21,8 +21,8 @@ from fmubuilder.export.wrapper import platform_note
 from fmubuilder.fmi import read_model_info
 from tests.export.test_wrapper import make_hybrid, make_network
 from tests.export.win64_fmus import (build_hosts, example_with_win64, reference_with_win64, relative_difference,
-                                     require_mingw, require_wine, run_host, sibling_with_win64, unpacked,
-                                     value_reference)
+                                     host_process, require_mingw, require_wine, run_host, sibling_with_win64,
+                                     unpacked, value_reference)
 from tests.reference_fmus import reference_fmu
 
 # Same source, same IEEE operations (-ffp-contract=off on both): only the C libraries' math
@@ -113,6 +113,17 @@ def test_win64_under_wine_follows_the_linux64_trajectory(name, request, hosts, t
     n_states = len(read_model_info(case["fmu"]).derivatives)
     original = run({**case, "outputs": []}, linux_host, case["spec"].original_fmu, tmp_path / "original")
     assert relative_difference(original, linux[:, :1 + n_states]) > 1e-6
+
+
+def test_win64_wrapper_without_the_original_dll_fails_with_a_message(ball, hosts, tmp_path):
+    wine = require_wine()
+    fmu_dir = unpacked(ball["fmu"], tmp_path)
+    (fmu_dir / "binaries" / "win64" / "BouncingBall.dll").unlink()
+    result = host_process(hosts[1], fmu_dir, ball["fmu"], ball["stop"], ball["step"], [], wine=wine)
+    assert result.returncode != 0
+    # 126: ERROR_MOD_NOT_FOUND
+    assert "fmi2Instantiate: cannot load the original FMU's binary BouncingBall.dll (Windows error 126)." \
+        in result.stderr
 
 
 def test_ball_bounces_in_the_compared_run(ball, hosts, tmp_path):
