@@ -61,9 +61,10 @@ def sibling(tmp_path_factory):
     return {"spec": spec, "fmu": hybrid, "stop": 2.0, "step": 1e-3, "outputs": ["der(x)"]}
 
 
-def run(case: dict, host: Path, fmu: Path, folder: Path, wine: str | None = None) -> np.ndarray:
+def run(case: dict, host: Path, fmu: Path, folder: Path, wine: str | None = None, rewind: bool = False) -> np.ndarray:
     value_references = [value_reference(fmu, name) for name in case["outputs"]]
-    return run_host(host, unpacked(fmu, folder), fmu, case["stop"], case["step"], value_references, wine=wine)
+    return run_host(host, unpacked(fmu, folder), fmu, case["stop"], case["step"], value_references, wine=wine,
+                    rewind=rewind)
 
 
 @pytest.mark.parametrize("name", ["ball", "drive", "sibling"])
@@ -113,6 +114,21 @@ def test_win64_under_wine_follows_the_linux64_trajectory(name, request, hosts, t
     n_states = len(read_model_info(case["fmu"]).derivatives)
     original = run({**case, "outputs": []}, linux_host, case["spec"].original_fmu, tmp_path / "original")
     assert relative_difference(original, linux[:, :1 + n_states]) > 1e-6
+
+
+@pytest.mark.parametrize("name", ["ball", "drive"])
+def test_win64_fmu_state_rewind_under_wine(name, request, hosts, tmp_path):
+    """FMU state taken (and serialized) at the middle, set after the end: the second half again,
+    the same on both platforms."""
+    wine = require_wine()
+    case = request.getfixturevalue(name)
+    linux = run(case, hosts[0], case["fmu"], tmp_path / "linux", rewind=True)
+    windows = run(case, hosts[1], case["fmu"], tmp_path / "windows", wine=wine, rewind=True)
+    steps = round(case["stop"] / case["step"])
+    first_pass, replay = linux[:steps + 1], linux[steps + 1:]
+    assert len(replay) == steps - steps // 2
+    np.testing.assert_array_equal(replay, first_pass[steps // 2 + 1:])
+    assert relative_difference(windows, linux) <= PLATFORM_TOLERANCE
 
 
 def test_win64_wrapper_without_the_original_dll_fails_with_a_message(ball, hosts, tmp_path):

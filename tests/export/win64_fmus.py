@@ -88,19 +88,21 @@ def unpacked(fmu: Path, folder: Path) -> Path:
 
 
 def run_host(host: Path, fmu_dir: Path, fmu: Path, stop_time: float, step_size: float,
-             value_references: list[int], wine: str | None = None) -> np.ndarray:
-    """The host's trajectory (rows: t, states, values) for the unpacked FMU in fmu_dir."""
-    result = host_process(host, fmu_dir, fmu, stop_time, step_size, value_references, wine)
+             value_references: list[int], wine: str | None = None, rewind: bool = False) -> np.ndarray:
+    """The host's trajectory (rows: t, states, values) for the unpacked FMU in fmu_dir; with
+    `rewind`, the second half follows again from the FMU state taken at the middle."""
+    result = host_process(host, fmu_dir, fmu, stop_time, step_size, value_references, wine, rewind)
     assert result.returncode == 0, f"{host.name} failed:\n{result.stderr[-3000:]}"
     return np.loadtxt(result.stdout.splitlines(), ndmin=2)
 
 
 def host_process(host: Path, fmu_dir: Path, fmu: Path, stop_time: float, step_size: float,
-                 value_references: list[int], wine: str | None = None) -> subprocess.CompletedProcess:
+                 value_references: list[int], wine: str | None = None,
+                 rewind: bool = False) -> subprocess.CompletedProcess:
     """Runs the host on the unpacked FMU in fmu_dir; under wine the folder is given as a path on
     wine's Z: drive (the Unix root)."""
     description = fmpy.read_model_description(str(fmu))
-    arguments = [f"Z:{fmu_dir}" if wine else str(fmu_dir), description.modelExchange.modelIdentifier,
+    arguments = ["--rewind"] * rewind + [f"Z:{fmu_dir}" if wine else str(fmu_dir), description.modelExchange.modelIdentifier,
                  description.guid, str(len(description.derivatives)),
                  str(description.numberOfEventIndicators), repr(stop_time), repr(step_size),
                  *map(str, value_references)]
