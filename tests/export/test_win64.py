@@ -20,9 +20,9 @@ from fmubuilder.export import HybridSpec, export_hybrid
 from fmubuilder.export.wrapper import platform_note
 from fmubuilder.fmi import read_model_info
 from tests.export.test_wrapper import make_hybrid, make_network
-from tests.export.win64_fmus import (build_hosts, example_with_win64, reference_with_win64, relative_difference,
-                                     host_process, require_mingw, require_wine, run_host, sibling_with_win64,
-                                     unpacked, value_reference)
+from tests.export.win64_fmus import (FMI_HEADERS, HERE, MINGW_COMPILER, MINGW_STATIC, build_hosts, example_with_win64,
+                                     host_process, reference_with_win64, relative_difference, require_mingw,
+                                     require_wine, run_host, sibling_with_win64, unpacked, value_reference)
 from tests.reference_fmus import reference_fmu
 
 # Same source, same IEEE operations (-ffp-contract=off on both): only the C libraries' math
@@ -83,6 +83,18 @@ def test_hybrid_carries_linux64_and_win64(name, request):
     assert platform_note(case["spec"].original_fmu, hybrid) == "binaries: linux64, win64"
     with zipfile.ZipFile(case["spec"].original_fmu) as archive:  # every win64 file of the original
         assert {n for n in archive.namelist() if n.startswith("binaries/win64/") and not n.endswith("/")} < names
+
+
+def test_static_wrapper_cross_compiles_without_warnings(tmp_path):
+    """The wrapper on its own, with the sample configuration: strict C99, every warning an error."""
+    require_mingw()
+    command = [MINGW_COMPILER, "-std=c99", "-O1", "-shared", "-ffp-contract=off", "-Wall", "-Wextra",
+               "-Wno-type-limits", "-Werror", f"-I{HERE / 'host' / 'sample_config'}",
+               f"-I{HERE.parents[1] / 'c_templates'}", f"-I{FMI_HEADERS}",
+               str(HERE.parents[1] / "c_templates" / "hybrid_wrapper.c"), "-o", str(tmp_path / "sample.dll"),
+               *MINGW_STATIC]
+    result = subprocess.run(command, capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
 
 
 def test_win64_wrapper_needs_only_windows_dlls_and_exports_fmi2(ball, tmp_path):

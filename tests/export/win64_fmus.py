@@ -102,10 +102,10 @@ def host_process(host: Path, fmu_dir: Path, fmu: Path, stop_time: float, step_si
     """Runs the host on the unpacked FMU in fmu_dir; under wine the folder is given as a path on
     wine's Z: drive (the Unix root)."""
     description = fmpy.read_model_description(str(fmu))
-    arguments = ["--rewind"] * rewind + [f"Z:{fmu_dir}" if wine else str(fmu_dir), description.modelExchange.modelIdentifier,
-                 description.guid, str(len(description.derivatives)),
-                 str(description.numberOfEventIndicators), repr(stop_time), repr(step_size),
-                 *map(str, value_references)]
+    folder = f"Z:{fmu_dir}" if wine else str(fmu_dir)
+    arguments = ["--rewind"] * rewind + [
+        folder, description.modelExchange.modelIdentifier, description.guid, str(len(description.derivatives)),
+        str(description.numberOfEventIndicators), repr(stop_time), repr(step_size), *map(str, value_references)]
     command = [wine, str(host), *arguments] if wine else [str(host), *arguments]
     environment = {**os.environ, "WINEDEBUG": "-all"}
     return subprocess.run(command, capture_output=True, text=True, env=environment, timeout=300)
