@@ -8,10 +8,13 @@
  * network inputs) comes from hybrid_config.h, generated per hybrid, and the network from the
  * generated kernel that header includes.
  *
- * The original binary ships in resources/INNER_LIBRARY and is loaded per instance with
+ * Linux: the original binary ships in resources/INNER_LIBRARY and is loaded per instance with
  * RTLD_LOCAL | RTLD_DEEPBIND, so its own fmi2* calls bind to itself even when the importer
  * loaded this library with RTLD_GLOBAL. This file calls the original only through function
  * pointers, and is linked with -Bsymbolic, so its own calls never reach the original's symbols.
+ * Windows: the original DLL (INNER_LIBRARY_WIN64) sits beside this one in binaries/win64/ and is
+ * loaded by full path; every DLL resolves its own imports, so the two sets of fmi2* symbols
+ * never mix and nothing like RTLD_DEEPBIND is needed.
  *
  * Every fmi2 function checks the call against the standard's state machine (tracked here) and
  * its arguments, then forwards to the original instance; an fmi2Error of the original puts the
@@ -23,10 +26,17 @@
  *     network output is a Real local (value references beyond the original's);
  *   - FMU state snapshots hold the original's snapshot plus the gates.
  */
+#ifdef _WIN32
+#define WIN32_LEAN_AND_MEAN
+#define NOMINMAX
+#define __USE_MINGW_ANSI_STDIO 1 /* C99 printf (%zu) whatever the C runtime */
+#include <windows.h>
+#else
 #define _GNU_SOURCE /* RTLD_DEEPBIND, dladdr */
 #include <dlfcn.h>
-#include <math.h>
 #include <pthread.h>
+#endif
+#include <math.h>
 #include <stdarg.h>
 #include <stdbool.h>
 #include <stdint.h>
@@ -37,6 +47,7 @@
 #include "fmi2Functions.h"
 #include "hybrid_config.h"
 
+#ifndef _WIN32
 /* How the original's binary is loaded. RTLD_DEEPBIND: an original that calls its own fmi2*
  * functions must reach its own, not the wrapper's of the same name (the importer may have
  * loaded the wrapper with RTLD_GLOBAL); without it there is no safe fallback. The sanitizer
@@ -47,8 +58,9 @@
 #elif defined(RTLD_DEEPBIND)
 #define INNER_DLOPEN_FLAGS (RTLD_NOW | RTLD_LOCAL | RTLD_DEEPBIND)
 #else
-#error "the hybrid wrapper needs dlopen with RTLD_DEEPBIND (Linux with glibc); build the hybrid FMU there"
+#error "the hybrid wrapper needs dlopen with RTLD_DEEPBIND (Linux with glibc) or Windows; build the hybrid FMU there"
 #define INNER_DLOPEN_FLAGS RTLD_NOW /* only so that the #error is the one message */
+#endif
 #endif
 
 /* A table size that is at least 1, so an empty table is still valid C. */
@@ -360,6 +372,60 @@ static void reset_gates(Hybrid *h) {
  */
 #define PATH_SIZE 4096
 
+#ifdef _WIN32
+/* binaries/win64/INNER_LIBRARY_WIN64: the folder of this DLL, which Windows reports itself
+ * (the resource location is not needed to find it). */
+static bool inner_library_path(wchar_t *path, size_t size) {
+    HMODULE self;
+    const char *name = INNER_LIBRARY_WIN64;
+    if (!GetModuleHandleExW(GET_MODULE_HANDLE_EX_FLAG_FROM_ADDRESS | GET_MODULE_HANDLE_EX_FLAG_UNCHANGED_REFCOUNT,
+                            (LPCWSTR)(const void *)CHANNELS, &self)) {
+        return false;
+    }
+    DWORD length = GetModuleFileNameW(self, path, (DWORD)size);
+    if (length == 0 || length >= size) {
+        return false;
+    }
+    while (length > 0 && path[length - 1] != L'\\' && path[length - 1] != L'/') {
+        length--;
+    }
+    /* The name is the original's modelIdentifier, a C identifier: ASCII widens as it is. */
+    if (length + strlen(name) + 1 > size) {
+        return false;
+    }
+    for (; *name != '\0'; name++) {
+        path[length++] = (wchar_t)(unsigned char)*name;
+    }
+    path[length] = L'\0';
+    return true;
+}
+
+/* The original's DLL, or NULL with the reason in `error`. LOAD_WITH_ALTERED_SEARCH_PATH: the
+ * DLLs it imports are looked for in its own folder first, where its sibling files are. */
+static void *load_inner_library(const char *resource_location, char *error, size_t size) {
+    wchar_t path[PATH_SIZE];
+    HMODULE library;
+    (void)resource_location;
+    if (!inner_library_path(path, PATH_SIZE)) {
+        snprintf(error, size, "cannot locate the original FMU's binary %s beside this DLL", INNER_LIBRARY_WIN64);
+        return NULL;
+    }
+    library = LoadLibraryExW(path, NULL, LOAD_WITH_ALTERED_SEARCH_PATH);
+    if (library == NULL) {
+        snprintf(error, size, "cannot load the original FMU's binary %s (Windows error %lu)", INNER_LIBRARY_WIN64,
+                 (unsigned long)GetLastError());
+    }
+    return (void *)library;
+}
+
+/* Through void (*)(void), the generic function pointer type, so the cast says what it means. */
+static void (*inner_symbol(void *library, const char *name))(void) {
+    return (void (*)(void))GetProcAddress((HMODULE)library, name);
+}
+
+static void unload_inner_library(void *library) { FreeLibrary((HMODULE)library); }
+
+#else
 static int hex_digit(char ch) {
     if (ch >= '0' && ch <= '9') return ch - '0';
     if (ch >= 'a' && ch <= 'f') return ch - 'a' + 10;
@@ -422,9 +488,35 @@ static bool inner_library_path(const char *resource_location, char *path, size_t
     return (size_t)snprintf(path, size, "%s/%s", folder, INNER_LIBRARY) < size;
 }
 
+/* The original's library, or NULL with the reason in `error`. */
+static void *load_inner_library(const char *resource_location, char *error, size_t size) {
+    char path[PATH_SIZE];
+    void *library;
+    if (!inner_library_path(resource_location, path, sizeof(path))) {
+        snprintf(error, size, "cannot locate the original FMU's binary from resource location '%s'",
+                 resource_location ? resource_location : "(null)");
+        return NULL;
+    }
+    library = dlopen(path, INNER_DLOPEN_FLAGS);
+    if (library == NULL) {
+        snprintf(error, size, "cannot load the original FMU's binary: %s", dlerror());
+    }
+    return library;
+}
+
+static void (*inner_symbol(void *library, const char *name))(void) {
+    void (*function)(void);
+    /* POSIX guarantees that a data pointer from dlsym converts to a function pointer. */
+    *(void **)&function = dlsym(library, name);
+    return function;
+}
+
+static void unload_inner_library(void *library) { dlclose(library); }
+#endif
+
 #define LOOK_UP(field, symbol)                                                              \
     do {                                                                                    \
-        api->field = (symbol##TYPE *)dlsym(api->library, #symbol);                          \
+        api->field = (symbol##TYPE *)inner_symbol(api->library, #symbol);                    \
         if (api->field == NULL) {                                                           \
             return #symbol;                                                                 \
         }                                                                                   \
@@ -476,7 +568,7 @@ static void free_hybrid(Hybrid *h) {
         h->inner.freeInstance(h->inner_component);
     }
     if (h->inner.library != NULL) {
-        dlclose(h->inner.library);
+        unload_inner_library(h->inner.library);
     }
     release(h, h->instance_name);
     release(h, h);
@@ -484,20 +576,28 @@ static void free_hybrid(Hybrid *h) {
 
 /* Live instances, so that freeing an instance twice, or a pointer that is none, is harmless.
  * Only fmi2Instantiate and fmi2FreeInstance touch the list. */
+#ifdef _WIN32
+static SRWLOCK live_lock = SRWLOCK_INIT;
+#define LOCK_LIVE() AcquireSRWLockExclusive(&live_lock)
+#define UNLOCK_LIVE() ReleaseSRWLockExclusive(&live_lock)
+#else
 static pthread_mutex_t live_lock = PTHREAD_MUTEX_INITIALIZER;
+#define LOCK_LIVE() pthread_mutex_lock(&live_lock)
+#define UNLOCK_LIVE() pthread_mutex_unlock(&live_lock)
+#endif
 static Hybrid *live_instances = NULL;
 
 static void add_live(Hybrid *h) {
-    pthread_mutex_lock(&live_lock);
+    LOCK_LIVE();
     h->next_live = live_instances;
     live_instances = h;
-    pthread_mutex_unlock(&live_lock);
+    UNLOCK_LIVE();
 }
 
 /* Unlinks `h` from the live instances; false if it was not there. */
 static bool remove_live(const Hybrid *h) {
     bool found = false;
-    pthread_mutex_lock(&live_lock);
+    LOCK_LIVE();
     for (Hybrid **link = &live_instances; *link != NULL; link = &(*link)->next_live) {
         if (*link == h) {
             *link = h->next_live;
@@ -505,7 +605,7 @@ static bool remove_live(const Hybrid *h) {
             break;
         }
     }
-    pthread_mutex_unlock(&live_lock);
+    UNLOCK_LIVE();
     return found;
 }
 
@@ -548,7 +648,7 @@ fmi2Component fmi2Instantiate(fmi2String instanceName, fmi2Type fmuType, fmi2Str
                               fmi2String fmuResourceLocation, const fmi2CallbackFunctions *functions,
                               fmi2Boolean visible, fmi2Boolean loggingOn) {
     const char *name = instanceName != NULL ? instanceName : "";
-    char library_path[PATH_SIZE];
+    char load_error[PATH_SIZE + 256];
     const char *missing;
     Hybrid *h;
 
@@ -586,21 +686,15 @@ fmi2Component fmi2Instantiate(fmi2String instanceName, fmi2Type fmuType, fmi2Str
     strcpy(h->instance_name, name);
     reset_gates(h);
 
-    if (!inner_library_path(fmuResourceLocation, library_path, sizeof(library_path))) {
-        LOG_ERROR(h, "fmi2Instantiate: cannot locate the original FMU's binary from resource location '%s'.",
-                  fmuResourceLocation ? fmuResourceLocation : "(null)");
-        free_hybrid(h);
-        return NULL;
-    }
-    h->inner.library = dlopen(library_path, INNER_DLOPEN_FLAGS);
+    h->inner.library = load_inner_library(fmuResourceLocation, load_error, sizeof(load_error));
     if (h->inner.library == NULL) {
-        LOG_ERROR(h, "fmi2Instantiate: cannot load the original FMU's binary: %s", dlerror());
+        LOG_ERROR(h, "fmi2Instantiate: %s.", load_error);
         free_hybrid(h);
         return NULL;
     }
     missing = look_up_functions(&h->inner);
     if (missing != NULL) {
-        LOG_ERROR(h, "fmi2Instantiate: the original FMU's binary %s does not export %s.", library_path, missing);
+        LOG_ERROR(h, "fmi2Instantiate: the original FMU's binary does not export %s.", missing);
         free_hybrid(h);
         return NULL;
     }

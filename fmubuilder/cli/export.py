@@ -40,10 +40,10 @@ def add_export_parsers(subparsers, common=None) -> None:
 
 
 def cmd_export(args) -> None:
-    from ..export.wrapper import export_hybrid
+    from ..export.wrapper import export_hybrid, platform_note
     with _spec_from(args.trained) as spec:
         output = export_hybrid(spec, args.output, force=args.force)
-    print(f"wrote {output}")
+        print(f"wrote {output} ({platform_note(spec.original_fmu, output)})")
 
 
 def cmd_validate(args) -> None:

@@ -126,7 +126,8 @@ def _set_model_exchange(root, identifier: str) -> None:
     # Other capability flags hold for the hybrid as for the original: the wrapper forwards those
     # calls, keeps the FMU state capabilities, and with canNotUseMemoryManagementFunctions it
     # allocates through the C library as the original does.
-    # No SourceFiles: the hybrid's sources wrap a binary for one platform and build nowhere else.
+    # No SourceFiles: the hybrid's sources wrap the original's binaries (linux64, win64) and
+    # build nowhere on their own.
     for source_files in me.findall("SourceFiles"):
         me.remove(source_files)
     if len(me) == 0:

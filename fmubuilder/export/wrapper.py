@@ -11,6 +11,11 @@ found; its own resources; and under resources/fmubuilder_hybrid/ the spec, the n
 original modelDescription.xml so the FMU can be validated on its own), build with CMake's
 add_fmu() (cmake/fmu.cmake), add the original's documentation/ and extra/ folders as they are,
 check the result with fmpy's validation, and only then move it to the output path.
+
+When the original also carries binaries/win64/<id>.dll, the same project is built a second time
+with mingw-w64 (cmake/mingw-w64-x86_64.cmake) and the hybrid gains binaries/win64/: its wrapper
+DLL beside copies of the original's win64 files, which the wrapper loads from there. The
+original's resources/ serve both platforms.
 """
 from __future__ import annotations
 
@@ -32,6 +37,9 @@ from .spec import HybridSpec
 
 TEMPLATE_DIR = Path(__file__).resolve().parents[2] / "c_templates"
 FMU_CMAKE = Path(__file__).resolve().parents[2] / "cmake" / "fmu.cmake"
+MINGW_TOOLCHAIN = FMU_CMAKE.with_name("mingw-w64-x86_64.cmake")
+MINGW_COMPILER = "x86_64-w64-mingw32-gcc"
+WIN64 = "win64"
 KERNEL_PREFIX = "hybrid_ann"
 WRAPPER_SOURCE = "hybrid_wrapper.c"
 # The wrapper's static files, copied as they are, and its generated configuration.
@@ -53,9 +61,11 @@ _C_KEYWORDS = frozenset(
 
 
 def export_hybrid(spec_or_path: HybridSpec | str | os.PathLike, output_fmu: str | os.PathLike,
-                  force: bool = False) -> Path:
+                  force: bool = False, win64: bool | None = None) -> Path:
     """Build the hybrid FMU described by a HybridSpec (or its JSON file) at `output_fmu`.
 
+    `win64`: also build the Windows binaries (the original must carry binaries/win64 and
+    mingw-w64 must be installed); None (default) does so when both hold, False never.
     Refuses to overwrite an existing file unless `force`. Returns the output path.
     """
     spec = spec_or_path if isinstance(spec_or_path, HybridSpec) else HybridSpec.load(spec_or_path)
@@ -71,9 +81,10 @@ def export_hybrid(spec_or_path: HybridSpec | str | os.PathLike, output_fmu: str 
     info = read_model_info(spec.original_fmu)
     check_model_identifier(info.model_identifier, spec.original_fmu)
     spec.check(info)
+    with_win64 = _wants_win64(spec.original_fmu, info, win64)
     with tempfile.TemporaryDirectory(prefix="fmubuilder-export-") as scratch:
         scratch = Path(scratch)
-        built = _build(spec, info, scratch)
+        built = _build(spec, info, scratch, with_win64)
         _check_with_fmpy(built, spec.original_fmu)
         copy_atomically(built, output)
     return output
@@ -87,7 +98,7 @@ def check_model_identifier(identifier: str, fmu) -> None:
             "'_', not starting with a digit, and no C keyword); re-export the original FMU with a valid one")
 
 
-def _build(spec: HybridSpec, info, scratch: Path) -> Path:
+def _build(spec: HybridSpec, info, scratch: Path, with_win64: bool = False) -> Path:
     """Stage the CMake project in scratch/project, build it, return the packed FMU."""
     from fmubuilder.build import build_cmake_project
     from fmubuilder.export.kernel import generate_kernel
@@ -116,8 +127,79 @@ def _build(spec: HybridSpec, info, scratch: Path) -> Path:
     fmu = build.build_dir / "fmus" / f"{description.model_identifier}.fmu"
     if not fmu.is_file():
         raise FmuBuilderError(f"the build produced no {fmu.name}; see the CMake output:\n{build.output[-2000:]}")
+    if with_win64:
+        _add_win64_binaries(project, scratch / "build-win64", spec.original_fmu, description.model_identifier, fmu)
     _carry_folders(spec.original_fmu, fmu)
     return fmu
+
+
+def original_win64_library(fmu: Path, info) -> str | None:
+    """The entry binaries/win64/<id>.dll of an FMU, or None when it has none."""
+    entry = f"binaries/{WIN64}/{info.model_identifier}.dll"
+    with zipfile.ZipFile(fmu) as archive:
+        return entry if entry in archive.namelist() else None
+
+
+def mingw_missing() -> str | None:
+    """Why the win64 wrapper cannot be cross-compiled here, or None when it can."""
+    if shutil.which(MINGW_COMPILER) is None:
+        return f"{MINGW_COMPILER} not found; install mingw-w64 (Debian: apt-get install gcc-mingw-w64-x86-64)"
+    return None
+
+
+def _wants_win64(original_fmu: Path, info, requested: bool | None) -> bool:
+    if requested is False:
+        return False
+    has_win64 = original_win64_library(original_fmu, info) is not None
+    missing_tool = mingw_missing()
+    if requested is None:
+        return has_win64 and missing_tool is None
+    if not has_win64:
+        raise FmuBuilderError(f"{original_fmu} has no binaries/{WIN64}/{info.model_identifier}.dll; a win64 hybrid "
+                              "wraps the original's win64 binary, so export the original for win64 as well")
+    if missing_tool is not None:
+        raise FmuBuilderError(f"cannot build the win64 binaries: {missing_tool}")
+    return True
+
+
+def _add_win64_binaries(project: Path, build_dir: Path, original_fmu: Path, identifier: str, hybrid_fmu: Path) -> None:
+    """Cross-compile the wrapper for win64 and add it with the original's win64 files to the hybrid."""
+    from fmubuilder.build import build_cmake_project
+    build = build_cmake_project(project, build_dir, definitions={"CMAKE_TOOLCHAIN_FILE": MINGW_TOOLCHAIN.as_posix()})
+    folder = f"binaries/{WIN64}/"
+    wrapper_entry = f"{folder}{identifier}.dll"
+    with zipfile.ZipFile(build.build_dir / "fmus" / f"{identifier}.fmu") as built:
+        if wrapper_entry not in built.namelist():
+            raise FmuBuilderError(f"the win64 build produced no {wrapper_entry}; see the CMake output:\n"
+                                  f"{build.output[-2000:]}")
+        wrapper_dll = built.read(wrapper_entry)
+    with zipfile.ZipFile(original_fmu) as original, \
+            zipfile.ZipFile(hybrid_fmu, "a", zipfile.ZIP_DEFLATED) as hybrid:
+        hybrid.writestr(wrapper_entry, wrapper_dll)
+        for member in original.infolist():
+            if not member.filename.startswith(folder) or member.is_dir():
+                continue
+            if member.filename == wrapper_entry:
+                raise FmuBuilderError(f"the original FMU has {member.filename}, the name of the hybrid's own win64 "
+                                      "binary; rename that file in the original FMU")
+            hybrid.writestr(member, original.read(member))
+
+
+def built_platforms(fmu: Path) -> list[str]:
+    """The platforms an FMU carries a binary for (the folders under binaries/)."""
+    with zipfile.ZipFile(fmu) as archive:
+        return sorted({name.split("/")[1] for name in archive.namelist()
+                       if name.startswith("binaries/") and name.count("/") >= 2 and name.split("/")[1]})
+
+
+def platform_note(original_fmu: Path, hybrid_fmu: Path) -> str:
+    """One line for the user: the hybrid's platforms, and what would add the original's others."""
+    from fmubuilder.fmi import read_model_info
+    note = f"binaries: {', '.join(built_platforms(hybrid_fmu))}"
+    original_has_win64 = original_win64_library(original_fmu, read_model_info(original_fmu)) is not None
+    if original_has_win64 and WIN64 not in built_platforms(hybrid_fmu) and mingw_missing():
+        note += f"; the original also has {WIN64}, but {mingw_missing()}"
+    return note
 
 
 def _carry_folders(original_fmu: Path, hybrid_fmu: Path) -> None:
@@ -160,6 +242,7 @@ def render_config(spec: HybridSpec, info, description: HybridDescription) -> str
         "inner_identifier": info.model_identifier,
         "inner_guid": info.guid,
         "inner_library": f"{info.model_identifier}.so",
+        "inner_library_win64": f"{info.model_identifier}.dll",
         "n_states": info.n_states,
         "n_event_indicators": info.n_event_indicators,
         "n_ann_inputs": len(spec.inputs),

@@ -12,6 +12,7 @@
 #define HYBRID_GUID "{sample-hybrid-of-the-bouncing-ball}"
 #define INNER_GUID "{8c4e810f-3df3-4a00-8276-176fa3c9f000}"
 #define INNER_LIBRARY "bouncing_ball.so"
+#define INNER_LIBRARY_WIN64 "bouncing_ball.dll"
 #define N_STATES 2
 #define N_EVENT_INDICATORS 1
 #define N_CHANNELS 1
