@@ -51,8 +51,11 @@ def add_hybridize_parser(subparsers, common=None) -> None:
     p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                    help="optional wall-clock cap on the training; the report says when it cut the training short "
                         "(the results then depend on the machine)")
+    p.add_argument("--allow-insignificant", action="store_true",
+                   help="build and publish a hybrid even when the diagnosis finds no significant effect "
+                        "(it may then fit noise; the validation data still decide whether one is published)")
     p.add_argument("--force", action="store_true",
-                   help="overwrite outputs, and build a hybrid even when the effect is not significant")
+                   help="overwrite the outputs; the old ones stay in place until the new ones are complete")
     p.set_defaults(func=cmd_hybridize, outputs=lambda args: [args.output, args.report])
 
 
@@ -64,7 +67,8 @@ def cmd_hybridize(args) -> None:
                        train_start=train_start,
                        validation_start=parse_assignments(args.validation_start, "--validation-start"),
                        test_start=parse_assignments(args.test_start, "--test-start"), epochs=args.epochs,
-                       seed=args.seed, time_budget=args.time_budget, force=args.force)
+                       seed=args.seed, time_budget=args.time_budget, force=args.force,
+                       allow_insignificant=args.allow_insignificant)
     print(summary(result))
 
 

@@ -32,7 +32,7 @@ import numpy as np
 
 from ..data import MeasuredData
 from ..errors import FmuBuilderError
-from ..files import copy_atomically
+from ..files import copy_atomically, replace_folder, staging_folder
 from ..fmi import read_model_info
 from .evaluate import Evaluation, Scoring, evaluate, read_data, relative_mse, signal_errors
 
@@ -115,10 +115,13 @@ class HybridizeResult:
 def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validation_csv=None,
               train_start: dict | list | None = None, validation_start: dict | None = None,
               test_start: dict | None = None, epochs: int = DEFAULT_EPOCHS, seed: int = 0,
-              time_budget: float | None = None, force: bool = False, progress: bool = True) -> HybridizeResult:
+              time_budget: float | None = None, force: bool = False, allow_insignificant: bool = False,
+              progress: bool = True) -> HybridizeResult:
     """train_csv: one data file or a list of them; train_start: start values for all of them, or a
     list with one dict per file (added to each file's sidecar). time_budget: optional wall-clock cap
-    in seconds on the NeuralFMU's training (the work is `epochs`)."""
+    in seconds on the NeuralFMU's training (the work is `epochs`). force: overwrite the outputs (the
+    old ones stay until the new ones are complete); allow_insignificant: build the candidates even
+    when the diagnosis finds no significant effect."""
     started = time.perf_counter()
     model_fmu, output_fmu, report_dir = Path(model_fmu), Path(output_fmu), Path(report_dir)
     _check_outputs(output_fmu, report_dir, force)
@@ -130,13 +133,14 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
     roles = _assign_roles(info, train_csv, train_start, validation_csv, validation_start, test_csv, test_start)
     scoring = Scoring.like_training(info, roles.train[0].data)
     work = Path(tempfile.mkdtemp(prefix="fmubuilder-hybridize-"))
+    final_report_dir, report_dir = report_dir, staging_folder(report_dir)   # swapped in when complete
     try:
-        report_dir.mkdir(parents=True, exist_ok=True)
         say = print if progress else (lambda *a, **k: None)
         first = roles.train[0]
         say(f"[1/5] diagnosing {model_fmu.name} against {first.label} ...")
         from ..diagnose import diagnose
-        diagnosis = diagnose(model_fmu, first.samples(), first.start_values, plots_dir=report_dir / "diagnosis")
+        diagnosis = diagnose(model_fmu, first.samples(), first.start_values, plots_dir=report_dir / "diagnosis",
+                             trace_always=allow_insignificant)
         for part in (*roles.train, *roles.validation):     # the diagnosis' start values belong to its run
             if part.data is first.data:
                 part.start_values = {**part.start_values, **diagnosis.start_values}
@@ -145,7 +149,7 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
         plain = score(Scores(model_fmu), roles, scoring, ("train", "validation"))
         candidates: list[Candidate] = []
         training = None
-        if diagnosis.significant or force:
+        if diagnosis.significant or allow_insignificant:
             if diagnosis.channel is None:
                 raise FmuBuilderError("the diagnosis found an effect but could not trace it to a state derivative; "
                                       "see the diagnosis in the report folder")
@@ -167,7 +171,6 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
             roundtrip_started = time.perf_counter()
             roundtrip = _roundtrip(chosen, roles.test)
             timings["roundtrip"] = time.perf_counter() - roundtrip_started
-            _publish(chosen.fmu, output_fmu, force)
             hybrid_path = output_fmu
         say("[5/5] writing the report ...")
         from .report import write_report
@@ -175,9 +178,13 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
                               candidates=candidates, chosen=chosen, selection=selection, roundtrip=roundtrip,
                               hybrid_fmu=hybrid_path, roles=roles, scoring=scoring, training=training,
                               seconds=time.perf_counter() - started, timings=timings)
-        return HybridizeResult(report, report_dir, hybrid_path)
+        if chosen is not None:      # published with its report, once both are complete
+            _publish(chosen.fmu, output_fmu, force)
+        replace_folder(report_dir, final_report_dir)
+        return HybridizeResult(report, final_report_dir, hybrid_path)
     finally:
         shutil.rmtree(work, ignore_errors=True)
+        shutil.rmtree(report_dir, ignore_errors=True)   # the staged report of a failed run
 
 
 # -- roles of the data ----------------------------------------------------------------------------
