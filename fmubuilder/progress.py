@@ -15,6 +15,7 @@ Bars show only when stderr is a terminal, unless `set_enabled` says otherwise (t
 from __future__ import annotations
 
 import contextlib
+import shutil
 import sys
 
 _enabled: bool | None = None     # None: when stderr is a terminal
@@ -48,9 +49,10 @@ class Bar:
         self._tqdm = None
         if enabled() if show is None else show:
             from tqdm import tqdm
-            # mininterval: redraw at most twice a second; dynamic_ncols follows a resized terminal
+            # mininterval: redraw at most twice a second
+            size = shutil.get_terminal_size((100, 24))     # tqdm draws nothing on a terminal of size 0
             self._tqdm = tqdm(total=self.total, initial=self.done, desc=description, unit=unit, file=sys.stderr,
-                              leave=True, mininterval=0.5, dynamic_ncols=True)
+                              leave=True, mininterval=0.5, ncols=size.columns, nrows=size.lines)
 
     def advance(self, count: int = 1, **status) -> None:
         """`count` more units done; `status` (e.g. loss=0.3) is shown after the bar."""
@@ -87,6 +89,18 @@ class Bar:
         return f"{self.done}/{self.total} {_plural(self.unit)}"
 
 
+def counted(items, description: str, unit: str = "step", total: int | None = None, show: bool | None = None):
+    """Iterate over `items` with a bar that counts each item when the loop's body is done with it;
+    a loop left early (break, error) closes the bar with a note. `total`: for items without len()."""
+    bar = Bar(len(items) if total is None else total, description, unit, show=show)
+    try:
+        for item in items:
+            yield item
+            bar.advance()
+    finally:
+        bar.close()
+
+
 @contextlib.contextmanager
 def progress(total: int, description: str, unit: str = "step", initial: int = 0, show: bool | None = None):
     """A Bar that closes on every way out of the block: at its total, stopped early (the block
@@ -105,4 +119,6 @@ def progress(total: int, description: str, unit: str = "step", initial: int = 0,
 
 
 def _plural(unit: str) -> str:
+    if unit == "%":
+        return unit
     return unit + ("es" if unit.endswith(("s", "sh", "ch", "x")) else "s")

@@ -34,6 +34,7 @@ from ..data import MeasuredData
 from ..errors import FmuBuilderError
 from ..files import copy_atomically, replace_folder, staging_folder
 from ..fmi import read_model_info
+from ..progress import counted
 from .evaluate import Evaluation, Scoring, evaluate, read_data, relative_mse, signal_errors
 
 # Share of each training run (its end) held out of the fit for validation, when no separate
@@ -146,7 +147,7 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
                 part.start_values = {**part.start_values, **diagnosis.start_values}
         say(f"      {_diagnosis_line(diagnosis)}")
         timings = {"diagnosis": time.perf_counter() - started}
-        plain = score(Scores(model_fmu), roles, scoring, ("train", "validation"))
+        plain = score(Scores(model_fmu), roles, scoring, ("train", "validation"), "scoring the plain FMU")
         candidates: list[Candidate] = []
         training = None
         if diagnosis.significant or allow_insignificant:
@@ -163,8 +164,8 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
         chosen = next((c for c in candidates if c.name == selection["chosen"]), None)
         # Everything is decided: now, and only now, the test data.
         say("      scoring every model on the test data (once, after the choice) ...")
-        for model in (plain, *(c.scores for c in candidates)):
-            score(model, roles, scoring, ("test",))
+        for name, model in (("the plain FMU", plain), *((f"the {c.name} hybrid", c.scores) for c in candidates)):
+            score(model, roles, scoring, ("test",), f"test data: {name}")
         hybrid_path, roundtrip = None, None
         if chosen is not None:
             say(f"[4/5] validating the round trip of the {chosen.name} hybrid ...")
@@ -229,11 +230,15 @@ def _next_sample(data: MeasuredData, t: float) -> float:
 
 # -- scoring ------------------------------------------------------------------------------------
 
-def score(scores: Scores, roles: Roles, scoring: Scoring, which: tuple[str, ...]) -> Scores:
+def score(scores: Scores, roles: Roles, scoring: Scoring, which: tuple[str, ...], label: str = "scoring") -> Scores:
     """Errors of the model on the roles in `which`, over all of each role's samples; each run is
     simulated once (a training run gives both its fit part and its held-out tail)."""
+    parts_of = {"train": roles.train, "validation": roles.validation, "test": [roles.test]}
+    todo = {id(p.data): p for role in which for p in parts_of[role] if id(p.data) not in scores.runs}
+    for key, part in counted(list(todo.items()), label, "run"):
+        scores.runs[key] = evaluate(scores.fmu, part.data, part.start_values, scoring)
     for role in which:
-        parts = {"train": roles.train, "validation": roles.validation, "test": [roles.test]}[role]
+        parts = parts_of[role]
         pieces = []
         for part in parts:
             key = id(part.data)
@@ -295,7 +300,7 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
 
 def _candidate(ctx: _Context, name: str, description: str, fmu: Path, folder: Path, details: dict) -> Candidate:
     scores = Scores(fmu)
-    score(scores, ctx.roles, ctx.scoring, ("train", "validation"))
+    score(scores, ctx.roles, ctx.scoring, ("train", "validation"), f"scoring the {name} hybrid")
     return Candidate(name, description, fmu, folder, scores, details)
 
 
