@@ -51,3 +51,23 @@ def test_quiet_when_stderr_is_no_terminal(capsys):
         bar.advance(3)
     assert capsys.readouterr().err == "" and bar.note == "3/3 steps"
     assert Bar(2, "off", "step", show=False).note == "0/2 steps"
+
+
+def test_the_build_bar_reads_the_percentage_cmake_prints():
+    from fmubuilder.build import _build_percent
+    assert _build_percent("[ 42%] Building C object CMakeFiles/x.dir/model.c.o\n") == 42
+    assert _build_percent("[100%] Built target x\n") == 100
+    assert _build_percent("[3/24] Building C object x.o\n") == 12          # Ninja: steps done / all
+    assert _build_percent("-- Configuring done\n") is None
+
+
+def test_a_loop_left_early_closes_its_bar_with_a_note(shown, capsys):
+    seen = []
+    bars = progress.counted([1, 2, 3, 4], "items", "item")
+    for item in bars:
+        seen.append(item)
+        if item == 2:
+            break
+    bars.close()
+    assert seen == [1, 2]
+    assert "items (stopped at 1/4 items: cut short)" in last_line(capsys.readouterr().err)

@@ -14,7 +14,7 @@ from fmubuilder.build import example_fmu
 from fmubuilder.examples_zoo import SENSOR_NOISE
 
 README = Path(__file__).resolve().parents[1] / "README.md"
-WINDOW = 30.0     # seconds of each cycle
+WINDOW = 20.0     # seconds of each cycle
 
 
 def python_blocks(section: str = "## Python API") -> list[str]:
