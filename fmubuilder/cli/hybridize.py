@@ -84,7 +84,10 @@ def summary(result) -> str:
     if report["models"]:
         lines.append("  test MSE relative to the plain FMU (touched once, after the choice): " +
                      ", ".join(f"{m['name']} {m['test_relative_mse']:.3g}" for m in report["models"]))
-    head = (f"wrote {result.hybrid_fmu}" if result.hybrid_fmu else
-            "no hybrid FMU written: " + ("no significant effect" if not report["diagnosis"]["significant"]
-                                         else "no candidate improved the validation error"))
+    if result.hybrid_fmu:
+        head = f"wrote {result.hybrid_fmu}"
+    elif not report["models"] and not report["diagnosis"]["significant"]:
+        head = "no hybrid FMU written: no significant effect (--allow-insignificant builds one anyway)"
+    else:
+        head = "no hybrid FMU written: no candidate improved the validation error"
     return "\n".join([head, *lines, f"report: {result.report_dir / 'report.md'}"])
