@@ -2,7 +2,7 @@
 
 Every bar counts work known before it starts (epochs x batches, trials, data sets, rows), so
 its total and ETA are honest. A bar always closes: at its total, or, when the work stops early,
-with a note that says where and why ("stopped at 3/10 epochs: time budget used up").
+with a note that says where and why ("stopped at 3/10 batches: time budget used up").
 
 Bars show only when stderr is a terminal, unless `set_enabled` says otherwise (the CLI's
 `--quiet` turns them off; tests turn them on to read them).
