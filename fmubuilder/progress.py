@@ -76,9 +76,9 @@ class Bar:
             self.reason = "cut short"
         if self._tqdm is not None:
             if self.reason is not None:
-                self._tqdm.set_description_str(
-                    f"{self.description} ({self.note})",
-                    refresh=False)
+                # the last line: where it stopped and why, with no time left to wait for
+                self._tqdm.set_description_str(f"{self.description} (stopped: {self.reason})", refresh=False)
+                self._tqdm.bar_format = "{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}{postfix}]"
             self._tqdm.close()
 
     @property

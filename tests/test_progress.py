@@ -33,7 +33,7 @@ def test_a_bar_stopped_early_says_where_and_why(shown, capsys):
         bar.stop("time budget used up")
     assert bar.note == "stopped at 3/10 batches: time budget used up"
     line = last_line(capsys.readouterr().err)
-    assert "stopped at 3/10 batches: time budget used up" in line and " 30%" in line
+    assert line.startswith("training (stopped: time budget used up):  30%") and "| 3/10 [" in line
 
 
 def test_a_failure_closes_the_bar_with_a_note(shown, capsys):
@@ -42,7 +42,7 @@ def test_a_failure_closes_the_bar_with_a_note(shown, capsys):
             bar.advance(2)
             raise ValueError("boom")
     assert bar.closed and bar.note == "stopped at 2/5 rows: failed"
-    assert "stopped at 2/5 rows: failed" in last_line(capsys.readouterr().err)
+    assert last_line(capsys.readouterr().err).startswith("rows (stopped: failed):  40%")
 
 
 def test_quiet_when_stderr_is_no_terminal(capsys):
@@ -70,4 +70,5 @@ def test_a_loop_left_early_closes_its_bar_with_a_note(shown, capsys):
             break
     bars.close()
     assert seen == [1, 2]
-    assert "items (stopped at 1/4 items: cut short)" in last_line(capsys.readouterr().err)
+    line = last_line(capsys.readouterr().err)
+    assert line.startswith("items (stopped: cut short):  25%") and "| 1/4 [" in line

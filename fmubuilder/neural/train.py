@@ -419,7 +419,7 @@ class Trainer:
                 if checkpoint is not None:
                     self._save_checkpoint(checkpoint, optimizer, scheduler, epoch + 1)
                 if on_epoch is not None and on_epoch(epoch + 1, self):
-                    bar.stop(f"stopped after epoch {epoch + 1}")
+                    bar.stop(f"ended by the caller after epoch {epoch + 1}")
                     break
         except KeyboardInterrupt:
             bar.stop("interrupted")

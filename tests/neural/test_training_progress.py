@@ -26,5 +26,5 @@ def test_training_bar_stops_with_a_note_on_an_early_stop(plant_fmu, shown, capsy
     training = [line for line in lines if line.startswith("training")]
     assert training, lines
     # one element per epoch: total 5 batches, closed at 2 with the reason
-    assert "stopped at 2/5 batches: stopped after epoch 2" in training[-1]
-    assert "2/5" in training[-1] and " 40%" in training[-1]
+    assert training[-1].startswith("training (stopped: ended by the caller after epoch 2):  40%")
+    assert "| 2/5 [" in training[-1] and "<" not in training[-1]      # no time left to wait for
