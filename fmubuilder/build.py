@@ -53,6 +53,7 @@ def build_cmake_project(
     target: str | None = None,
     definitions: dict[str, str] | None = None,
     keep_going: bool = False,
+    progress_label: str | None = None,
 ) -> CMakeBuild:
     """Configure and build ``source_dir`` into ``build_dir`` (Release, all cores).
 
@@ -81,7 +82,7 @@ def build_cmake_project(
         build += ["--target", target]
     if keep_going:
         build += ["--", *_keep_going_flags(build_dir)]
-    output += _run(build, "building", source_dir, check=not keep_going)
+    output += _run(build, "building", source_dir, check=not keep_going, progress_label=progress_label)
     return CMakeBuild(build_dir=build_dir, output=output)
 
 
@@ -112,14 +113,51 @@ def _keep_going_flags(build_dir: pathlib.Path) -> list[str]:
     return ["-k", "0"] if "CMAKE_GENERATOR:INTERNAL=Ninja" in cache else ["-k"]
 
 
-def _run(command: list[str], what: str, source_dir: pathlib.Path, check: bool) -> str:
-    result = subprocess.run(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    if check and result.returncode != 0:
+def _run(command: list[str], what: str, source_dir: pathlib.Path, check: bool,
+         progress_label: str | None = None) -> str:
+    if progress_label is None:
+        result = subprocess.run(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        code, output = result.returncode, result.stdout
+    else:
+        code, output = _run_with_progress(command, progress_label)
+    if check and code != 0:
         raise FmuBuilderError(
-            f"{what} {source_dir} with CMake failed (exit code {result.returncode}); fix the errors below:\n"
-            + _tail(result.stdout)
+            f"{what} {source_dir} with CMake failed (exit code {code}); fix the errors below:\n"
+            + _tail(output)
         )
-    return result.stdout
+    return output
+
+
+_MAKE_PERCENT = re.compile(r"^\[\s*(\d+)%\]")        # Makefiles: "[ 42%] Building C object ..."
+_NINJA_COUNT = re.compile(r"^\[(\d+)/(\d+)\]")        # Ninja: "[3/24] Building C object ..."
+
+
+def _run_with_progress(command: list[str], label: str) -> tuple[int, str]:
+    """Run a build, showing the percentage its tool prints; (exit code, output)."""
+    from fmubuilder.progress import progress
+    lines = []
+    with progress(100, label, unit="%") as bar:
+        with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as proc:
+            for line in proc.stdout:
+                lines.append(line)
+                percent = _build_percent(line)
+                if percent is not None and percent > bar.done:
+                    bar.advance(percent - bar.done)
+        if proc.returncode != 0:
+            bar.stop(f"failed (exit code {proc.returncode})")
+        elif bar.done < 100:
+            bar.advance(100 - bar.done)     # the tool printed no percentage for its last steps
+    return proc.returncode, "".join(lines)
+
+
+def _build_percent(line: str) -> int | None:
+    make = _MAKE_PERCENT.match(line)
+    if make:
+        return int(make.group(1))
+    ninja = _NINJA_COUNT.match(line)
+    if ninja and int(ninja.group(2)) > 0:
+        return 100 * int(ninja.group(1)) // int(ninja.group(2))
+    return None
 
 
 def _tail(text: str, lines: int = _LOG_TAIL_LINES) -> str:
@@ -210,7 +248,8 @@ def _built_examples_dir() -> pathlib.Path:
             return final
         with tempfile.TemporaryDirectory(prefix=f".{key}-", dir=examples_cache) as scratch:
             scratch = pathlib.Path(scratch)
-            build = build_cmake_project(repo_root(), scratch / "build", keep_going=True)
+            build = build_cmake_project(repo_root(), scratch / "build", keep_going=True,
+                                        progress_label="building the example FMUs (once; cached)")
             staged = scratch / "fmus"
             staged.mkdir()
             for fmu in build.fmus():

@@ -8,7 +8,10 @@ how busy the machine is.
 """
 from __future__ import annotations
 
+import contextlib
+import os
 import shutil
+import tempfile
 from pathlib import Path
 
 from .errors import FmuBuilderError
@@ -17,24 +20,44 @@ CASE = "extra_resistance"
 
 
 def run_demo(output: Path, force: bool = False, time_budget: float | None = None, epochs: int | None = None):
-    """Write the example and hybridize it; returns the HybridizeResult and the example folder."""
+    """Write the example and hybridize it; returns the HybridizeResult and the example folder.
+    With `force`, an earlier demo folder is replaced only when the new run succeeds."""
     from .examples_zoo import write_example
-    from .hybridize.workflow import DEFAULT_EPOCHS, hybridize
+    from .hybridize import workflow
 
-    out = _prepare_output_dir(Path(output), force)
-    example = out / "example"
-    print(f"writing the VLDM example (FMUs and measured data) to {example}/ ...")
-    write_example("vldm", example)
-    result = hybridize(example / "vldm.fmu", example / f"{CASE}_train_cadc.csv", example / f"{CASE}_test_wltc2.csv",
-                       out / "vldm_hybrid.fmu", out / "report", time_budget=time_budget,
-                       epochs=DEFAULT_EPOCHS if epochs is None else epochs)
+    with _replacing_folder(Path(output), force) as out:
+        example = out / "example"
+        print(f"writing the VLDM example (FMUs and measured data) to {example}/ ...")
+        write_example("vldm", example)
+        result = workflow.hybridize(
+            example / "vldm.fmu", example / f"{CASE}_train_cadc.csv", example / f"{CASE}_test_wltc2.csv",
+            out / "vldm_hybrid.fmu", out / "report", time_budget=time_budget,
+            epochs=workflow.DEFAULT_EPOCHS if epochs is None else epochs)
     return result, example
 
 
-def _prepare_output_dir(path: Path, force: bool) -> Path:
+@contextlib.contextmanager
+def _replacing_folder(path: Path, force: bool):
+    """The demo writes into `path` itself, because its report names the files it wrote there. An
+    earlier demo folder is moved aside beside it (`NAME.previous-XXXX/`) for the run, removed when
+    the run succeeds and put back when it fails."""
+    if path.exists() and not path.is_dir():
+        raise FmuBuilderError(f"{path} is a file; choose a folder for the demo with -o")
+    if path.exists() and not force:
+        raise FmuBuilderError(f"{path} exists; choose another folder with -o or pass --force to replace it "
+                              "(the old one is kept until the new run succeeds)")
+    aside = None
     if path.exists():
-        if not force:
-            raise FmuBuilderError(f"{path} exists; choose another folder with -o or pass --force to replace it")
-        shutil.rmtree(path)
-    path.mkdir(parents=True)
-    return path
+        aside = Path(tempfile.mkdtemp(dir=path.parent, prefix=f"{path.name}.previous-"))
+        os.replace(path, aside / path.name)
+    try:
+        path.mkdir(parents=True)
+        yield path
+    except BaseException:
+        shutil.rmtree(path, ignore_errors=True)
+        if aside is not None:
+            os.replace(aside / path.name, path)
+            aside.rmdir()
+        raise
+    if aside is not None:
+        shutil.rmtree(aside, ignore_errors=True)

@@ -27,6 +27,7 @@ from pathlib import Path
 
 from .errors import FmuBuilderError
 from .files import copy_atomically, file_sha256, write_atomically
+from .progress import counted
 
 # Bump when the layout of cached data changes.
 _CACHE_FORMAT = "1"
@@ -189,11 +190,14 @@ def cached_data(sets: list[DataSet], workers: int | None = None) -> tuple[list[P
         # without a __main__ guard; the workers only simulate FMUs, so they need none of
         # the parent's threads.
         with ProcessPoolExecutor(count, mp_context=multiprocessing.get_context("fork")) as pool:
-            list(pool.map(_generate, *zip(*missing)))
+            list(counted(pool.map(_generate, *zip(*missing)), *_GENERATING, total=len(missing)))
     else:
-        for job in missing:
+        for job in counted(missing, *_GENERATING):
             _generate(*job)
     return paths, len(missing)
+
+
+_GENERATING = ("simulating the example's data sets (once; cached)", "data set")
 
 
 def data_cache_dir() -> Path:

@@ -57,6 +57,40 @@ def _replace_atomically(target: Path, write) -> Path:
     return target
 
 
+def staging_folder(target: str | os.PathLike) -> Path:
+    """An empty folder beside `target` (hidden, `.partial`) to build a new version of it in;
+    `replace_folder` then puts it in target's place. Same file system, so the swap is a rename."""
+    target = Path(target)
+    parent = target.parent if str(target.parent) else Path(".")
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        return Path(tempfile.mkdtemp(dir=parent, prefix=f".{target.name}.", suffix=PARTIAL_SUFFIX))
+    except OSError as exc:
+        raise FmuBuilderError(f"cannot write {target}: {exc.strerror or exc}") from None
+
+
+def replace_folder(staging: str | os.PathLike, target: str | os.PathLike) -> Path:
+    """Put the complete folder `staging` in target's place; an old `target` is removed only after
+    the new one is in place (two renames: a reader sees the old or the new folder, never a mix)."""
+    staging, target = Path(staging), Path(target)
+    if target.exists() and not target.is_dir():
+        raise FmuBuilderError(f"cannot write the folder {target}: a file has that name; remove it or choose another")
+    old = None
+    if target.exists():
+        old = Path(tempfile.mkdtemp(dir=target.parent, prefix=f".{target.name}.", suffix=".old"))
+        os.replace(target, old / "previous")
+    try:
+        os.replace(staging, target)
+    except OSError as exc:
+        if old is not None:
+            os.replace(old / "previous", target)
+            shutil.rmtree(old, ignore_errors=True)
+        raise FmuBuilderError(f"cannot write {target}: {exc.strerror or exc}") from None
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+    return target
+
+
 def partial_files(target: str | os.PathLike) -> list[Path]:
     """Leftovers of an interrupted atomic write of `target`."""
     target = Path(target)

@@ -11,7 +11,7 @@ PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "fmubuilder"
 # Lowest first. A module may import modules of a lower rank and of its own unit; one unit is a
 # top-level module or sub-package of fmubuilder. See docs/ARCHITECTURE.md.
 RANKS = {
-    "errors": 0, "_lazy": 0,
+    "errors": 0, "_lazy": 0, "progress": 0,
     "files": 1,
     "fmi": 2, "build": 2,
     "simulation": 3,

@@ -56,6 +56,8 @@ def _add_run_options(parser: argparse.ArgumentParser, default) -> None:
     group = parser.add_argument_group("running")
     group.add_argument("--debug", action="store_true", default=default,
                        help="show tracebacks of errors")
+    group.add_argument("--quiet", "-q", action="store_true", default=default,
+                       help="no progress bars (they show only on a terminal anyway, on stderr)")
     group.add_argument("--call-timeout", type=float, metavar="SECONDS", default=default,
                        help="stop when one call into the FMU's binary takes longer than this "
                             f"(default {DEFAULT_CALL_TIMEOUT:g}; 0: wait forever)")
@@ -68,6 +70,7 @@ def parse(argv: list[str] | None):
         parser.print_help()
         return None
     args.debug = bool(getattr(args, "debug", False))
+    args.quiet = bool(getattr(args, "quiet", False))
     timeout = getattr(args, "call_timeout", None)
     args.call_timeout = DEFAULT_CALL_TIMEOUT if timeout is None else timeout
     if not args.call_timeout >= 0:
@@ -86,6 +89,9 @@ def run(argv: list[str] | None = None) -> int:
 def execute(args) -> int:
     """Call the command's function; every failure becomes one `error:` line and an exit code.
     Warnings (numpy, scipy, torch) are kept back and folded into that line (shown with --debug)."""
+    from .. import progress
+    if args.quiet:
+        progress.set_enabled(False)
     with warnings.catch_warnings(record=not args.debug) as caught:
         warnings.simplefilter("default")
         return _call(args, caught if caught is not None else [])

@@ -51,8 +51,11 @@ def add_hybridize_parser(subparsers, common=None) -> None:
     p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                    help="optional wall-clock cap on the training; the report says when it cut the training short "
                         "(the results then depend on the machine)")
+    p.add_argument("--allow-insignificant", action="store_true",
+                   help="build and publish a hybrid even when the diagnosis finds no significant effect "
+                        "(it may then fit noise; the validation data still decide whether one is published)")
     p.add_argument("--force", action="store_true",
-                   help="overwrite outputs, and build a hybrid even when the effect is not significant")
+                   help="overwrite the outputs; the old ones stay in place until the new ones are complete")
     p.set_defaults(func=cmd_hybridize, outputs=lambda args: [args.output, args.report])
 
 
@@ -64,7 +67,8 @@ def cmd_hybridize(args) -> None:
                        train_start=train_start,
                        validation_start=parse_assignments(args.validation_start, "--validation-start"),
                        test_start=parse_assignments(args.test_start, "--test-start"), epochs=args.epochs,
-                       seed=args.seed, time_budget=args.time_budget, force=args.force)
+                       seed=args.seed, time_budget=args.time_budget, force=args.force,
+                       allow_insignificant=args.allow_insignificant)
     print(summary(result))
 
 
@@ -80,7 +84,10 @@ def summary(result) -> str:
     if report["models"]:
         lines.append("  test MSE relative to the plain FMU (touched once, after the choice): " +
                      ", ".join(f"{m['name']} {m['test_relative_mse']:.3g}" for m in report["models"]))
-    head = (f"wrote {result.hybrid_fmu}" if result.hybrid_fmu else
-            "no hybrid FMU written: " + ("no significant effect" if not report["diagnosis"]["significant"]
-                                         else "no candidate improved the validation error"))
+    if result.hybrid_fmu:
+        head = f"wrote {result.hybrid_fmu}"
+    elif not report["models"] and not report["diagnosis"]["significant"]:
+        head = "no hybrid FMU written: no significant effect (--allow-insignificant builds one anyway)"
+    else:
+        head = "no hybrid FMU written: no candidate improved the validation error"
     return "\n".join([head, *lines, f"report: {result.report_dir / 'report.md'}"])

@@ -255,8 +255,8 @@ def _fingerprint(path: Path):
 def _remove_outputs_of_failed_run(before: dict) -> None:
     """Remove the outputs a failed command created and leftovers of its atomic writes."""
     for path, fingerprint in before.items():
-        for partial in partial_files(path):
-            partial.unlink(missing_ok=True)
+        for partial in partial_files(path):     # files, or folders staged to replace a folder
+            _remove(partial)
         if fingerprint is None:
             if path.is_dir() and not path.is_symlink():
                 shutil.rmtree(path, ignore_errors=True)
@@ -264,4 +264,11 @@ def _remove_outputs_of_failed_run(before: dict) -> None:
                 path.unlink(missing_ok=True)
         elif path.is_dir():
             for partial in path.rglob(f".*{PARTIAL_SUFFIX}"):
-                partial.unlink(missing_ok=True)
+                _remove(partial)
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)

@@ -42,9 +42,12 @@ def add_train_parser(subparsers, common=None) -> argparse.ArgumentParser:
                         "they meet the data (default: the bench's, recorded next to data from `fmubuilder synth`; else 0)")
     p.add_argument("--test-data", metavar="CSV", help="held-out data: its errors are added to the metrics")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--resume", action="store_true", help="continue from the checkpoint TRAINED.ckpt")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--output", "-o", required=True, metavar="TRAINED", help="file for the trained NeuralFMU")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from the checkpoint TRAINED.ckpt up to --epochs in all (same settings as before)")
+    p.add_argument("--output", "-o", required=True, metavar="TRAINED",
+                   help="file for the trained NeuralFMU (input of `fmubuilder export`). Beside it, TRAINED.ckpt "
+                        "keeps the training's state after every epoch (network, optimizer, epoch count) for "
+                        "--resume; delete it when the training is done")
     p.add_argument("--json", metavar="METRICS.json", help="write the errors before/after training as JSON")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
     p.set_defaults(func=cmd_train, outputs=lambda args: [] if args.resume else [args.output, args.json])

@@ -53,6 +53,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import FmuBuilderError
+from ..progress import counted
 from .runs import TIME, AddedTerm, ModelRun, ModelRunner, TrialTooSlow, basis_values, rms
 
 MAX_SNR = 10.0                 # precision weights give a signal at most this signal-to-noise ratio
@@ -177,7 +178,7 @@ class Tracer:
         scores = []
         span = self.runner.stop - self.start
         ramp_scale = span / math.sqrt(3.0)     # RMS of (t - start) over the window
-        for c in range(self.info.n_states):
+        for c in counted(range(self.info.n_states), "diagnosis: screening the derivatives", "derivative"):
             trial_size = SCREEN_SIZE * self._derivative_scale(c)
             constant = self.trial(c, None, "1", 0.0, trial_size)
             gain = float(np.linalg.norm(constant.by_signal)) if constant is not None else 0.0
@@ -251,7 +252,8 @@ class Tracer:
 
     def _trials(self, channel: ChannelScore, forms) -> list[Trial]:
         trials = []
-        for name, basis, center, size_of_form, aliases in forms:
+        label = f"diagnosis: trials on {self.info.derivatives[channel.channel].name}"
+        for name, basis, center, size_of_form, aliases in counted(forms, label, "trial"):
             trial = self.trial(channel.channel, name, basis, center, channel.size / size_of_form)
             if trial is not None:
                 trial.equivalent = list(aliases)
@@ -279,7 +281,8 @@ class Tracer:
         if not chosen:
             return None
         best = None
-        for ev, coefficients, option in sorted(chosen, key=lambda f: -f[0])[:VERIFIED]:
+        for ev, coefficients, option in counted(sorted(chosen, key=lambda f: -f[0])[:VERIFIED],
+                                                "diagnosis: simulating the best terms", "term"):
             terms = [AddedTerm(t.channel, t.variable, t.basis, t.center, float(k))
                      for t, k in zip(option, coefficients)]
             verified, terms = self._verify(terms)

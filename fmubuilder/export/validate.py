@@ -43,12 +43,14 @@ import os
 import tempfile
 import zipfile
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
 from fmubuilder.errors import FmuBuilderError
+from fmubuilder.progress import counted
 
 from .spec import HybridSpec
 
@@ -161,24 +163,25 @@ def validate_hybrid(hybrid_fmu: str | os.PathLike, spec: HybridSpec | str | os.P
         setup = _Setup.make(hybrid_info, original_info, spec, gate_names, data_csv, start_values or {},
                             stop_time, step_size, rtol)
         between = dataclasses.replace(setup, step=setup.step / 2)   # adds the midpoints of the output grid
-        comparisons = [
-            _compare("fmpy Euler vs reference (fmpy Euler semantics)", FIXED_STEP_TOLERANCE,
+        rows = [
+            partial(_compare, "fmpy Euler vs reference (fmpy Euler semantics)", FIXED_STEP_TOLERANCE,
                      lambda: _fmpy_run(hybrid_fmu, setup, "Euler"),
                      lambda: _reference_run(spec, setup, "fmpy-euler"), setup.signals),
-            _compare("engine Euler: hybrid FMU vs reference", FIXED_STEP_TOLERANCE,
+            partial(_compare, "engine Euler: hybrid FMU vs reference", FIXED_STEP_TOLERANCE,
                      lambda: _engine_fmu_run(hybrid_fmu, setup, "euler"),
                      lambda: _reference_run(spec, setup, "euler"), setup.signals),
-            _compare(f"engine DOPRI5 (rtol {rtol:g}): hybrid FMU vs reference", FIXED_STEP_TOLERANCE,
+            partial(_compare, f"engine DOPRI5 (rtol {rtol:g}): hybrid FMU vs reference", FIXED_STEP_TOLERANCE,
                      lambda: _engine_fmu_run(hybrid_fmu, setup, "dopri5"),
                      lambda: _reference_run(spec, setup, "dopri5"), setup.signals,
                      informational=_step_event_caveat),
-            _compare(f"fmpy CVode vs engine DOPRI5 on reference (rtol {rtol:g}, samples between events)",
+            partial(_compare, f"fmpy CVode vs engine DOPRI5 on reference (rtol {rtol:g}, samples between events)",
                      lambda run: cross_solver_tolerance(rtol, len(run.events)),
                      lambda: _fmpy_run(hybrid_fmu, between, "CVode"),
                      lambda: _reference_run(spec, between, "dopri5"), setup.signals,
                      event_window=EVENT_WINDOW * setup.step,
                      informational=lambda run: _cross_solver_caveat(setup, run)),
         ]
+        comparisons = [row() for row in counted(rows, "validation: round-trip comparisons", "row")]
     return ValidationReport(hybrid_fmu=hybrid_fmu, fmpy_problems=list(problems), comparisons=comparisons)
 
 

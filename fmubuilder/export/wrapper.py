@@ -123,7 +123,8 @@ def _build(spec: HybridSpec, info, scratch: Path, with_win64: bool = False) -> P
         "sources": [f"sources/{WRAPPER_SOURCE}", f"sources/{kernel.source_name}"],
         "headers": [f"sources/{name}" for name in (kernel.header_name, CONFIG_HEADER, *STATIC_HEADERS)],
     }))
-    build = build_cmake_project(project, scratch / "build")
+    build = build_cmake_project(project, scratch / "build",
+                                progress_label=f"export: compiling {description.model_identifier}.fmu")
     fmu = build.build_dir / "fmus" / f"{description.model_identifier}.fmu"
     if not fmu.is_file():
         raise FmuBuilderError(f"the build produced no {fmu.name}; see the CMake output:\n{build.output[-2000:]}")

@@ -133,7 +133,9 @@ def model_info_from_fmpy(md) -> ModelInfo:
         can_get_and_set_fmu_state=bool(me.canGetAndSetFMUstate),
         can_serialize_fmu_state=bool(me.canSerializeFMUstate),
         provides_directional_derivative=bool(me.providesDirectionalDerivative),
-        completed_integrator_step_not_needed=bool(me.completedIntegratorStepNotNeeded),
+        # fmpy fills needsCompletedIntegratorStep for FMI 2.0 (from completedIntegratorStepNotNeeded,
+        # whose own field it leaves False)
+        completed_integrator_step_not_needed=not me.needsCompletedIntegratorStep,
         can_be_instantiated_only_once_per_process=bool(me.canBeInstantiatedOnlyOncePerProcess),
     )
     de = md.defaultExperiment

@@ -32,8 +32,9 @@ import numpy as np
 
 from ..data import MeasuredData
 from ..errors import FmuBuilderError
-from ..files import copy_atomically
+from ..files import copy_atomically, replace_folder, staging_folder
 from ..fmi import read_model_info
+from ..progress import counted
 from .evaluate import Evaluation, Scoring, evaluate, read_data, relative_mse, signal_errors
 
 # Share of each training run (its end) held out of the fit for validation, when no separate
@@ -115,10 +116,13 @@ class HybridizeResult:
 def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validation_csv=None,
               train_start: dict | list | None = None, validation_start: dict | None = None,
               test_start: dict | None = None, epochs: int = DEFAULT_EPOCHS, seed: int = 0,
-              time_budget: float | None = None, force: bool = False, progress: bool = True) -> HybridizeResult:
+              time_budget: float | None = None, force: bool = False, allow_insignificant: bool = False,
+              progress: bool = True) -> HybridizeResult:
     """train_csv: one data file or a list of them; train_start: start values for all of them, or a
     list with one dict per file (added to each file's sidecar). time_budget: optional wall-clock cap
-    in seconds on the NeuralFMU's training (the work is `epochs`)."""
+    in seconds on the NeuralFMU's training (the work is `epochs`). force: overwrite the outputs (the
+    old ones stay until the new ones are complete); allow_insignificant: build the candidates even
+    when the diagnosis finds no significant effect."""
     started = time.perf_counter()
     model_fmu, output_fmu, report_dir = Path(model_fmu), Path(output_fmu), Path(report_dir)
     _check_outputs(output_fmu, report_dir, force)
@@ -130,22 +134,23 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
     roles = _assign_roles(info, train_csv, train_start, validation_csv, validation_start, test_csv, test_start)
     scoring = Scoring.like_training(info, roles.train[0].data)
     work = Path(tempfile.mkdtemp(prefix="fmubuilder-hybridize-"))
+    final_report_dir, report_dir = report_dir, staging_folder(report_dir)   # swapped in when complete
     try:
-        report_dir.mkdir(parents=True, exist_ok=True)
         say = print if progress else (lambda *a, **k: None)
         first = roles.train[0]
         say(f"[1/5] diagnosing {model_fmu.name} against {first.label} ...")
         from ..diagnose import diagnose
-        diagnosis = diagnose(model_fmu, first.samples(), first.start_values, plots_dir=report_dir / "diagnosis")
+        diagnosis = diagnose(model_fmu, first.samples(), first.start_values, plots_dir=report_dir / "diagnosis",
+                             trace_always=allow_insignificant)
         for part in (*roles.train, *roles.validation):     # the diagnosis' start values belong to its run
             if part.data is first.data:
                 part.start_values = {**part.start_values, **diagnosis.start_values}
         say(f"      {_diagnosis_line(diagnosis)}")
         timings = {"diagnosis": time.perf_counter() - started}
-        plain = score(Scores(model_fmu), roles, scoring, ("train", "validation"))
+        plain = score(Scores(model_fmu), roles, scoring, ("train", "validation"), "scoring the plain FMU")
         candidates: list[Candidate] = []
         training = None
-        if diagnosis.significant or force:
+        if diagnosis.significant or allow_insignificant:
             if diagnosis.channel is None:
                 raise FmuBuilderError("the diagnosis found an effect but could not trace it to a state derivative; "
                                       "see the diagnosis in the report folder")
@@ -159,15 +164,14 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
         chosen = next((c for c in candidates if c.name == selection["chosen"]), None)
         # Everything is decided: now, and only now, the test data.
         say("      scoring every model on the test data (once, after the choice) ...")
-        for model in (plain, *(c.scores for c in candidates)):
-            score(model, roles, scoring, ("test",))
+        for name, model in (("the plain FMU", plain), *((f"the {c.name} hybrid", c.scores) for c in candidates)):
+            score(model, roles, scoring, ("test",), f"test data: {name}")
         hybrid_path, roundtrip = None, None
         if chosen is not None:
             say(f"[4/5] validating the round trip of the {chosen.name} hybrid ...")
             roundtrip_started = time.perf_counter()
             roundtrip = _roundtrip(chosen, roles.test)
             timings["roundtrip"] = time.perf_counter() - roundtrip_started
-            _publish(chosen.fmu, output_fmu, force)
             hybrid_path = output_fmu
         say("[5/5] writing the report ...")
         from .report import write_report
@@ -175,9 +179,13 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
                               candidates=candidates, chosen=chosen, selection=selection, roundtrip=roundtrip,
                               hybrid_fmu=hybrid_path, roles=roles, scoring=scoring, training=training,
                               seconds=time.perf_counter() - started, timings=timings)
-        return HybridizeResult(report, report_dir, hybrid_path)
+        if chosen is not None:      # published with its report, once both are complete
+            _publish(chosen.fmu, output_fmu, force)
+        replace_folder(report_dir, final_report_dir)
+        return HybridizeResult(report, final_report_dir, hybrid_path)
     finally:
         shutil.rmtree(work, ignore_errors=True)
+        shutil.rmtree(report_dir, ignore_errors=True)   # the staged report of a failed run
 
 
 # -- roles of the data ----------------------------------------------------------------------------
@@ -222,11 +230,15 @@ def _next_sample(data: MeasuredData, t: float) -> float:
 
 # -- scoring ------------------------------------------------------------------------------------
 
-def score(scores: Scores, roles: Roles, scoring: Scoring, which: tuple[str, ...]) -> Scores:
+def score(scores: Scores, roles: Roles, scoring: Scoring, which: tuple[str, ...], label: str = "scoring") -> Scores:
     """Errors of the model on the roles in `which`, over all of each role's samples; each run is
     simulated once (a training run gives both its fit part and its held-out tail)."""
+    parts_of = {"train": roles.train, "validation": roles.validation, "test": [roles.test]}
+    todo = {id(p.data): p for role in which for p in parts_of[role] if id(p.data) not in scores.runs}
+    for key, part in counted(list(todo.items()), label, "run"):
+        scores.runs[key] = evaluate(scores.fmu, part.data, part.start_values, scoring)
     for role in which:
-        parts = {"train": roles.train, "validation": roles.validation, "test": [roles.test]}[role]
+        parts = parts_of[role]
         pieces = []
         for part in parts:
             key = id(part.data)
@@ -288,7 +300,7 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
 
 def _candidate(ctx: _Context, name: str, description: str, fmu: Path, folder: Path, details: dict) -> Candidate:
     scores = Scores(fmu)
-    score(scores, ctx.roles, ctx.scoring, ("train", "validation"))
+    score(scores, ctx.roles, ctx.scoring, ("train", "validation"), f"scoring the {name} hybrid")
     return Candidate(name, description, fmu, folder, scores, details)
 
 

@@ -51,7 +51,6 @@ import dataclasses
 import json
 import math
 import random
-import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -63,6 +62,7 @@ import torch
 from ..errors import FmuBuilderError
 from ..data import MeasuredData, first_order_lag, load_data
 from ..files import write_atomically
+from ..progress import Bar
 from .io import save_neural_fmu
 from .model import NeuralFMU
 from .solve import ElementStart, simulate
@@ -395,16 +395,20 @@ class Trainer:
         if settings.resume and checkpoint is not None and checkpoint.is_file():
             first_epoch = self._load_checkpoint(checkpoint, optimizer, scheduler)
         batches = self._batches_per_epoch()
-        bar = _progress(settings.progress, total=settings.epochs * batches, initial=first_epoch * batches)
+        # counted in batches (known beforehand); a time budget or on_epoch may stop it early, with a note
+        bar = Bar(settings.epochs * batches, "training", "batch", initial=first_epoch * batches,
+                  show=None if settings.progress else False)
         rng = np.random.default_rng(settings.seed + first_epoch)
         try:
             for epoch in range(first_epoch, settings.epochs):
                 if self.out_of_time():
+                    bar.stop("time budget used up")
                     break
                 before = (_copy_state(model.topology), copy.deepcopy(optimizer.state_dict()),
                           [element.start for element in self.elements])
                 losses = self._epoch(rng, optimizer, bar, epoch)
                 if not losses:
+                    bar.stop("time budget used up")
                     break
                 scheduler.step()
                 loss = float(np.mean(losses))
@@ -415,10 +419,13 @@ class Trainer:
                 if checkpoint is not None:
                     self._save_checkpoint(checkpoint, optimizer, scheduler, epoch + 1)
                 if on_epoch is not None and on_epoch(epoch + 1, self):
+                    bar.stop(f"ended by the caller after epoch {epoch + 1}")
                     break
+        except KeyboardInterrupt:
+            bar.stop("interrupted")
+            raise
         finally:
-            if bar is not None:
-                bar.close()
+            bar.close()
         self.restore_best()
 
     def _epoch(self, rng, optimizer, bar, epoch: int) -> list[float]:
@@ -432,9 +439,7 @@ class Trainer:
             loss.backward()
             optimizer.step()
             losses.append(float(loss.detach()))
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(epoch=epoch + 1, loss=f"{losses[-1]:.4g}")
+            bar.advance(1, epoch=f"{epoch + 1}/{self.settings.epochs}", loss=f"{losses[-1]:.4g}")
         return losses
 
     def _optimizer(self, parameters):
@@ -608,13 +613,6 @@ def _copy_state(module: torch.nn.Module) -> dict:
 def _variance(values: np.ndarray) -> float:
     variance = float(np.var(values))
     return variance if variance > 0 else max(float(np.mean(np.asarray(values) ** 2)), 1.0)
-
-
-def _progress(enabled: bool, total: int, initial: int):
-    if not enabled:
-        return None
-    from tqdm import tqdm
-    return tqdm(total=total, initial=initial, desc="training", unit="batch", file=sys.stderr, leave=False)
 
 
 # ------------------------------------------------------------------------------------------

@@ -1,0 +1,57 @@
+"""`demo --force` keeps the previous demo folder until the new run has succeeded."""
+import pytest
+
+from fmubuilder import examples_zoo
+from fmubuilder.demo import run_demo
+from fmubuilder.errors import FmuBuilderError
+from fmubuilder.hybridize import workflow
+
+
+@pytest.fixture
+def previous(tmp_path):
+    folder = tmp_path / "demo"
+    (folder / "report").mkdir(parents=True)
+    (folder / "report" / "report.md").write_text("previous")
+    return folder
+
+
+@pytest.fixture
+def quick_example(monkeypatch):
+    """The example's files stand in for the real ones: this checks the folder handling only."""
+    def write_example(name, output, force=False):
+        output.mkdir(parents=True)
+        (output / "vldm.fmu").write_bytes(b"new")
+    monkeypatch.setattr(examples_zoo, "write_example", write_example)
+
+
+def test_a_failed_run_puts_the_previous_demo_back(previous, quick_example, monkeypatch):
+    def failing(*args, **kwargs):
+        raise FmuBuilderError("the new run failed")
+    monkeypatch.setattr(workflow, "hybridize", failing)
+    with pytest.raises(FmuBuilderError, match="the new run failed"):
+        run_demo(previous, force=True)
+    assert (previous / "report" / "report.md").read_text() == "previous"
+    assert not (previous / "example").exists()
+    assert sorted(p.name for p in previous.parent.iterdir()) == ["demo"]
+
+
+def test_a_successful_run_replaces_the_previous_demo(previous, quick_example, monkeypatch):
+    seen = {}
+
+    def succeeding(model, train, test, output, report, **kwargs):
+        seen["previous during the run"] = any(previous.parent.glob("demo.previous-*/demo/report/report.md"))
+        report.mkdir()
+        (report / "report.md").write_text("new")
+        return "result"
+    monkeypatch.setattr(workflow, "hybridize", succeeding)
+    result, example = run_demo(previous, force=True)
+    assert result == "result" and example == previous / "example"
+    assert seen["previous during the run"]          # set aside, not deleted, while the new run works
+    assert (previous / "report" / "report.md").read_text() == "new"
+    assert sorted(p.name for p in previous.parent.iterdir()) == ["demo"]
+
+
+def test_without_force_an_existing_demo_is_an_error(previous):
+    with pytest.raises(FmuBuilderError, match="--force"):
+        run_demo(previous)
+    assert (previous / "report" / "report.md").read_text() == "previous"
