@@ -86,17 +86,25 @@ class JacobianSparsity:
                 continue
             self.computed[[index[d] for d in deps if d in index]] = True
         self.probe_weights = _probe_weights(n)
+        self._index_columns()
+
+    def _index_columns(self) -> None:
+        # Kept as index arrays: the Jacobian of every evaluation reads them.
+        self._columns = np.flatnonzero(self.computed)
+        self._unchecked = np.zeros(0, dtype=int) if self.complete else np.flatnonzero(~self.computed)
 
     def columns(self) -> np.ndarray:
         """The columns computed one by one."""
-        return np.flatnonzero(self.computed)
+        return self._columns
 
     def unchecked(self) -> np.ndarray:
         """The columns to probe together (empty when the ModelStructure declares every unknown)."""
-        return np.zeros(0, dtype=int) if self.complete else np.flatnonzero(~self.computed)
+        return self._unchecked
 
     def found(self, columns: np.ndarray) -> None:
-        self.computed[columns] = True
+        if columns.size:
+            self.computed[columns] = True
+            self._index_columns()
 
     @property
     def skipped(self) -> list[int]:
@@ -327,14 +335,16 @@ class FmuEvaluator:
         J[:] = 0.0
         sparsity = self.sparsity
         unchecked = sparsity.unchecked()
-        if unchecked.size and self._probe(b, x, base, unchecked, sparsity.probe_weights[unchecked]):
-            sparsity.found(unchecked[self._state_columns(b, x, base, unchecked).any(axis=0)])
+        steps = None if self._directional_x else fd_steps(x, self.nominal)
+        if unchecked.size and self._probe(b, x, base, unchecked, sparsity.probe_weights[unchecked], steps):
+            sparsity.found(unchecked[self._state_columns(b, x, base, unchecked, steps).any(axis=0)])
         columns = sparsity.columns()
         if columns.size:
-            J[:, columns] = self._state_columns(b, x, base, columns)
+            J[:, columns] = self._state_columns(b, x, base, columns, steps)
         self.n_jacobian_columns += len(columns)
 
-    def _state_columns(self, b: int, x: np.ndarray, base: np.ndarray, columns: np.ndarray) -> np.ndarray:
+    def _state_columns(self, b: int, x: np.ndarray, base: np.ndarray, columns: np.ndarray,
+                       steps: np.ndarray | None = None) -> np.ndarray:
         """The Jacobian columns d out / dx_i, i in columns: [n+k, len(columns)]."""
         if self._directional_x:
             try:
@@ -342,7 +352,8 @@ class FmuEvaluator:
             except FmuCallError:
                 self._directional_x = False  # the FMU rejects some pair: use finite differences from now on
         inst = self.instances[b]
-        steps = fd_steps(x, self.nominal)
+        if steps is None:
+            steps = fd_steps(x, self.nominal)
         xp = x.copy()
         row = np.empty(self.width)
         result = np.empty((self.width, len(columns)))
@@ -355,7 +366,8 @@ class FmuEvaluator:
         inst.set_continuous_states(x)
         return result
 
-    def _probe(self, b: int, x: np.ndarray, base: np.ndarray, columns: np.ndarray, weights: np.ndarray) -> bool:
+    def _probe(self, b: int, x: np.ndarray, base: np.ndarray, columns: np.ndarray, weights: np.ndarray,
+               steps: np.ndarray | None = None) -> bool:
         """Whether perturbing the states `columns` together (distinct weights, so that exact
         cancellation of their effects is not to be expected) changes any unknown."""
         if self._directional_x:
@@ -364,8 +376,10 @@ class FmuEvaluator:
             except FmuCallError:
                 self._directional_x = False
         inst = self.instances[b]
+        if steps is None:
+            steps = fd_steps(x, self.nominal)
         xp = x.copy()
-        xp[columns] += weights * fd_steps(x, self.nominal)[columns]
+        xp[columns] += weights * steps[columns]
         inst.set_continuous_states(xp)
         row = np.empty(self.width)
         self.read(b, row)

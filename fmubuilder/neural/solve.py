@@ -6,12 +6,16 @@ per solver stage for all elements. Fixed-step explicit Euler or classical RK4 on
 ends on the next grid point again, so grid times never depend on event times. Under
 torch.no_grad() nothing below the "gradients" items is done (the forward-only path).
 
-Events (one call of the FMU's own event iteration, FmuInstance.update_discrete_states, per event):
+Events follow the event sequence of simulation/events.py (one call of the FMU's own event iteration,
+FmuInstance.update_discrete_states, per event), per element:
 * time events at the FMU's nextEventTime (the step ends exactly there), step events requested by
   fmi2CompletedIntegratorStep after each step, state events where an event indicator changes sign
   within a step (the engine's convention, simulation/events.py: reaching zero fires, leaving it does not).
 * State events are located without gradients on the step's dense output (Euler: linear; RK4:
   cubic Hermite) by the engine's root finder (simulation/events.locate), to the side beyond the crossing.
+  Unlike the engine, which ends the step there and starts the next one from the event, an element
+  takes the rest of its grid step at once (other elements wait on the grid), and
+  fmi2CompletedIntegratorStep is called at the grid point only.
 
 Gradients across events:
 1. Event time. With t* the located time and z the crossing indicator,
@@ -68,7 +72,7 @@ import numpy as np
 import torch
 
 from ..errors import FmuBuilderError
-from ..simulation.events import crossed, locate
+from ..simulation.events import any_crossed, locate
 from ..simulation.inputs import InputSignals
 from ..simulation.solvers import hermite, rk4_step
 from .layer import EventSensitivity, FmuEvaluator, fd_steps, fmu_call
@@ -558,7 +562,7 @@ class _Run:
                 if self.done[b]:
                     continue
                 z_new = self.ev.indicators(b, t_new[b], x_np[b], self._u(b, t_new[b]))
-                if crossed(self.z[b], z_new).any():
+                if any_crossed(self.z[b], z_new):
                     rows = (None if dd is None else dd[b:b + 1], None if c is None else c[b:b + 1])
                     replaced[b] = self._state_events(b, t[b], x[b], dx1[b], t_new[b], x_new[b], z_new, *rows)
                 else:
@@ -700,7 +704,7 @@ class _Run:
             x_new_row, dx1_row, _ = self.step([b], np.array([t_star]), x_plus[None], h_rest, c_row)
             x_new, dx1 = x_new_row[0], dx1_row[0]
             z_new = self.ev.indicators(b, t_new, x_new.detach().numpy(), self._u(b, t_new))
-            if not crossed(z_k, z_new).any():
+            if not any_crossed(z_k, z_new):
                 self.z[b] = z_new
                 return x_new, dd_row, c_row
         raise FmuBuilderError(f"more than {MAX_EVENTS_PER_STEP} state events in one step at t={t_new:.6g} "
