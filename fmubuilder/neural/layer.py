@@ -335,7 +335,7 @@ class FmuEvaluator:
         J[:] = 0.0
         sparsity = self.sparsity
         unchecked = sparsity.unchecked()
-        steps = None if self._directional_x else fd_steps(x, self.nominal)
+        steps = fd_steps(x, self.nominal)   # once for the probe and the columns
         if unchecked.size and self._probe(b, x, base, unchecked, sparsity.probe_weights[unchecked], steps):
             sparsity.found(unchecked[self._state_columns(b, x, base, unchecked, steps).any(axis=0)])
         columns = sparsity.columns()
@@ -344,7 +344,7 @@ class FmuEvaluator:
         self.n_jacobian_columns += len(columns)
 
     def _state_columns(self, b: int, x: np.ndarray, base: np.ndarray, columns: np.ndarray,
-                       steps: np.ndarray | None = None) -> np.ndarray:
+                       steps: np.ndarray) -> np.ndarray:
         """The Jacobian columns d out / dx_i, i in columns: [n+k, len(columns)]."""
         if self._directional_x:
             try:
@@ -352,8 +352,6 @@ class FmuEvaluator:
             except FmuCallError:
                 self._directional_x = False  # the FMU rejects some pair: use finite differences from now on
         inst = self.instances[b]
-        if steps is None:
-            steps = fd_steps(x, self.nominal)
         xp = x.copy()
         row = np.empty(self.width)
         result = np.empty((self.width, len(columns)))
@@ -367,7 +365,7 @@ class FmuEvaluator:
         return result
 
     def _probe(self, b: int, x: np.ndarray, base: np.ndarray, columns: np.ndarray, weights: np.ndarray,
-               steps: np.ndarray | None = None) -> bool:
+               steps: np.ndarray) -> bool:
         """Whether perturbing the states `columns` together (distinct weights, so that exact
         cancellation of their effects is not to be expected) changes any unknown."""
         if self._directional_x:
@@ -376,8 +374,6 @@ class FmuEvaluator:
             except FmuCallError:
                 self._directional_x = False
         inst = self.instances[b]
-        if steps is None:
-            steps = fd_steps(x, self.nominal)
         xp = x.copy()
         xp[columns] += weights * steps[columns]
         inst.set_continuous_states(xp)

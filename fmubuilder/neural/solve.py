@@ -586,6 +586,16 @@ class _Run:
             x_new, dd, c = self._handle_events(np.flatnonzero(events), t_new, x_new, dd, c)
         return x_new, dd, c
 
+    def _event_mode(self, b, t, x_minus: np.ndarray, grad: bool, signs=None):
+        """Event mode of element b at (t, x_minus) (with its linearisation if `grad`): its next time
+        event, whether it terminates, and its indicators after the event as the next reference."""
+        outcome = self.ev.handle_event(b, t, x_minus, self._u(b, t), self.sens if grad else None, signs)
+        self.next_event[b] = outcome.next_event_time
+        self.done[b] |= outcome.terminate
+        if self.z is not None:
+            self.z[b] = self.instances[b].get_event_indicators()
+        return outcome
+
     def _replace_rows(self, replaced: dict, x, dd, c):
         """Put the rows computed separately (state events) into the batch tensors."""
         index = torch.tensor(list(replaced))
@@ -605,14 +615,7 @@ class _Run:
         """Events of several elements at the end of a step, batched."""
         x_np = x.detach().numpy()
         grad = self.event_grad and self.ev.can_snapshot and x.requires_grad
-        outcomes = {}
-        for b in rows:
-            outcome = self.ev.handle_event(b, t[b], x_np[b], self._u(b, t[b]), self.sens if grad else None)
-            outcomes[b] = outcome
-            self.next_event[b] = outcome.next_event_time
-            self.done[b] |= outcome.terminate
-            if self.z is not None:
-                self.z[b] = self.instances[b].get_event_indicators()
+        outcomes = {b: self._event_mode(b, t[b], x_np[b], grad) for b in rows}
         if not grad:
             changed = [b for b, o in outcomes.items() if o.values_changed]
             if changed:  # a constant jump; x + 0 keeps the exact post-event values
@@ -689,14 +692,10 @@ class _Run:
             t_star = t_k + theta * (t_new - t_k)
             x_minus, t_e, signs = self._pre_event_state(b, dense, theta, t_k, t_new, t_star, z_k, z_hi, which)
             grad = self.event_grad and self.ev.can_snapshot and x_minus.requires_grad
-            outcome = self.ev.handle_event(b, t_star, x_minus.detach().numpy(), self._u(b, t_star),
-                                           self.sens if grad else None, signs)
-            self.next_event[b] = outcome.next_event_time
-            self.done[b] |= outcome.terminate
+            outcome = self._event_mode(b, t_star, x_minus.detach().numpy(), grad, signs)
             x_plus, dd_row, c_row = self._apply_event(outcome, x_minus, dd_row, c_row, grad)
-            z_k = self.instances[b].get_event_indicators()
+            z_k = self.z[b]
             if self.done[b]:
-                self.z[b] = z_k
                 return x_plus, dd_row, c_row
             # the rest of the step, back to the grid
             h_rest = (t_new - t_e).reshape(1, 1) if isinstance(t_e, torch.Tensor) else np.array([t_new - t_e])
@@ -764,10 +763,6 @@ class _Run:
             if outcome.values_changed:
                 return torch.from_numpy(outcome.x_plus) + (x_minus - x_minus.detach()), dd_row, c_row
             return x_minus, dd_row, c_row
-        x_row, dd_row, c_row = self._single_row_event(x_minus, outcome, dd_row, c_row)
-        return x_row, dd_row, c_row
-
-    def _single_row_event(self, x_minus, outcome, dd_row, c_row):
         dev = self._known_deviation(x_minus[None])
         x, dd, c = self._linearised_event(x_minus[None], dev, {0: outcome}, dd_row, c_row, np.ones(1, dtype=bool))
         return x[0], dd, c
