@@ -86,25 +86,17 @@ class JacobianSparsity:
                 continue
             self.computed[[index[d] for d in deps if d in index]] = True
         self.probe_weights = _probe_weights(n)
-        self._index_columns()
-
-    def _index_columns(self) -> None:
-        # Kept as index arrays: the Jacobian of every evaluation reads them.
-        self._columns = np.flatnonzero(self.computed)
-        self._unchecked = np.zeros(0, dtype=int) if self.complete else np.flatnonzero(~self.computed)
 
     def columns(self) -> np.ndarray:
         """The columns computed one by one."""
-        return self._columns
+        return np.flatnonzero(self.computed)
 
     def unchecked(self) -> np.ndarray:
         """The columns to probe together (empty when the ModelStructure declares every unknown)."""
-        return self._unchecked
+        return np.zeros(0, dtype=int) if self.complete else np.flatnonzero(~self.computed)
 
     def found(self, columns: np.ndarray) -> None:
-        if columns.size:
-            self.computed[columns] = True
-            self._index_columns()
+        self.computed[columns] = True
 
     @property
     def skipped(self) -> list[int]:
@@ -335,16 +327,14 @@ class FmuEvaluator:
         J[:] = 0.0
         sparsity = self.sparsity
         unchecked = sparsity.unchecked()
-        steps = fd_steps(x, self.nominal)   # once for the probe and the columns
-        if unchecked.size and self._probe(b, x, base, unchecked, sparsity.probe_weights[unchecked], steps):
-            sparsity.found(unchecked[self._state_columns(b, x, base, unchecked, steps).any(axis=0)])
+        if unchecked.size and self._probe(b, x, base, unchecked, sparsity.probe_weights[unchecked]):
+            sparsity.found(unchecked[self._state_columns(b, x, base, unchecked).any(axis=0)])
         columns = sparsity.columns()
         if columns.size:
-            J[:, columns] = self._state_columns(b, x, base, columns, steps)
+            J[:, columns] = self._state_columns(b, x, base, columns)
         self.n_jacobian_columns += len(columns)
 
-    def _state_columns(self, b: int, x: np.ndarray, base: np.ndarray, columns: np.ndarray,
-                       steps: np.ndarray) -> np.ndarray:
+    def _state_columns(self, b: int, x: np.ndarray, base: np.ndarray, columns: np.ndarray) -> np.ndarray:
         """The Jacobian columns d out / dx_i, i in columns: [n+k, len(columns)]."""
         if self._directional_x:
             try:
@@ -352,6 +342,7 @@ class FmuEvaluator:
             except FmuCallError:
                 self._directional_x = False  # the FMU rejects some pair: use finite differences from now on
         inst = self.instances[b]
+        steps = fd_steps(x, self.nominal)
         xp = x.copy()
         row = np.empty(self.width)
         result = np.empty((self.width, len(columns)))
@@ -364,8 +355,7 @@ class FmuEvaluator:
         inst.set_continuous_states(x)
         return result
 
-    def _probe(self, b: int, x: np.ndarray, base: np.ndarray, columns: np.ndarray, weights: np.ndarray,
-               steps: np.ndarray) -> bool:
+    def _probe(self, b: int, x: np.ndarray, base: np.ndarray, columns: np.ndarray, weights: np.ndarray) -> bool:
         """Whether perturbing the states `columns` together (distinct weights, so that exact
         cancellation of their effects is not to be expected) changes any unknown."""
         if self._directional_x:
@@ -375,7 +365,7 @@ class FmuEvaluator:
                 self._directional_x = False
         inst = self.instances[b]
         xp = x.copy()
-        xp[columns] += weights * steps[columns]
+        xp[columns] += weights * fd_steps(x, self.nominal)[columns]
         inst.set_continuous_states(xp)
         row = np.empty(self.width)
         self.read(b, row)
