@@ -6,12 +6,16 @@ per solver stage for all elements. Fixed-step explicit Euler or classical RK4 on
 ends on the next grid point again, so grid times never depend on event times. Under
 torch.no_grad() nothing below the "gradients" items is done (the forward-only path).
 
-Events (one call of the FMU's own event iteration, FmuInstance.update_discrete_states, per event):
+Events follow the event sequence of simulation/events.py (one call of the FMU's own event iteration,
+FmuInstance.update_discrete_states, per event), per element:
 * time events at the FMU's nextEventTime (the step ends exactly there), step events requested by
   fmi2CompletedIntegratorStep after each step, state events where an event indicator changes sign
   within a step (the engine's convention, simulation/events.py: reaching zero fires, leaving it does not).
 * State events are located without gradients on the step's dense output (Euler: linear; RK4:
   cubic Hermite) by the engine's root finder (simulation/events.locate), to the side beyond the crossing.
+  Unlike the engine, which ends the step there and starts the next one from the event, an element
+  takes the rest of its grid step at once (other elements wait on the grid), and
+  fmi2CompletedIntegratorStep is called at the grid point only.
 
 Gradients across events:
 1. Event time. With t* the located time and z the crossing indicator,
@@ -68,7 +72,7 @@ import numpy as np
 import torch
 
 from ..errors import FmuBuilderError
-from ..simulation.events import crossed, locate
+from ..simulation.events import any_crossed, locate
 from ..simulation.inputs import InputSignals
 from ..simulation.solvers import hermite, rk4_step
 from .layer import EventSensitivity, FmuEvaluator, fd_steps, fmu_call
@@ -558,7 +562,7 @@ class _Run:
                 if self.done[b]:
                     continue
                 z_new = self.ev.indicators(b, t_new[b], x_np[b], self._u(b, t_new[b]))
-                if crossed(self.z[b], z_new).any():
+                if any_crossed(self.z[b], z_new):
                     rows = (None if dd is None else dd[b:b + 1], None if c is None else c[b:b + 1])
                     replaced[b] = self._state_events(b, t[b], x[b], dx1[b], t_new[b], x_new[b], z_new, *rows)
                 else:
@@ -582,6 +586,16 @@ class _Run:
             x_new, dd, c = self._handle_events(np.flatnonzero(events), t_new, x_new, dd, c)
         return x_new, dd, c
 
+    def _event_mode(self, b, t, x_minus: np.ndarray, grad: bool, signs=None):
+        """Event mode of element b at (t, x_minus) (with its linearisation if `grad`): its next time
+        event, whether it terminates, and its indicators after the event as the next reference."""
+        outcome = self.ev.handle_event(b, t, x_minus, self._u(b, t), self.sens if grad else None, signs)
+        self.next_event[b] = outcome.next_event_time
+        self.done[b] |= outcome.terminate
+        if self.z is not None:
+            self.z[b] = self.instances[b].get_event_indicators()
+        return outcome
+
     def _replace_rows(self, replaced: dict, x, dd, c):
         """Put the rows computed separately (state events) into the batch tensors."""
         index = torch.tensor(list(replaced))
@@ -601,14 +615,7 @@ class _Run:
         """Events of several elements at the end of a step, batched."""
         x_np = x.detach().numpy()
         grad = self.event_grad and self.ev.can_snapshot and x.requires_grad
-        outcomes = {}
-        for b in rows:
-            outcome = self.ev.handle_event(b, t[b], x_np[b], self._u(b, t[b]), self.sens if grad else None)
-            outcomes[b] = outcome
-            self.next_event[b] = outcome.next_event_time
-            self.done[b] |= outcome.terminate
-            if self.z is not None:
-                self.z[b] = self.instances[b].get_event_indicators()
+        outcomes = {b: self._event_mode(b, t[b], x_np[b], grad) for b in rows}
         if not grad:
             changed = [b for b, o in outcomes.items() if o.values_changed]
             if changed:  # a constant jump; x + 0 keeps the exact post-event values
@@ -685,14 +692,10 @@ class _Run:
             t_star = t_k + theta * (t_new - t_k)
             x_minus, t_e, signs = self._pre_event_state(b, dense, theta, t_k, t_new, t_star, z_k, z_hi, which)
             grad = self.event_grad and self.ev.can_snapshot and x_minus.requires_grad
-            outcome = self.ev.handle_event(b, t_star, x_minus.detach().numpy(), self._u(b, t_star),
-                                           self.sens if grad else None, signs)
-            self.next_event[b] = outcome.next_event_time
-            self.done[b] |= outcome.terminate
+            outcome = self._event_mode(b, t_star, x_minus.detach().numpy(), grad, signs)
             x_plus, dd_row, c_row = self._apply_event(outcome, x_minus, dd_row, c_row, grad)
-            z_k = self.instances[b].get_event_indicators()
+            z_k = self.z[b]
             if self.done[b]:
-                self.z[b] = z_k
                 return x_plus, dd_row, c_row
             # the rest of the step, back to the grid
             h_rest = (t_new - t_e).reshape(1, 1) if isinstance(t_e, torch.Tensor) else np.array([t_new - t_e])
@@ -700,7 +703,7 @@ class _Run:
             x_new_row, dx1_row, _ = self.step([b], np.array([t_star]), x_plus[None], h_rest, c_row)
             x_new, dx1 = x_new_row[0], dx1_row[0]
             z_new = self.ev.indicators(b, t_new, x_new.detach().numpy(), self._u(b, t_new))
-            if not crossed(z_k, z_new).any():
+            if not any_crossed(z_k, z_new):
                 self.z[b] = z_new
                 return x_new, dd_row, c_row
         raise FmuBuilderError(f"more than {MAX_EVENTS_PER_STEP} state events in one step at t={t_new:.6g} "
@@ -760,10 +763,6 @@ class _Run:
             if outcome.values_changed:
                 return torch.from_numpy(outcome.x_plus) + (x_minus - x_minus.detach()), dd_row, c_row
             return x_minus, dd_row, c_row
-        x_row, dd_row, c_row = self._single_row_event(x_minus, outcome, dd_row, c_row)
-        return x_row, dd_row, c_row
-
-    def _single_row_event(self, x_minus, outcome, dd_row, c_row):
         dev = self._known_deviation(x_minus[None])
         x, dd, c = self._linearised_event(x_minus[None], dev, {0: outcome}, dd_row, c_row, np.ones(1, dtype=bool))
         return x[0], dd, c

@@ -1,4 +1,5 @@
-"""The hybrid simulation loop with FMI 2.0 Model-Exchange event semantics.
+"""The hybrid simulation loop with FMI 2.0 Model-Exchange event semantics (the event sequence
+of events.py, driven for one instance with any solver of solvers.py and an output grid).
 
     initialise (the system runs its initial event iteration)
     loop:
@@ -25,7 +26,7 @@ import time as wallclock
 import numpy as np
 
 from ..errors import FmuBuilderError
-from .events import any_crossed, locate
+from .events import cut_at_state_event
 from .results import SimulationResult, SimulationStats
 from .solvers import Solver
 from .system import HybridSystem
@@ -130,12 +131,15 @@ class _Loop:
             x = solver.x
             state_event = False
             if n_z:
-                z_end = indicators(t, x)
+                t_end = t
                 stats.indicator_evaluations += 1
-                if any_crossed(z, z_end):
-                    t, z_end, x = self._locate(t_start, z, t, z_end)
+                t, z, fired, evaluations = cut_at_state_event(
+                    self._indicators_on_step, t_start, z, t_end, indicators(t_end, x), eps)
+                if fired is not None:
+                    stats.indicator_evaluations += evaluations
                     state_event = True
-                z = z_end
+                    if t != t_end:
+                        x = solver.interpolate(t)
             if i_out < n_out and outputs[i_out] < t - eps:
                 i_first = i_out
                 while i_out < n_out and outputs[i_out] < t - eps:
@@ -167,17 +171,9 @@ class _Loop:
         self.stats.indicator_evaluations += 1
         return self.system.indicators(t, x)
 
-    def _locate(self, t0, z0, t1, z1):
-        """Cut the step at the earliest indicator crossing: (t, z, x) there."""
-        solver, system = self.solver, self.system
-
-        def indicators_at(t):
-            return system.indicators(t, solver.interpolate(t))
-
-        t_event, z_event, _, evaluations = locate(indicators_at, t0, z0, t1, z1, self.eps)
-        self.stats.indicator_evaluations += evaluations
-        x_event = solver.x if t_event == t1 else solver.interpolate(t_event)
-        return t_event, z_event, x_event
+    def _indicators_on_step(self, t):
+        """Indicators on the last step's dense output (where a state event is located)."""
+        return self.system.indicators(t, self.solver.interpolate(t))
 
     def _event(self, t, x, kind):
         """Event mode at (t, x), recording the values around it if asked."""

@@ -1,5 +1,15 @@
-"""State events: detecting that an event indicator crossed zero during a step, and
-locating the earliest crossing in time.
+"""The event sequence of FMI 2.0 Model Exchange, shared by the engine (engine.py: numpy, one
+instance, any solver) and the NeuralFMU's differentiable solver (neural/solve.py: torch, a batch of
+instances on a fixed step grid). Each drives it with its own state representation:
+
+    1. step to the earliest of: the next time event, the next grid/output/input limit, the stop
+    2. a time event due at the step's end (within the time tolerance) is that instant exactly
+    3. event indicators at the step's end; a sign change (`crossed`) is located on the step's
+       dense output (`cut_at_state_event`) and the step ends there
+    4. fmi2CompletedIntegratorStep may request a step event or termination
+    5. time, state or step event: event mode, fmi2NewDiscreteStates until the discrete states
+       settle, the continuous states re-read if the FMU reset them, the indicators re-read as the
+       reference of the next step's sign changes; the solver restarts from there
 
 Crossing convention (the one of fmpy and FMUSDK-style importers): indicator i fires
 between z0 (at the step start) and z1 when
@@ -30,6 +40,15 @@ def any_crossed(z0: np.ndarray, z1: np.ndarray) -> bool:
     """Whether any indicator fires; cheap when none does (the usual step)."""
     # A crossing needs z0 * z1 <= 0, so that product rules out almost every step at once.
     return bool((z0 * z1 <= 0.0).any()) and bool(crossed(z0, z1).any())
+
+
+def cut_at_state_event(indicators_at: Callable[[float], np.ndarray], t0: float, z0: np.ndarray,
+                       t1: float, z1: np.ndarray, tolerance: float):
+    """Where a step from t0 (indicators z0) to t1 (indicators z1) ends: (t, z, fired, evaluations)
+    at its earliest state event (see `locate`), or (t1, z1, None, 0) when no indicator fired."""
+    if not any_crossed(z0, z1):
+        return t1, z1, None, 0
+    return locate(indicators_at, t0, z0, t1, z1, tolerance)
 
 
 def locate(indicators_at: Callable[[float], np.ndarray], t0: float, z0: np.ndarray,

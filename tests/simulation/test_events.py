@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from fmubuilder.simulation.events import any_crossed, crossed, locate
+from fmubuilder.simulation.events import any_crossed, crossed, cut_at_state_event, locate
 
 
 @pytest.mark.parametrize("z0, z1, fires", [
@@ -61,3 +61,17 @@ def test_flat_indicators_still_converge_by_bisection():
     t, _, fired, evaluations = locate(g, 0.0, g(0.0), 1.0, g(1.0), tolerance=1e-13)
     assert 0.1 <= t <= 0.1 + 1e-12 and fired[0]
     assert evaluations < 120
+
+
+def test_a_step_without_a_crossing_ends_where_it_ended_without_evaluations():
+    calls = []
+    g = evaluate([lambda t: calls.append(t) or t + 1.0])
+    t, z, fired, evaluations = cut_at_state_event(g, 0.0, np.array([1.0]), 0.5, np.array([1.5]), 1e-12)
+    assert (t, z.tolist(), fired, evaluations, calls) == (0.5, [1.5], None, 0, [])
+
+
+def test_a_step_with_a_crossing_is_cut_just_after_the_root():
+    g = evaluate([lambda t: math.cos(t) - 0.5, lambda t: 2.0])
+    t, z, fired, evaluations = cut_at_state_event(g, 0.0, g(0.0), 2.0, g(2.0), 1e-12)
+    assert math.pi / 3 <= t <= math.pi / 3 + 1e-12
+    assert z[0] <= 0.0 and fired.tolist() == [True, False] and evaluations > 0
