@@ -127,7 +127,9 @@ class NeuralFmuSystem(FmuSystem):
                                     if name in derivative_names]
 
     def derivatives(self, t: float, x: np.ndarray) -> np.ndarray:
-        der = super().derivatives(t, x)
+        return self._add_network(super().derivatives(t, x), x)
+
+    def _add_network(self, der: np.ndarray, x: np.ndarray) -> np.ndarray:
         kernel = self.kernel
         if not kernel.active:
             return der
@@ -137,7 +139,10 @@ class NeuralFmuSystem(FmuSystem):
         table = super().outputs(times, states)
         if self._derivative_columns and self.kernel.active:
             for row, t in enumerate(times):
-                dx = self.derivatives(float(t), states[row])
+                # In event mode (e.g. the FMU asked to terminate) it already holds (t, x) and
+                # refuses fmi2SetContinuousStates.
+                dx = self.derivatives(float(t), states[row]) if self._continuous_mode \
+                    else self._add_network(self._get_dx(), states[row])
                 for column, i in self._derivative_columns:
                     table[row, column] = dx[i]
         return table

@@ -109,3 +109,25 @@ def test_engine_and_torch_solver_agree_on_an_active_hybrid(plant_fmu):
                             inputs={"time": [0.0, 1.0], "setpoint": [1.0, 1.0]}, variables=["w"])
     assert np.abs(plain["w"] - engine["w"]).max() > 1e-3  # the ANN does change the dynamics
     hybrid.close()
+
+
+def test_hybrid_derivatives_recorded_at_termination():
+    """The corner-case FMU asks to terminate at a time event; the last output row is then read in
+    event mode, where the FMU refuses new states. The recorded hybrid derivative there must still
+    be the network applied to the FMU's own derivative (the torch topology as reference)."""
+    from fmubuilder.build import example_fmu
+    hybrid = random_gated_hybrid(example_fmu("event_corner_cases"), ["der(r)"], ["r"])
+    with torch.no_grad():
+        hybrid.topology.gate_ann.fill_(0.3)
+    names = ["p", "r", "der(p)", "der(r)"]
+    result = simulate_hybrid(hybrid, start_time=0.0, stop_time=5.0, variables=names, solver="euler", step_size=0.01)
+    plain = engine_simulate(example_fmu("event_corner_cases"), stop_time=5.0, solver="euler", step_size=0.01,
+                            output_interval=0.01, variables=["der(p)", "der(r)"])
+    assert result["time"][-1] == pytest.approx(3.5)      # terminated by the model
+    x = torch.tensor([[result["p"][-1], result["r"][-1]]])
+    der_fmu = torch.tensor([[plain["der(p)"][-1], plain["der(r)"][-1]]])
+    with torch.no_grad():
+        expected = unfolded_hybrid(hybrid.topology, x, der_fmu)[0].numpy()
+    np.testing.assert_allclose([result["der(p)"][-1], result["der(r)"][-1]], expected, rtol=1e-12, atol=1e-12)
+    assert abs(result["der(r)"][-1] - plain["der(r)"][-1]) > 1e-3     # the network does act there
+    hybrid.close()
