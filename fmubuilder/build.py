@@ -86,15 +86,32 @@ def build_cmake_project(
 
 
 def _require_tools() -> str:
-    cmake = shutil.which("cmake")
+    cmake = find_cmake()
     if cmake is None:
-        raise FmuBuilderError("cmake not found on PATH: install it (pip install cmake or apt-get install cmake)")
+        raise FmuBuilderError(
+            "cmake not found, neither on PATH nor as the Python package `cmake`: "
+            "install it with `pip install cmake` (or apt-get install cmake)"
+        )
     compilers = [os.environ.get("CC", ""), "cc", "gcc", "clang"]
     if not any(name and shutil.which(name) for name in compilers):
         raise FmuBuilderError(
             "no C compiler found (cc, gcc, clang or $CC): install one, e.g. apt-get install build-essential"
         )
     return cmake
+
+
+def find_cmake() -> str | None:
+    """cmake on PATH, else the one of the `cmake` Python package (a declared dependency):
+    its launcher sits in the environment's bin folder, which is not on PATH when the
+    environment is not activated."""
+    on_path = shutil.which("cmake")
+    if on_path is not None:
+        return on_path
+    try:
+        import cmake
+    except ImportError:
+        return None
+    return shutil.which("cmake", path=cmake.CMAKE_BIN_DIR)
 
 
 def _fmi_headers_dir() -> pathlib.Path | None:
@@ -130,15 +147,31 @@ def _tail(text: str, lines: int = _LOG_TAIL_LINES) -> str:
 # Example FMUs
 
 
+# What the package needs besides its Python code. The checkout keeps them at the top level;
+# an installed package carries a copy in fmubuilder/_data (setup.py copies them there).
+DATA_ITEMS = ("CMakeLists.txt", "cmake", "c_templates", "examples")
+INSTALLED_DATA_DIR = "_data"
+
+
 def repo_root() -> pathlib.Path:
-    """The source tree holding examples/ and the top-level CMakeLists.txt."""
-    root = pathlib.Path(__file__).resolve().parent.parent
-    if not (root / "CMakeLists.txt").is_file() or not (root / "examples").is_dir():
-        raise FmuBuilderError(
-            f"example sources not found next to the fmubuilder package ({root}): "
-            "install fmubuilder from a source checkout with `pip install -e <checkout>`"
-        )
-    return root
+    """The folder holding CMakeLists.txt, cmake/, c_templates/ and examples/.
+
+    That is the package's own copy when fmubuilder is installed from a wheel or with
+    `pip install .`, else the source checkout the package sits in.
+    """
+    package = pathlib.Path(__file__).resolve().parent
+    for root in (package / INSTALLED_DATA_DIR, package.parent):
+        if all((root / item).exists() for item in DATA_ITEMS):
+            return root
+    raise FmuBuilderError(
+        f"the C templates, CMake files and example sources are missing next to {package}: "
+        "reinstall fmubuilder (pip install --force-reinstall fmubuilder) or use a complete source checkout"
+    )
+
+
+def data_path(*parts: str) -> pathlib.Path:
+    """A file or folder of the package data, e.g. data_path("c_templates")."""
+    return repo_root().joinpath(*parts)
 
 
 def list_examples() -> list[str]:

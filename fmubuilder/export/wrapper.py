@@ -24,14 +24,15 @@ from pathlib import Path
 
 import jinja2
 
+from fmubuilder.build import data_path
 from fmubuilder.errors import FmuBuilderError
 from fmubuilder.files import copy_atomically
 
 from .hybrid_description import HybridDescription, derive_model_description
 from .spec import HybridSpec
 
-TEMPLATE_DIR = Path(__file__).resolve().parents[2] / "c_templates"
-FMU_CMAKE = Path(__file__).resolve().parents[2] / "cmake" / "fmu.cmake"
+TEMPLATE_DIR = data_path("c_templates")
+FMU_CMAKE = data_path("cmake", "fmu.cmake")
 KERNEL_PREFIX = "hybrid_ann"
 WRAPPER_SOURCE = "hybrid_wrapper.c"
 # The wrapper's static files, copied as they are, and its generated configuration.
