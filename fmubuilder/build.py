@@ -129,12 +129,21 @@ def _keep_going_flags(build_dir: pathlib.Path) -> list[str]:
     return ["-k", "0"] if "CMAKE_GENERATOR:INTERNAL=Ninja" in cache else ["-k"]
 
 
+class CMakeBuildError(FmuBuilderError):
+    """A failed configure or build step; ``output`` holds everything the tools printed."""
+
+    def __init__(self, message: str, output: str):
+        super().__init__(message)
+        self.output = output
+
+
 def _run(command: list[str], what: str, source_dir: pathlib.Path, check: bool) -> str:
     result = subprocess.run(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     if check and result.returncode != 0:
-        raise FmuBuilderError(
+        raise CMakeBuildError(
             f"{what} {source_dir} with CMake failed (exit code {result.returncode}); fix the errors below:\n"
-            + _tail(result.stdout)
+            + _tail(result.stdout),
+            result.stdout,
         )
     return result.stdout
 
@@ -238,7 +247,7 @@ def _built_examples_dir() -> pathlib.Path:
     final = examples_cache / key
     if final.is_dir():
         return final
-    with _file_lock(examples_cache / f".{key}.lock"):
+    with file_lock(examples_cache / f".{key}.lock"):
         if final.is_dir():  # another process finished it while we waited
             return final
         with tempfile.TemporaryDirectory(prefix=f".{key}-", dir=examples_cache) as scratch:
@@ -255,7 +264,8 @@ def _built_examples_dir() -> pathlib.Path:
 
 
 @contextlib.contextmanager
-def _file_lock(path: pathlib.Path):
+def file_lock(path: pathlib.Path):
+    """Hold an exclusive lock on ``path`` (created if missing) for the ``with`` block."""
     with open(path, "w") as handle:
         fcntl.flock(handle, fcntl.LOCK_EX)
         try:

@@ -91,11 +91,13 @@ def check_model_identifier(identifier: str, fmu) -> None:
 def _build(spec: HybridSpec, info, scratch: Path) -> Path:
     """Stage the CMake project in scratch/project, build it, return the packed FMU."""
     from fmubuilder.build import build_cmake_project
+    from fmubuilder.fmi.sources import runnable_fmu
     from fmubuilder.export.kernel import generate_kernel
 
     project = scratch / "project"
     (project / "sources").mkdir(parents=True)
-    with zipfile.ZipFile(spec.original_fmu) as original:
+    # A source FMU's compiled copy: the hybrid carries the binary built from its sources.
+    with zipfile.ZipFile(runnable_fmu(spec.original_fmu)) as original:
         original_xml = original.read("modelDescription.xml")
         description = derive_model_description(original_xml, spec, info)
         binaries = _stage_resources(original, info, project / "resources")
