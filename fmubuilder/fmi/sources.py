@@ -4,7 +4,7 @@ binary, and that copy is what gets extracted, simulated and exported.
 
 Which files to compile comes from the FMU itself: ``sources/buildDescription.xml`` when it has
 one, else the ``<SourceFiles>`` of its ``<ModelExchange>`` element. The cache is keyed by the
-FMU's bytes and the CMake helper, so an unchanged FMU is compiled once per machine.
+FMU's name and bytes and the CMake helper, so an unchanged FMU is compiled once per machine.
 """
 from __future__ import annotations
 
@@ -19,8 +19,8 @@ from pathlib import Path
 
 from ..build import CMakeBuildError, build_cmake_project, cache_dir, data_path, file_lock
 from ..errors import FmuBuilderError
-from .archive import (BUILD_DESCRIPTION, binary_entry, check_entry_inside, inflate_member, max_extract_bytes,
-                      read_model_info)
+from .archive import (BUILD_DESCRIPTION, binary_entry, binary_platform, check_entry_inside, inflate_member,
+                      max_extract_bytes, read_model_info)
 
 # Bump when the compile flags or the cached layout change.
 _CACHE_FORMAT = "1"
@@ -40,14 +40,25 @@ class SourceBuild:
 def runnable_fmu(path: str | Path) -> Path:
     """``path`` itself when it carries a binary for this machine, else its compiled copy."""
     path = Path(path)
+    if _has_platform_binary(path):
+        return path  # the common case, checked without parsing; FmuArchive checks the rest
     info = read_model_info(path)  # every check, and the refusal of an FMU with neither binary nor sources
     with zipfile.ZipFile(path) as zf:
         if binary_entry(info.model_identifier) in zf.namelist():
             return path
-    return compiled_fmu(path)
+    return compiled_fmu(path, info.model_identifier)
 
 
-def compiled_fmu(path: Path) -> Path:
+def _has_platform_binary(path: Path) -> bool:
+    folder = f"binaries/{binary_platform()}/"
+    try:
+        with zipfile.ZipFile(path) as zf:
+            return any(name.startswith(folder) and name.endswith(".so") for name in zf.namelist())
+    except (OSError, zipfile.BadZipFile):
+        return False  # read_model_info names the problem
+
+
+def compiled_fmu(path: Path, model_identifier: str) -> Path:
     """The cached copy of the source FMU ``path`` with a binary for this machine (built on demand;
     concurrent processes wait for one build)."""
     root = cache_dir() / "source_fmus"
@@ -58,7 +69,7 @@ def compiled_fmu(path: Path) -> Path:
     if not target.is_file():
         with file_lock(root / f".{key}.lock"):
             if not target.is_file():
-                _build_into(path, root, final)
+                _build_into(path, model_identifier, root, final)
     _announce(path, target)
     return target
 
@@ -93,6 +104,7 @@ def declared_build(path: Path) -> SourceBuild:
 
 def _cache_key(path: Path) -> str:
     digest = hashlib.sha256(_CACHE_FORMAT.encode())
+    digest.update(path.name.encode() + b"\0")  # the cached copy keeps the name
     digest.update(data_path("cmake", "fmu.cmake").read_bytes())
     with open(path, "rb") as file:
         while block := file.read(1 << 20):
@@ -100,20 +112,19 @@ def _cache_key(path: Path) -> str:
     return digest.hexdigest()[:20]
 
 
-def _build_into(path: Path, root: Path, final: Path) -> None:
+def _build_into(path: Path, model_identifier: str, root: Path, final: Path) -> None:
     """Compile in a scratch folder beside the cache entry and rename the result into place."""
     with tempfile.TemporaryDirectory(prefix=".build-", dir=root) as scratch:
         scratch = Path(scratch)
-        library = _compile(path, scratch)
+        library = _compile(path, model_identifier, scratch)
         staged = scratch / "result"
         staged.mkdir()
-        _copy_with_binary(path, library, staged / path.name)
+        _copy_with_binary(path, binary_entry(model_identifier), library, staged / path.name)
         os.rename(staged, final)
 
 
-def _compile(path: Path, scratch: Path) -> bytes:
+def _compile(path: Path, model_identifier: str, scratch: Path) -> bytes:
     """Compile the declared sources into the FMU's shared library; returns its bytes."""
-    info = read_model_info(path)
     build_spec = declared_build(path)
     unpacked = scratch / "fmu"
     _extract_sources(path, unpacked)
@@ -135,7 +146,7 @@ def _compile(path: Path, scratch: Path) -> bytes:
         raise FmuBuilderError(f"{path} has no binary for this machine and compiling its sources failed: {first}; "
                               "fix the sources or export the FMU with a linux64 binary") from None
     with zipfile.ZipFile(build.fmus()[0]) as built:
-        return built.read(binary_entry(info.model_identifier))
+        return built.read(binary_entry(model_identifier))
 
 
 def _cmake_project(unpacked: Path, build_spec: SourceBuild) -> str:
@@ -178,13 +189,12 @@ def _extract_sources(path: Path, target: Path) -> None:
                 inflate_member(zf, member, path, out.write, budget)
 
 
-def _copy_with_binary(path: Path, library: bytes, target: Path) -> None:
-    """The original FMU with the compiled library added under binaries/<platform>/."""
-    identifier = read_model_info(path).model_identifier
+def _copy_with_binary(path: Path, entry: str, library: bytes, target: Path) -> None:
+    """The original FMU with the compiled library added as ``entry``."""
     with zipfile.ZipFile(path) as original, zipfile.ZipFile(target, "w", zipfile.ZIP_DEFLATED) as copy:
         for member in original.infolist():
             copy.writestr(member, original.read(member))
-        copy.writestr(binary_entry(identifier), library)
+        copy.writestr(entry, library)
 
 
 def _first_error(output: str, unpacked: Path) -> str:
