@@ -1,13 +1,14 @@
-"""Compile C FMU projects with CMake.
-
-Two entry points:
+"""Compile C FMU projects with CMake, and find the files those builds need.
 
 * :func:`build_cmake_project` configures and builds any CMake project (the example FMUs,
-  later the exported hybrid FMUs) and turns a missing tool or a failed build into an
+  source FMUs, the exported hybrid FMUs) and turns a missing tool or a failed build into an
   :class:`~fmubuilder.errors.FmuBuilderError` that shows the tail of the compiler output.
+  cmake is the one on PATH, else the one of the `cmake` Python package (a dependency).
 * :func:`example_fmu` returns a built example FMU from ``examples/``. All examples are built
   together on first use into a cache directory keyed by a hash of their C sources and CMake
   files, so an unchanged tree reuses the FMUs and an edit triggers a rebuild.
+* :func:`repo_root` / :func:`data_path` locate the C templates, CMake files and example
+  sources: in the source checkout, or in the copy an installed package carries.
 """
 
 from __future__ import annotations
