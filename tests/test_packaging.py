@@ -18,6 +18,7 @@ import sys
 import textwrap
 import zipfile
 
+import numpy as np
 import pytest
 
 from fmubuilder import build
@@ -125,7 +126,6 @@ def test_the_installed_wheel_builds_an_example_and_exports_a_hybrid(venv_python,
     assert report["problems"] == []
     # Before the first impact the corrected model is v' = -g - 0.4 v, v(0) = 0 (analytic).
     g, k = 9.81, 0.4
-    import numpy as np
     t = np.array(report["time"])
     np.testing.assert_allclose(report["v"], -g / k * (1 - np.exp(-k * t)), rtol=1e-6, atol=1e-8)
 
