@@ -1,13 +1,14 @@
-"""Compile C FMU projects with CMake.
-
-Two entry points:
+"""Compile C FMU projects with CMake, and find the files those builds need.
 
 * :func:`build_cmake_project` configures and builds any CMake project (the example FMUs,
-  later the exported hybrid FMUs) and turns a missing tool or a failed build into an
+  source FMUs, the exported hybrid FMUs) and turns a missing tool or a failed build into an
   :class:`~fmubuilder.errors.FmuBuilderError` that shows the tail of the compiler output.
+  cmake is the one on PATH, else the one of the `cmake` Python package (a dependency).
 * :func:`example_fmu` returns a built example FMU from ``examples/``. All examples are built
   together on first use into a cache directory keyed by a hash of their C sources and CMake
   files, so an unchanged tree reuses the FMUs and an edit triggers a rebuild.
+* :func:`repo_root` / :func:`data_path` locate the C templates, CMake files and example
+  sources: in the source checkout, or in the copy an installed package carries.
 """
 
 from __future__ import annotations
@@ -87,15 +88,32 @@ def build_cmake_project(
 
 
 def _require_tools() -> str:
-    cmake = shutil.which("cmake")
+    cmake = find_cmake()
     if cmake is None:
-        raise FmuBuilderError("cmake not found on PATH: install it (pip install cmake or apt-get install cmake)")
+        raise FmuBuilderError(
+            "cmake not found, neither on PATH nor as the Python package `cmake`: "
+            "install it with `pip install cmake` (or apt-get install cmake)"
+        )
     compilers = [os.environ.get("CC", ""), "cc", "gcc", "clang"]
     if not any(name and shutil.which(name) for name in compilers):
         raise FmuBuilderError(
             "no C compiler found (cc, gcc, clang or $CC): install one, e.g. apt-get install build-essential"
         )
     return cmake
+
+
+def find_cmake() -> str | None:
+    """cmake on PATH, else the one of the `cmake` Python package (a declared dependency):
+    its launcher sits in the environment's bin folder, which is not on PATH when the
+    environment is not activated."""
+    on_path = shutil.which("cmake")
+    if on_path is not None:
+        return on_path
+    try:
+        import cmake
+    except ImportError:
+        return None
+    return shutil.which("cmake", path=cmake.CMAKE_BIN_DIR)
 
 
 def _fmi_headers_dir() -> pathlib.Path | None:
@@ -113,6 +131,14 @@ def _keep_going_flags(build_dir: pathlib.Path) -> list[str]:
     return ["-k", "0"] if "CMAKE_GENERATOR:INTERNAL=Ninja" in cache else ["-k"]
 
 
+class CMakeBuildError(FmuBuilderError):
+    """A failed configure or build step; ``output`` holds everything the tools printed."""
+
+    def __init__(self, message: str, output: str):
+        super().__init__(message)
+        self.output = output
+
+
 def _run(command: list[str], what: str, source_dir: pathlib.Path, check: bool,
          progress_label: str | None = None) -> str:
     if progress_label is None:
@@ -121,9 +147,10 @@ def _run(command: list[str], what: str, source_dir: pathlib.Path, check: bool,
     else:
         code, output = _run_with_progress(command, progress_label)
     if check and code != 0:
-        raise FmuBuilderError(
+        raise CMakeBuildError(
             f"{what} {source_dir} with CMake failed (exit code {code}); fix the errors below:\n"
-            + _tail(output)
+            + _tail(output),
+            output,
         )
     return output
 
@@ -168,15 +195,31 @@ def _tail(text: str, lines: int = _LOG_TAIL_LINES) -> str:
 # Example FMUs
 
 
+# What the package needs besides its Python code. The checkout keeps them at the top level;
+# an installed package carries a copy in fmubuilder/_data (setup.py copies them there).
+DATA_ITEMS = ("CMakeLists.txt", "cmake", "c_templates", "examples")
+INSTALLED_DATA_DIR = "_data"
+
+
 def repo_root() -> pathlib.Path:
-    """The source tree holding examples/ and the top-level CMakeLists.txt."""
-    root = pathlib.Path(__file__).resolve().parent.parent
-    if not (root / "CMakeLists.txt").is_file() or not (root / "examples").is_dir():
-        raise FmuBuilderError(
-            f"example sources not found next to the fmubuilder package ({root}): "
-            "install fmubuilder from a source checkout with `pip install -e <checkout>`"
-        )
-    return root
+    """The folder holding CMakeLists.txt, cmake/, c_templates/ and examples/.
+
+    That is the package's own copy when fmubuilder is installed from a wheel or with
+    `pip install .`, else the source checkout the package sits in.
+    """
+    package = pathlib.Path(__file__).resolve().parent
+    for root in (package / INSTALLED_DATA_DIR, package.parent):
+        if all((root / item).exists() for item in DATA_ITEMS):
+            return root
+    raise FmuBuilderError(
+        f"the C templates, CMake files and example sources are missing next to {package}: "
+        "reinstall fmubuilder (pip install --force-reinstall fmubuilder) or use a complete source checkout"
+    )
+
+
+def data_path(*parts: str) -> pathlib.Path:
+    """A file or folder of the package data, e.g. data_path("c_templates")."""
+    return repo_root().joinpath(*parts)
 
 
 def list_examples() -> list[str]:
@@ -243,7 +286,7 @@ def _built_examples_dir() -> pathlib.Path:
     final = examples_cache / key
     if final.is_dir():
         return final
-    with _file_lock(examples_cache / f".{key}.lock"):
+    with file_lock(examples_cache / f".{key}.lock"):
         if final.is_dir():  # another process finished it while we waited
             return final
         with tempfile.TemporaryDirectory(prefix=f".{key}-", dir=examples_cache) as scratch:
@@ -261,7 +304,8 @@ def _built_examples_dir() -> pathlib.Path:
 
 
 @contextlib.contextmanager
-def _file_lock(path: pathlib.Path):
+def file_lock(path: pathlib.Path):
+    """Hold an exclusive lock on ``path`` (created if missing) for the ``with`` block."""
     with open(path, "w") as handle:
         fcntl.flock(handle, fcntl.LOCK_EX)
         try:

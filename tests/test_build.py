@@ -165,11 +165,12 @@ def test_missing_tools_are_user_errors(tmp_path, monkeypatch):
     (tmp_path / "CMakeLists.txt").write_text("project(p C)\n")
     real_which = shutil.which
 
-    monkeypatch.setattr(build.shutil, "which", lambda name: None if name == "cmake" else real_which(name))
+    monkeypatch.setattr(build.shutil, "which", lambda name, path=None: None if name == "cmake" else real_which(name))
+    monkeypatch.setitem(sys.modules, "cmake", None)  # nor the cmake Python package
     with pytest.raises(FmuBuilderError, match="cmake not found"):
         build.build_cmake_project(tmp_path, tmp_path / "build")
 
     monkeypatch.delenv("CC", raising=False)
-    monkeypatch.setattr(build.shutil, "which", lambda name: real_which(name) if name == "cmake" else None)
+    monkeypatch.setattr(build.shutil, "which", lambda name, path=None: real_which(name) if name == "cmake" else None)
     with pytest.raises(FmuBuilderError, match="no C compiler found"):
         build.build_cmake_project(tmp_path, tmp_path / "build")

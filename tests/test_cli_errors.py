@@ -55,7 +55,7 @@ def test_co_simulation_only(broken):
 
 
 def test_no_linux64_binary(broken):
-    assert_one_line_error(run_cli("inspect", broken("nobin.fmu", drop=("binaries/linux64",))), "no linux64 binary")
+    assert_one_line_error(run_cli("inspect", broken("nobin.fmu", drop=("binaries/linux64", "sources/"))), "no linux64 binary")
 
 
 def test_corrupt_model_description(broken):

@@ -24,10 +24,11 @@ import numpy as np
 import onnx
 from onnx import numpy_helper
 
+from fmubuilder.build import data_path
 from fmubuilder.errors import FmuBuilderError
 from fmubuilder.files import write_atomically
 
-TEMPLATE_DIR = Path(__file__).resolve().parents[2] / "c_templates"
+TEMPLATE_DIR = data_path("c_templates")
 
 BINARY_OPS = {"Add": "+", "Sub": "-", "Mul": "*", "Div": "/"}
 # Elementwise unary operations (Abs and Neg appear in fitted symbolic terms such as k*w*|w|).

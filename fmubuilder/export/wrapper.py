@@ -29,14 +29,15 @@ from pathlib import Path
 
 import jinja2
 
+from fmubuilder.build import data_path
 from fmubuilder.errors import FmuBuilderError
 from fmubuilder.files import copy_atomically
 
 from .hybrid_description import HybridDescription, derive_model_description
 from .spec import HybridSpec
 
-TEMPLATE_DIR = Path(__file__).resolve().parents[2] / "c_templates"
-FMU_CMAKE = Path(__file__).resolve().parents[2] / "cmake" / "fmu.cmake"
+TEMPLATE_DIR = data_path("c_templates")
+FMU_CMAKE = data_path("cmake", "fmu.cmake")
 MINGW_TOOLCHAIN = FMU_CMAKE.with_name("mingw-w64-x86_64.cmake")
 MINGW_COMPILER = "x86_64-w64-mingw32-gcc"
 WIN64 = "win64"
@@ -101,11 +102,13 @@ def check_model_identifier(identifier: str, fmu) -> None:
 def _build(spec: HybridSpec, info, scratch: Path, with_win64: bool = False) -> Path:
     """Stage the CMake project in scratch/project, build it, return the packed FMU."""
     from fmubuilder.build import build_cmake_project
+    from fmubuilder.fmi.sources import runnable_fmu
     from fmubuilder.export.kernel import generate_kernel
 
     project = scratch / "project"
     (project / "sources").mkdir(parents=True)
-    with zipfile.ZipFile(spec.original_fmu) as original:
+    # A source FMU's compiled copy: the hybrid carries the binary built from its sources.
+    with zipfile.ZipFile(runnable_fmu(spec.original_fmu)) as original:
         original_xml = original.read("modelDescription.xml")
         description = derive_model_description(original_xml, spec, info)
         binaries = _stage_resources(original, info, project / "resources")

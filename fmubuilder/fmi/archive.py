@@ -19,6 +19,8 @@ from ..errors import FmuBuilderError
 from .model import ModelInfo, model_info_from_fmpy
 
 PLATFORM = "linux64"
+# FMI 2.0.4 / 3.0 build description: which sources to compile with which definitions.
+BUILD_DESCRIPTION = "sources/buildDescription.xml"
 # Extraction cap: an FMU's binary and resources rarely exceed a few hundred MB; a zip bomb does.
 MAX_EXTRACT_ENV = "FMUBUILDER_MAX_EXTRACT_MB"
 DEFAULT_MAX_EXTRACT_MB = 1024
@@ -52,13 +54,31 @@ def read_model_info(path: str | Path) -> ModelInfo:
     _check_version(path)
     md = _parse_model_description(path)
     _check_kind(path, md)
-    binary = f"binaries/{binary_platform()}/{md.modelExchange.modelIdentifier}.so"
-    if binary not in names:
+    binary = binary_entry(md.modelExchange.modelIdentifier)
+    if binary not in names and not _ships_sources(names, md):
         platforms = sorted({n.split("/")[1] for n in names if n.startswith("binaries/") and n.count("/") >= 2})
         found = f"it has binaries for {', '.join(platforms)}" if platforms else "it has no binaries"
         raise FmuBuilderError(
-            f"{path} has no {binary_platform()} binary ({binary}); {found}: re-export it for Linux x86_64")
+            f"{path} has no {binary_platform()} binary ({binary}); {found} and no declared C sources: "
+            "re-export it for Linux x86_64 or with its source code")
     return model_info_from_fmpy(md)
+
+
+def binary_entry(model_identifier: str) -> str:
+    """The archive entry of the FMU's shared library for this machine."""
+    return f"binaries/{binary_platform()}/{model_identifier}.so"
+
+
+def _ships_sources(names: set[str], md) -> bool:
+    """Sources we can compile (fmi.sources): a build description or <SourceFiles> for Model Exchange."""
+    if BUILD_DESCRIPTION in names:
+        return True
+    identifier = md.modelExchange.modelIdentifier
+    for config in md.buildConfigurations:
+        files = [f for s in config.sourceFileSets for f in s.sourceFiles]
+        if config.modelIdentifier == identifier and files:
+            return all(f"sources/{name}" in names for name in files)
+    return False
 
 
 def corrupt(path: Path, exc: BaseException, entry: str | None = None) -> FmuBuilderError:
@@ -107,15 +127,19 @@ def _check_kind(path: Path, md) -> None:
 
 
 class FmuArchive:
-    """An FMU extracted to a private temporary folder, removed on close() or at exit."""
+    """An FMU extracted to a private temporary folder, removed on close() or at exit.
 
-    def __init__(self, path: str | Path):
+    ``runnable`` is the file to extract when it differs from ``path``: the copy of a source FMU
+    with a compiled binary (fmi.sources.runnable_fmu).
+    """
+
+    def __init__(self, path: str | Path, runnable: str | Path | None = None):
         self.path = Path(path)
         self.info = read_model_info(self.path)
         self.directory = Path(tempfile.mkdtemp(prefix=f"fmubuilder-{self.info.model_identifier}-"))
         self._cleanup = weakref.finalize(self, shutil.rmtree, self.directory, True)
         try:
-            with zipfile.ZipFile(self.path) as zf:
+            with zipfile.ZipFile(runnable or self.path) as zf:
                 _extract_needed(zf, self.directory, self.path, self.info.model_identifier)
         except FmuBuilderError:
             self._cleanup()
@@ -154,7 +178,7 @@ def check_archive(path: str | Path) -> None:
         budget = [max_extract_bytes()]
         for member in _needed_members(zf, path, Path("/nonexistent/fmu")):
             if not member.is_dir():
-                _inflate(zf, member, path, lambda block: None, budget)
+                inflate_member(zf, member, path, lambda block: None, budget)
 
 
 def _extract_needed(zf: zipfile.ZipFile, target: Path, path: Path, model_identifier: str) -> None:
@@ -168,7 +192,7 @@ def _extract_needed(zf: zipfile.ZipFile, target: Path, path: Path, model_identif
             continue
         dest.parent.mkdir(parents=True, exist_ok=True)
         with open(dest, "wb") as out:
-            _inflate(zf, member, path, out.write, budget)
+            inflate_member(zf, member, path, out.write, budget)
         if member.external_attr >> 16 & 0o111:
             dest.chmod(0o755)
 
@@ -179,10 +203,7 @@ def _needed_members(zf: zipfile.ZipFile, path: Path, root: Path) -> list[zipfile
     wanted = ("modelDescription.xml", f"binaries/{binary_platform()}/", "resources/")
     members = [m for m in zf.infolist() if m.filename.startswith(wanted)]
     for member in members:
-        dest = (root / member.filename).resolve()
-        if root != dest and root not in dest.parents:
-            raise FmuBuilderError(f"{path}: entry '{member.filename}' points outside the archive; the FMU is corrupt "
-                                  "or malicious: do not use it")
+        check_entry_inside(path, root, member.filename)
     budget, declared = max_extract_bytes(), 0
     for member in members:
         declared += member.file_size
@@ -191,7 +212,17 @@ def _needed_members(zf: zipfile.ZipFile, path: Path, root: Path) -> list[zipfile
     return members
 
 
-def _inflate(zf: zipfile.ZipFile, member: zipfile.ZipInfo, path: Path, write, budget: list[int]) -> None:
+def check_entry_inside(path: Path, root: Path, name: str) -> Path:
+    """Where entry ``name`` lands under ``root``; refuses names that leave it (``..``, absolute)."""
+    root = root.resolve()
+    dest = (root / name).resolve()
+    if root != dest and root not in dest.parents:
+        raise FmuBuilderError(f"{path}: entry '{name}' points outside the archive; the FMU is corrupt "
+                              "or malicious: do not use it")
+    return dest
+
+
+def inflate_member(zf: zipfile.ZipFile, member: zipfile.ZipInfo, path: Path, write, budget: list[int]) -> None:
     """Inflate one entry into `write`, counting the bytes actually produced against the
     archive's budget (one-element list, shared by its entries): headers can lie."""
     try:

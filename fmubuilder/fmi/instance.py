@@ -21,6 +21,7 @@ from .archive import FmuArchive
 from .binding import STATUS_NAMES, ffi, libc, load_library
 from .breadcrumb import CALL, CODE, TIME
 from .model import ModelInfo, Variable
+from .sources import runnable_fmu
 
 _instance_counter = itertools.count(1)
 # Breadcrumbs (breadcrumb.py): CALL[0] = +code before a call into the binary, -code after it.
@@ -64,7 +65,7 @@ class Fmu:
     or call close(); instances must be freed before."""
 
     def __init__(self, path: str | Path):
-        self.archive = FmuArchive(path)
+        self.archive = FmuArchive(path, runnable_fmu(path))
         self.info: ModelInfo = self.archive.info
         try:
             self.lib = load_library(self.archive.library_path)
