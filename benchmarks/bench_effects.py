@@ -17,7 +17,6 @@ numbers do not depend on how busy the machine is.
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 import time
 from pathlib import Path
