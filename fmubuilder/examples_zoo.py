@@ -1,6 +1,6 @@
 """`fmubuilder example NAME`: a ready-to-use folder with FMUs and measured data.
 
-The only example so far is ``vldm``, the electric-car reference case: the declared vehicle
+``vldm`` is the electric-car reference case: the declared vehicle
 model, two "truth" variants with an effect the declared model lacks, a parameter-mismatch
 variant (the declared model with a heavier car: a wrong parameter, no missing term), and for
 each a training set (CADC road cycle) and a test set (WLTC class 2) produced by the test
@@ -8,6 +8,14 @@ bench of :mod:`fmubuilder.synth`. The declared model's own data are the control 
 hybrid model trained on them has nothing to learn. The sensors are filtered, so their noise
 is coloured (:data:`SENSOR_NOISE`: a first-order low-pass, correlation about 0.6 between
 samples), as in most real data.
+
+``dc_drive`` is the DC speed drive (examples/dc_drive) with truths whose effects no power law of
+one variable describes: a Stribeck friction (non-monotone in speed), a Coulomb friction (a
+smoothed sign of the speed), an electrical loss that grows with speed and current together, and a
+Stribeck friction and that loss at once (two effects in two derivatives); besides them the
+windage, extra-heating and no-effect variants. Training: the drive's profile driven twice (60 s),
+so that the held-out late share revisits the operating points seen before; test: three passes
+(90 s), the winding hotter.
 
 Data sets are cached under ``<cache>/example_data/<hash>/`` keyed by the truth FMU's bytes,
 the cycle, the bench settings and the generator's source, so a second call only copies
@@ -36,10 +44,12 @@ _CACHE_FORMAT = "1"
 @dataclass(frozen=True)
 class DrivingCycle:
     key: str          # short name used in file names
-    number: int       # value of the VLDM parameter `cycle` (examples/vldm/make_tables.py order)
+    number: int       # value of the FMU parameter `parameter` that selects the run
     title: str
-    profile: str      # target-speed CSV in examples/vldm/data/cycles (gives the duration)
+    profile: str      # target-speed CSV in examples/vldm/data/cycles (gives the duration), or ""
     role: str         # "train" or "test"
+    parameter: str = "cycle"          # VLDM: the cycle (examples/vldm/make_tables.py order)
+    duration: float | None = None     # [s] when there is no profile CSV
 
 
 @dataclass(frozen=True)
@@ -74,7 +84,33 @@ VLDM_VARIANTS = (
 # of 0.2 s, so that successive 10 Hz samples correlate by about exp(-0.5) = 0.6.
 SENSOR_NOISE = dict(noise_model="lowpass", noise_filter_tau=0.2)
 
-EXAMPLES = ("vldm",)
+# The DC drive (examples/dc_drive): the profile of 30 s, driven `profile_repeats` times.
+DC_DRIVE_PROFILE_SECONDS = 30.0
+DC_DRIVE_RUNS = (
+    DrivingCycle("twice", 2, "the drive profile twice (60 s)", "", "train", "profile_repeats", 60.0),
+    DrivingCycle("thrice", 3, "the drive profile three times (90 s, the winding hotter)", "", "test",
+                 "profile_repeats", 90.0),
+)
+DC_DRIVE_VARIANTS = (
+    Variant("no_effect", "dc_drive", "the declared model itself: the control case, the data hold nothing to learn"),
+    Variant("windage", "dc_drive_truth_windage", "an undeclared windage torque ~ speed*|speed| in der(speed)"),
+    Variant("extra_heating", "dc_drive_truth_extra_heating",
+            "an undeclared heat ~ current^2 in der(temperature) only"),
+    Variant("stribeck", "dc_drive_truth_stribeck",
+            "an undeclared Stribeck friction in der(speed): largest at low speed, fading out at high speed"),
+    Variant("coulomb", "dc_drive_truth_coulomb",
+            "an undeclared Coulomb friction in der(speed): a sign of the speed smoothed over 1 rad/s"),
+    Variant("speed_current_loss", "dc_drive_truth_speed_current_loss",
+            "an undeclared electrical loss ~ |speed*current| in der(energy) (and the power equal to it)"),
+    Variant("two_effects", "dc_drive_truth_two_effects",
+            "the Stribeck friction in der(speed) and the speed-current loss in der(energy) at once"),
+)
+# The drive's sensors, with noise levels of a lab drive's logger, filtered like the VLDM's.
+DC_DRIVE_BENCH = dict(signals=("speed", "current", "power", "energy", "temperature"),
+                      noise_std={"speed": 0.1, "current": 0.02, "power": 1.0, "energy": 1.0, "temperature": 0.02},
+                      **SENSOR_NOISE)
+
+EXAMPLES = ("dc_drive", "vldm")
 
 
 @dataclass(frozen=True)
@@ -82,6 +118,7 @@ class DataSet:
     variant: Variant
     cycle: DrivingCycle
     stop_time: float
+    bench: tuple[tuple[str, object], ...] = tuple(SENSOR_NOISE.items())   # BenchSettings options
 
     @property
     def file_name(self) -> str:
@@ -89,7 +126,7 @@ class DataSet:
 
     @property
     def start_values(self) -> dict[str, int]:
-        return {"cycle": self.cycle.number}
+        return {self.cycle.parameter: self.cycle.number}
 
     @property
     def seed(self) -> int:
@@ -110,8 +147,25 @@ def vldm_data_sets() -> list[DataSet]:
     return [DataSet(variant, cycle, cycle_duration(cycle)) for variant in VLDM_VARIANTS for cycle in VLDM_CYCLES]
 
 
+def dc_drive_data_sets() -> list[DataSet]:
+    """Every DC drive data set: each variant on the training and the test run."""
+    bench = tuple(DC_DRIVE_BENCH.items())
+    return [DataSet(variant, run, run.duration, bench) for variant in DC_DRIVE_VARIANTS for run in DC_DRIVE_RUNS]
+
+
+def example_data_sets(name: str) -> list[DataSet]:
+    """The data sets of the example `name` (see EXAMPLES)."""
+    return {"vldm": vldm_data_sets, "dc_drive": dc_drive_data_sets}[name]()
+
+
+def example_variants(name: str) -> tuple[Variant, ...]:
+    return {"vldm": VLDM_VARIANTS, "dc_drive": DC_DRIVE_VARIANTS}[name]
+
+
 def cycle_duration(cycle: DrivingCycle) -> float:
     """Last time stamp of the cycle's target-speed profile [s]."""
+    if cycle.duration is not None:
+        return cycle.duration
     from .build import repo_root
     path = repo_root() / "examples" / "vldm" / "data" / "cycles" / cycle.profile
     if not path.is_file():
@@ -137,7 +191,7 @@ def write_example(name: str, output: Path, *, force: bool = False, workers: int 
     from .build import example_fmu
 
     fmus = {}
-    for variant in VLDM_VARIANTS:
+    for variant in example_variants(name):
         if variant.fmu in fmus:
             continue
         source = example_fmu(variant.fmu)
@@ -145,7 +199,7 @@ def write_example(name: str, output: Path, *, force: bool = False, workers: int 
         copy_atomically(source, fmus[variant.fmu])
 
     started = time.perf_counter()
-    sets = vldm_data_sets()
+    sets = example_data_sets(name)
     cached, generated = cached_data(sets, workers=workers)
     seconds = time.perf_counter() - started if generated else 0.0
     data = {}
@@ -153,7 +207,8 @@ def write_example(name: str, output: Path, *, force: bool = False, workers: int 
         data[data_set.file_name] = output / data_set.file_name
         copy_atomically(csv_path, output / data_set.file_name)
         copy_atomically(_sidecar(csv_path), _sidecar(output / data_set.file_name))
-    write_atomically(output / "README.md", _readme(sets, data))
+    readme = _readme(sets, data) if name == "vldm" else _dc_drive_readme(sets)
+    write_atomically(output / "README.md", readme)
     print(f"wrote the '{name}' example to {output}/: {len(fmus)} FMUs, {len(data)} data sets"
           + (f" (generated {generated} in {seconds:.0f} s)" if generated else " (data from the cache)"))
     return ExampleFolder(output, fmus, data, seconds)
@@ -173,7 +228,7 @@ def _prepare_folder(output: Path, force: bool) -> None:
 
 def bench_settings(data_set: DataSet):
     from .synth import BenchSettings
-    return BenchSettings(seed=data_set.seed, **SENSOR_NOISE)
+    return BenchSettings(seed=data_set.seed, **dict(data_set.bench))
 
 
 def cached_data(sets: list[DataSet], workers: int | None = None) -> tuple[list[Path], int]:
@@ -265,6 +320,30 @@ def consumption_kwh_per_100km(csv_path: Path) -> tuple[float, float]:
     distance_km = float(np.trapezoid(columns["speed"], time_s)) / 1000.0
     energy_kwh = float(columns["energy"][-1] - columns["energy"][0]) / 3.6e6
     return distance_km, 100.0 * energy_kwh / distance_km
+
+
+def _dc_drive_readme(sets: list[DataSet]) -> str:
+    variants = "\n".join(f"- `{v.fmu}.fmu` ({v.key}): {v.summary}." for v in DC_DRIVE_VARIANTS)
+    rows = "\n".join(f"| `{s.file_name}` | `{s.variant.fmu}.fmu` | {s.cycle.title} ({s.cycle.role}) | "
+                     f"`--start profile_repeats={s.cycle.number}` | {s.stop_time:g} |" for s in sets)
+    noise = ", ".join(f"{k} {v:g}" for k, v in DC_DRIVE_BENCH["noise_std"].items())
+    return f"""# DC drive example: effects outside a term library
+
+`dc_drive.fmu` is the declared model: a permanent-magnet DC motor whose PI controller holds the
+speed on a set-point profile against a load profile (30 s; the parameter `profile_repeats` drives it
+several times in a row). The truth FMUs have the same interface but contain physics that
+`dc_drive.fmu` lacks; the measured data come from them.
+
+{variants}
+
+Each CSV was made by the test bench of `fmubuilder synth`: {", ".join(DC_DRIVE_BENCH["signals"])}
+at about 10 Hz with jittered stamps, 0.1 s sensor lag and noise through a 0.2 s low-pass (standard
+deviation of one run: {noise}), averaged over two runs; `<signal>_std` is the spread of the runs.
+
+| file | truth model | run | start option | duration [s] |
+|---|---|---|---|---|
+{rows}
+"""
 
 
 def _readme(sets: list[DataSet], data: dict[str, Path]) -> str:

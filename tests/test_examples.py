@@ -497,3 +497,67 @@ def test_step_event_is_requested_after_t_step(tmp_path):
         assert fmu.model.completedIntegratorStep() == (False, False)
     finally:
         fmu.close()
+
+
+# ---------------------------------------------------------------------------------------
+# DC drive truths with effects outside the term library (examples/dc_drive/model.c)
+
+# truth variant -> (derivative its effect enters first, any further derivative it enters)
+DC_DRIVE_NEW_EFFECTS = {
+    "stribeck": ("der(speed)", None),
+    "coulomb": ("der(speed)", None),
+    "speed_current_loss": ("der(energy)", None),
+    "two_effects": ("der(speed)", "der(energy)"),
+}
+
+
+@pytest.fixture(scope="module")
+def dc_drive_training_runs():
+    from fmubuilder.examples_zoo import cached_data, dc_drive_data_sets
+    sets = [s for s in dc_drive_data_sets() if s.cycle.role == "train"]
+    paths, _ = cached_data(sets)
+    return {s.variant.key: path for s, path in zip(sets, paths)}
+
+
+@pytest.mark.parametrize("variant", sorted(DC_DRIVE_NEW_EFFECTS))
+def test_dc_drive_new_truths_are_diagnosed_into_their_derivatives(dc_drive_training_runs, variant):
+    """Each truth's effect is significant in its data and traced to the derivative it enters (the
+    first pass of the profile, 30 s); the two-effect truth names both derivatives, the better one
+    as the channel, the other as about as good."""
+    from fmubuilder.data import load_data
+    from fmubuilder.diagnose import diagnose
+    from fmubuilder.fmi import read_model_info
+    fmu = example_fmu("dc_drive")
+    data = load_data(dc_drive_training_runs[variant], read_model_info(fmu))
+    d = diagnose(fmu, data.window(data.start, 30.0))
+    first, further = DC_DRIVE_NEW_EFFECTS[variant]
+    assert d.significant and d.p_value < 1e-6
+    if further is None:
+        assert d.channel == first
+    else:
+        assert {d.channel, *d.ambiguous_channels} >= {first, further}
+
+
+def test_dc_drive_control_data_show_no_effect(dc_drive_training_runs):
+    from fmubuilder.data import load_data
+    from fmubuilder.diagnose import diagnose
+    from fmubuilder.fmi import read_model_info
+    fmu = example_fmu("dc_drive")
+    data = load_data(dc_drive_training_runs["no_effect"], read_model_info(fmu))
+    assert not diagnose(fmu, data.window(data.start, 30.0)).significant
+
+
+def test_dc_drive_profile_repeats_drive_the_profile_again():
+    """profile_repeats=2: the second 30 s repeat the first (set-point and load); 1 (the default):
+    the last breakpoint holds after 30 s, as before the parameter existed."""
+    fmu = str(example_fmu("dc_drive"))
+    names = ["speed_reference", "load_torque"]
+    twice = simulate_fmu(fmu, stop_time=60.0, start_values={"profile_repeats": 2.0}, output=names,
+                         output_interval=0.25, record_events=False)
+    once = simulate_fmu(fmu, stop_time=60.0, output=names, output_interval=0.25, record_events=False)
+    first, second = twice["time"] < 30.0 - 1e-9, twice["time"] >= 30.0 - 1e-9
+    for name in names:
+        np.testing.assert_allclose(twice[name][second][:first.sum()], twice[name][first], atol=1e-9)
+        np.testing.assert_allclose(once[name][first], twice[name][first], atol=1e-12)
+        assert np.all(once[name][once["time"] >= 30.0] == once[name][-1])
+    assert np.ptp(twice["speed_reference"][second]) == pytest.approx(320.0)   # -120 ... 200 rad/s

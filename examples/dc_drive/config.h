@@ -52,7 +52,8 @@ typedef enum {
     VR_THERMAL_RESISTANCE,
     VR_AMBIENT_TEMPERATURE,
     VR_SPEED_GAIN,
-    VR_INTEGRAL_GAIN
+    VR_INTEGRAL_GAIN,
+    VR_PROFILE_REPEATS
 } ValueReference;
 
 typedef struct {
@@ -70,8 +71,10 @@ typedef struct {
     double ambient_temperature;     /* [K] */
     double speed_gain;              /* [V.s/rad] proportional gain of the speed PI */
     double integral_gain;           /* [V/rad] integral gain of the speed PI */
+    double profile_repeats;         /* [1] passes through the profile (1: once, then hold) */
 
     int segment; /* discrete state: profile segment [segment, segment + 1) holding the time */
+    int pass;    /* discrete state: the pass through the profile holding the time */
 } ModelData;
 
 #endif

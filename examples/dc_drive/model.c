@@ -23,6 +23,22 @@
  *   DC_DRIVE_TRUTH_EXTRA_HEATING  heat EXTRA_HEATING_RESISTANCE * current^2 from losses the
  *                                 electrical model does not see (brushes, eddy currents),
  *                                 entering der(temperature) only.
+ * and effects that no power law of one variable describes:
+ *   DC_DRIVE_TRUTH_STRIBECK       Stribeck friction: a breakaway torque that is largest at low
+ *                                 speed and fades out at high speed (non-monotone in speed),
+ *                                 STRIBECK_TORQUE * tanh(speed / SMOOTHING) * exp(-(speed / STRIBECK_SPEED)^2),
+ *                                 entering der(speed);
+ *   DC_DRIVE_TRUTH_COULOMB        Coulomb friction, a sign of the speed smoothed over a narrow band,
+ *                                 COULOMB_TORQUE * tanh(speed / SMOOTHING), entering der(speed);
+ *   DC_DRIVE_TRUTH_SPEED_CURRENT_LOSS  an electrical loss drawn from the supply that grows with
+ *                                 speed and current together (eddy currents of the commutation),
+ *                                 SPEED_CURRENT_LOSS * |speed * current|, entering der(energy) and
+ *                                 the power output equal to it.
+ * Definitions combine: STRIBECK and SPEED_CURRENT_LOSS together put two effects into two
+ * derivatives at once.
+ *
+ * The parameter profile_repeats drives the profile that many times in a row (1: once, then the
+ * last breakpoint holds), so that a long run revisits the operating points of its start.
  */
 #include <math.h>
 
@@ -33,6 +49,19 @@ static const double WINDAGE = 3e-6; /* [N.m.s2/rad2] */
 #endif
 #ifdef DC_DRIVE_TRUTH_EXTRA_HEATING
 static const double EXTRA_HEATING_RESISTANCE = 0.3; /* [Ohm] */
+#endif
+#if defined(DC_DRIVE_TRUTH_STRIBECK) || defined(DC_DRIVE_TRUTH_COULOMB)
+static const double SMOOTHING = 1.0;         /* [rad/s] width of the sign's smooth step */
+#endif
+#ifdef DC_DRIVE_TRUTH_STRIBECK
+static const double STRIBECK_TORQUE = 0.08;  /* [N.m] breakaway torque */
+static const double STRIBECK_SPEED = 40.0;   /* [rad/s] speed over which it fades out */
+#endif
+#ifdef DC_DRIVE_TRUTH_COULOMB
+static const double COULOMB_TORQUE = 0.05;   /* [N.m] */
+#endif
+#ifdef DC_DRIVE_TRUTH_SPEED_CURRENT_LOSS
+static const double SPEED_CURRENT_LOSS = 0.01; /* [W.s/(rad.A)] */
 #endif
 
 /* Set-point and load profile: start-up, load steps, reversal, stop, high-speed run. */
@@ -61,10 +90,21 @@ typedef struct {
  * Profile
  */
 
-/* The segment holding time t: the last breakpoint at or before t (0 before the table). */
-static int segment_at(double t) {
+#define PROFILE_PERIOD (PROFILE_TIME[PROFILE_POINTS - 1])
+
+/* The pass through the profile holding time t: 0 for the first, at most repeats - 1. */
+static int pass_at(const ModelData *d, double t) {
+    int last = d->profile_repeats > 1.0 ? (int)d->profile_repeats - 1 : 0;
+    int pass = t > 0.0 ? (int)floor(t / PROFILE_PERIOD) : 0;
+    return pass < last ? pass : last;
+}
+
+/* The segment holding time t within its pass: the last breakpoint at or before t (0 before the
+ * table). */
+static int segment_at(const ModelData *d, double t) {
+    double local = t - d->pass * PROFILE_PERIOD;
     int i = 0;
-    while (i + 1 < PROFILE_POINTS && PROFILE_TIME[i + 1] <= t) {
+    while (i + 1 < PROFILE_POINTS && PROFILE_TIME[i + 1] <= local) {
         i++;
     }
     return i;
@@ -81,10 +121,14 @@ static double speed_reference(int i, double t) {
 }
 
 static void schedule_next_breakpoint(ModelInstance *m) {
-    int next = m->data.segment + 1;
-    m->nextEventTimeDefined = next < PROFILE_POINTS;
-    if (m->nextEventTimeDefined) {
-        m->nextEventTime = PROFILE_TIME[next];
+    const ModelData *d = &m->data;
+    int next = d->segment + 1;
+    int last_pass = d->pass + 1 >= (int)d->profile_repeats;
+    m->nextEventTimeDefined = next < PROFILE_POINTS || !last_pass;
+    if (next < PROFILE_POINTS) {
+        m->nextEventTime = d->pass * PROFILE_PERIOD + PROFILE_TIME[next];
+    } else if (!last_pass) {  /* the next pass starts: its first breakpoint */
+        m->nextEventTime = (d->pass + 1) * PROFILE_PERIOD + PROFILE_TIME[1];
     }
 }
 
@@ -97,7 +141,7 @@ static void compute(const ModelInstance *m, Signals *s) {
     double current = d->x[X_CURRENT], speed = d->x[X_SPEED];
     double temperature = d->x[X_TEMPERATURE];
 
-    s->speed_reference = speed_reference(d->segment, m->time);
+    s->speed_reference = speed_reference(d->segment, m->time - d->pass * PROFILE_PERIOD);
     s->load_torque = PROFILE_LOAD[d->segment];
     s->speed_error = s->speed_reference - speed;
     s->voltage = d->speed_gain * s->speed_error + d->integral_gain * d->x[X_ERROR_INTEGRAL];
@@ -108,6 +152,13 @@ static void compute(const ModelInstance *m, Signals *s) {
 #ifdef DC_DRIVE_TRUTH_WINDAGE
     s->friction_torque += WINDAGE * speed * fabs(speed);
 #endif
+#ifdef DC_DRIVE_TRUTH_STRIBECK
+    s->friction_torque += STRIBECK_TORQUE * tanh(speed / SMOOTHING) *
+                          exp(-(speed / STRIBECK_SPEED) * (speed / STRIBECK_SPEED));
+#endif
+#ifdef DC_DRIVE_TRUTH_COULOMB
+    s->friction_torque += COULOMB_TORQUE * tanh(speed / SMOOTHING);
+#endif
     s->copper_loss = s->resistance * current * current;
     s->cooling_power = (temperature - d->ambient_temperature) / d->thermal_resistance;
     s->extra_heat = 0.0;
@@ -115,6 +166,9 @@ static void compute(const ModelInstance *m, Signals *s) {
     s->extra_heat = EXTRA_HEATING_RESISTANCE * current * current;
 #endif
     s->power = s->voltage * current;
+#ifdef DC_DRIVE_TRUTH_SPEED_CURRENT_LOSS
+    s->power += SPEED_CURRENT_LOSS * fabs(speed * current);
+#endif
 }
 
 static void derivatives(const ModelInstance *m, const Signals *s, double dx[NX]) {
@@ -151,16 +205,21 @@ void model_set_start_values(ModelInstance *m) {
     d->ambient_temperature = 293.15;
     d->speed_gain = 2.0;
     d->integral_gain = 10.0;
+    d->profile_repeats = 1.0;
     d->segment = 0;
+    d->pass = 0;
 }
 
 void model_initialize(ModelInstance *m) {
-    m->data.segment = segment_at(m->time);
+    m->data.pass = pass_at(&m->data, m->time);
+    m->data.segment = segment_at(&m->data, m->time);
     schedule_next_breakpoint(m);
 }
 
 void model_event_update(ModelInstance *m) {
-    int segment = segment_at(m->time);
+    int pass = pass_at(&m->data, m->time);
+    m->data.pass = pass;
+    int segment = segment_at(&m->data, m->time);
     if (segment != m->data.segment) {
         m->data.segment = segment;
         model_log(m, fmi2OK, "logEvents", "t=%g: profile segment %d, load torque %g N.m", m->time,
@@ -183,6 +242,7 @@ static double *parameter(ModelData *d, fmi2ValueReference vr) {
     case VR_AMBIENT_TEMPERATURE: return &d->ambient_temperature;
     case VR_SPEED_GAIN: return &d->speed_gain;
     case VR_INTEGRAL_GAIN: return &d->integral_gain;
+    case VR_PROFILE_REPEATS: return &d->profile_repeats;
     default: return NULL;
     }
 }

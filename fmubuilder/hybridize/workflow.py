@@ -44,8 +44,8 @@ VALIDATION_SHARE = 0.2
 DEFAULT_EPOCHS = 10
 # Seconds of the test data replayed by the round-trip validation (fmpy Euler and CVode).
 ROUNDTRIP_SPAN = 60.0
-# ANN inputs: the leading traced variable. Each further input is another way to fit noise, and the
-# runners-up often carry little new (on the VLDM, motor_torque_limit is a function of speed).
+# ANN inputs when they cannot be chosen on held-out data (hybridize.inputs, which decides how many
+# when it can): the leading traced variable.
 MAX_ANN_INPUTS = 1
 # NeuralFMU training: the data cut into elements of at most MAX_ELEMENT_LENGTH seconds (at least
 # MIN_ELEMENTS of them), all simulated side by side in one batch: one optimizer step per epoch, which
@@ -279,6 +279,7 @@ class _Context:
     aliases: dict = field(default_factory=dict)   # channel -> {output: channel}, see channel_aliases
     training: dict | None = None                  # what the NeuralFMU's training did
     progress: bool = True
+    input_choice: dict | None = None              # how the ANN's channels and inputs were chosen
 
 
 def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
@@ -289,12 +290,12 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
         term = _fitted_term_candidate(ctx, fitted, _aliases_of(ctx, fitted["channel"]))
         if term is not None:
             candidates.append(term)
-    inputs = _ann_inputs(diagnosis, ctx.info)
-    aliases = _aliases_of(ctx, diagnosis.channel)
-    ctx.say(f"[3/5] training a NeuralFMU: ANN on {diagnosis.channel} with inputs {', '.join(inputs)} "
+    channels, inputs = _ann_channels_and_inputs(ctx, diagnosis)
+    aliases = {name: c for channel in channels for name, c in _aliases_of(ctx, channel).items()}
+    ctx.say(f"[3/5] training a NeuralFMU: ANN on {', '.join(channels)} with inputs {', '.join(inputs)} "
             f"({ctx.epochs} epochs) ...")
     settings = _training_settings(ctx.roles.train[0].samples(), diagnosis)
-    candidates.append(_neural_candidate(ctx, diagnosis.channel, inputs, aliases, settings))
+    candidates.append(_neural_candidate(ctx, channels, inputs, aliases, settings))
     return candidates
 
 
@@ -340,6 +341,22 @@ def channel_aliases(model_fmu, info, channel: str, start_values: dict, data_time
             if index in channels and np.any(run.trajectories[name] != 0.0)}
 
 
+def _ann_channels_and_inputs(ctx: _Context, diagnosis) -> tuple[list[str], list[str]]:
+    """The derivatives the ANN corrects and the variables it reads, chosen by held-out error
+    (hybridize.inputs); the diagnosis' leading variable when that choice has nothing to go on
+    (the channel's state is not measured, or the driver of a closed loop hides the term in it)."""
+    from .inputs import choose_ann
+    choice = choose_ann(ctx.model_fmu, ctx.info, ctx.roles.train, ctx.roles.validation, diagnosis.channel,
+                        list(diagnosis.ambiguous_channels), ctx.scoring.step, ctx.scoring.solver)
+    if choice is None:
+        ctx.input_choice = {"rule": "the diagnosis' leading variable (the channel's state is not measured, or no "
+                                    "variable predicted its estimated missing term on the validation data)"}
+        return [diagnosis.channel], _ann_inputs(diagnosis, ctx.info)
+    ctx.input_choice = choice.to_dict()
+    ctx.say(f"      ANN inputs chosen on the validation data: {', '.join(choice.inputs)}")
+    return choice.channels, choice.inputs
+
+
 def _ann_inputs(diagnosis, info) -> list[str]:
     """The leading traced variables that an ANN can read (Real FMU variables, not time)."""
     usable = [name for name in diagnosis.inputs
@@ -363,7 +380,7 @@ def _fitted_term_candidate(ctx: _Context, fitted: dict, aliases: dict[str, str])
                        "fitted_on": ctx.roles.train[0].label})
 
 
-def _neural_candidate(ctx: _Context, channel: str, inputs: list[str], aliases: dict[str, str],
+def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], aliases: dict[str, str],
                       settings: dict) -> Candidate:
     from ..export import export_hybrid
     from ..neural import train_neural_fmu
@@ -376,7 +393,7 @@ def _neural_candidate(ctx: _Context, channel: str, inputs: list[str], aliases: d
         cap = max(1.0, ctx.time_budget - (time.perf_counter() - ctx.started))
     # The training sees the model through the data's sensor lag (from the sidecar), at the step and
     # with the solver every model is scored with.
-    trained = train_neural_fmu(ctx.model_fmu, first.samples(), targets=[channel], inputs=inputs,
+    trained = train_neural_fmu(ctx.model_fmu, first.samples(), targets=channels, inputs=inputs,
                                start_values=first.start_values, topology="residual", epochs=ctx.epochs,
                                seed=ctx.seed, time_budget=cap, solver=ctx.scoring.solver,
                                step_size=ctx.scoring.step, output=folder / "trained.neuralfmu",
@@ -390,10 +407,11 @@ def _neural_candidate(ctx: _Context, channel: str, inputs: list[str], aliases: d
     ctx.training = {"epochs": ctx.epochs, "epochs_done": metrics.get("epochs"), "seed": ctx.seed,
                     "time_budget": ctx.time_budget, "cut_short_by_time_budget": bool(metrics.get("cut_short_by_time_budget")),
                     "trained_on": first.label}
-    details = {"channel": channel, "inputs": inputs, "aliases": aliases, "epochs": metrics.get("epochs"),
-               "training_seconds": metrics.get("seconds"), "loss_signals": settings["loss_signals"],
-               "trained_on": first.label}
-    return _candidate(ctx, "neural", f"ANN on {channel} with inputs {', '.join(inputs)}", fmu, folder, details)
+    details = {"channel": ", ".join(channels), "channels": channels, "inputs": inputs, "aliases": aliases,
+               "epochs": metrics.get("epochs"), "training_seconds": metrics.get("seconds"),
+               "loss_signals": settings["loss_signals"], "trained_on": first.label, "input_choice": ctx.input_choice}
+    return _candidate(ctx, "neural", f"ANN on {', '.join(channels)} with inputs {', '.join(inputs)}", fmu, folder,
+                      details)
 
 
 def _training_settings(data: MeasuredData, diagnosis) -> dict:

@@ -1,0 +1,320 @@
+"""Which variables the ANN reads: those that predict the missing term on data it was not fitted to.
+
+A fit on the training data alone rewards any variable that tells the samples apart, a cumulative one
+(an energy, a position, an angle: a proxy for time) best of all; an ANN reading it extrapolates
+on every other run. So the inputs are chosen by held-out error, cheaply, without training a
+NeuralFMU per choice:
+
+1. The missing derivative term along the measured trajectory (collocation): the FMU is run with its
+   measured states forced to the data, and at each data stamp
+
+       missing = slope of the measured state  -  the FMU's derivative of it (averaged alike)
+
+   both by the same local linear fit (on the measured state and on the integral of the model's
+   derivative), so that the sensor noise and the events' steps are smoothed the same way.
+2. Candidates: the FMU's variables along that run; dropped are constant ones, the channel's own
+   derivative and variables equal to it, variables whose held-out values leave the range seen in
+   training (decided from the data, not the names), and copies of a variable kept before (a
+   torque proportional to a current).
+3. Greedy forward selection: add the variable that lowers the held-out error of a k-nearest-
+   neighbour smoother of the missing term the most; stop when the next one lowers it by less than
+   MIN_GAIN. A product of two variables needs both: the smoother sees the pair.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+# Share of held-out samples outside the training range (widened by RANGE_MARGIN of its width) above
+# which a variable is not offered to the ANN.
+OUT_OF_RANGE_SHARE = 0.1
+RANGE_MARGIN = 0.05
+# Two variables whose training values correlate beyond this are one input.
+DUPLICATE_CORRELATION = 0.999
+# A further input must lower the held-out error by this share of the error so far.
+MIN_GAIN = 0.1
+# Held-out errors within this share of the best are a tie: the preferred variable wins (measured
+# signals first, then by kind), since such a difference is no evidence.
+TIE = 0.05
+NEIGHBOURS = 10
+# Seconds of data per local fit of the measured state's slope.
+SLOPE_WINDOW = 0.6
+# Preference among copies of one variable: states, then outputs, inputs, locals, derivatives last.
+KIND_ORDER = {"state": 0, "output": 1, "input": 2, "local": 3, "derivative": 4}
+
+
+@dataclass
+class InputChoice:
+    channel: str
+    inputs: list[str]
+    validation_error: float             # held-out MSE of the smoother with the chosen inputs
+    baseline_error: float               # held-out MSE of the training mean (no input)
+    steps: list[dict] = field(default_factory=list)   # per greedy step: variable, error
+    out_of_range: dict = field(default_factory=dict)  # variable -> held-out share outside
+    duplicates: dict = field(default_factory=dict)    # dropped variable -> the one kept
+
+    @property
+    def explained(self) -> float:
+        """Share of the held-out variance of the missing term the inputs predict."""
+        return 1.0 - self.validation_error / self.baseline_error if self.baseline_error > 0 else 0.0
+
+    def to_dict(self) -> dict:
+        return {"channel": self.channel, "inputs": self.inputs, "validation_error": self.validation_error,
+                "baseline_error": self.baseline_error, "explained": self.explained, "steps": self.steps,
+                "out_of_range": self.out_of_range, "duplicates": self.duplicates}
+
+
+@dataclass
+class MissingTerm:
+    """The missing term of each channel and the candidate variables at the data's stamps."""
+    time: np.ndarray
+    missing: dict[str, np.ndarray]      # channel -> estimate at each stamp
+    variables: dict[str, np.ndarray]    # candidate -> value at each stamp
+    kinds: dict[str, str]
+    measured: set = field(default_factory=set)      # candidates that are measured signals
+    aliases: dict = field(default_factory=dict)     # channel -> variables equal to it in the model
+
+
+# -- step 1: the missing term along the measured trajectory ---------------------------------------
+
+def estimate_missing_terms(model_fmu, info, data, start_values: dict, channels: list[str], candidates: list[str],
+                           step: float, solver: str = "euler") -> MissingTerm | None:
+    """The FMU forced to the measured states over the whole run `data`; None when no channel's
+    state is measured. The sensors' lag (the data's `sensor_lag`) is undone on the forced states
+    and applied to the FMU's variables, so that both sides are compared as the sensors saw them."""
+    from ..data import first_order_lag
+    from ..diagnose.trace import variable_kind
+    from ..neural.collocation import local_slope
+    states = [v.name for v in info.states]
+    derivatives = [v.name for v in info.derivatives]
+    channel_states = {c: states[derivatives.index(c)] for c in channels}
+    channels = [c for c in channels if channel_states[c] in data.signals]
+    if not channels:
+        return None
+    candidates = list(dict.fromkeys([*candidates, *channels]))
+    lag = float(data.sensor_lag or 0.0)
+    forced = {s: _undo_lag(data.time, data.signals[s], lag) for s in states if s in data.signals}
+    grid, values = _forced_run(model_fmu, info, data, start_values, forced, candidates, step, solver)
+    seen = {n: first_order_lag(grid, v, lag) if lag > 0 else v for n, v in values.items()}
+    # A channel whose derivative reads an unmeasured state (a controller's integrator) is compared
+    # with the plain model's run instead: the forced run's unmeasured states drift away from the
+    # truth's, the plain run's are right as long as the effect does not feed back into them.
+    unforced = [c for c in channels if not _reads_measured_only(info, c, data)]
+    if unforced:
+        plain_grid, plain = _forced_run(model_fmu, info, data, start_values, {}, unforced, step, solver)
+        for c in unforced:
+            seen[c] = np.interp(grid, plain_grid, first_order_lag(plain_grid, plain[c], lag) if lag > 0 else plain[c])
+    at = data.time
+    missing = {}
+    for c in channels:
+        # The same local fit on the measured state and on the integral of the model's derivative:
+        # one linear operator on both, so that steps at events cancel instead of leaving spikes.
+        slope, valid = local_slope(at, data.signals[channel_states[c]], at, SLOPE_WINDOW)
+        model_slope, _ = local_slope(at, np.interp(at, grid, _integral(grid, seen[c])), at, SLOPE_WINDOW)
+        missing[c] = np.where(valid, slope - model_slope, np.nan)
+    sampled = {n: np.interp(at, grid, v) for n, v in values.items()}
+    aliases = {c: equal_to(sampled, c) for c in channels}
+    sampled = {n: np.interp(at, grid, seen[n]) for n in candidates}
+    return MissingTerm(at, missing, sampled, {n: variable_kind(info, n) for n in candidates},
+                       {n for n in candidates if n in data.signals}, aliases)
+
+
+def _reads_measured_only(info, channel: str, data) -> bool:
+    """Whether the FMU's derivative `channel` depends only on measured states and FMU inputs
+    (its ModelStructure dependencies; none declared: on everything)."""
+    dependencies = info.dependencies.get(channel)
+    if dependencies is None:
+        return False
+    known = set(data.signals) | set(getattr(data, "inputs", {}) or {})
+    return all(name in known for name in dependencies)
+
+
+def _undo_lag(time: np.ndarray, measured: np.ndarray, lag: float) -> np.ndarray:
+    """The sensed quantity before a first-order sensor lag: y + lag * dy/dt (dy/dt from local fits)."""
+    if lag <= 0:
+        return measured
+    from ..neural.collocation import local_slope
+    slope, valid = local_slope(time, measured, time, SLOPE_WINDOW)
+    return measured + lag * np.where(valid, slope, 0.0)
+
+
+def _forced_run(model_fmu, info, data, start_values, forced: dict, names, step, solver):
+    """(grid, {name: values}) of the plain FMU with the states in `forced` (name -> values at the
+    data's stamps) set after every step, so that its controllers react to the measured behaviour
+    (none forced: the plain run)."""
+    import torch
+    from ..neural import NeuralFMU
+    from ..neural.solve import ElementStart, simulate
+    from ..neural.topology import TopologyConfig
+    states = [v.name for v in info.states]
+    order = list(forced)
+    indices = [states.index(s) for s in order]
+
+    def values_at(t):
+        return np.stack([np.interp(t, data.time, forced[s]) for s in order], axis=1)
+
+    config = TopologyConfig(channels=[info.derivatives[0].name], inputs=[states[0]], kind="residual")
+    model = NeuralFMU(model_fmu, config, start_values)
+    try:
+        first = ElementStart(data.start, states=dict(zip(order, values_at(np.array([data.start]))[0])) if order else None)
+        forcing = (indices, values_at) if order else None
+        with torch.no_grad(), model.topology.ann_off():
+            run = simulate(model, data.stop - data.start, step, starts=[first], record=list(names), solver=solver,
+                           inputs=data.input_signals(info), forcing=forcing)
+        return data.start + np.asarray(run.times), {n: np.asarray(run.numpy(n)[:, 0], dtype=float) for n in names}
+    finally:
+        model.close()
+
+
+def _integral(grid: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Cumulative trapezoidal integral of a gridded signal from the grid's start."""
+    return np.concatenate(([0.0], np.cumsum(0.5 * (values[1:] + values[:-1]) * np.diff(grid))))
+
+
+# -- steps 2 and 3: candidates and the greedy choice ----------------------------------------------
+
+def choose_inputs(term: MissingTerm, channel: str, train: np.ndarray, validation: np.ndarray,
+                  exclude: set[str] = frozenset()) -> InputChoice:
+    """Inputs for the ANN at `channel`; train and validation: boolean masks over term.time."""
+    target = term.missing[channel]
+    usable = np.isfinite(target)
+    train, validation = train & usable, validation & usable
+    out_of_range = {n: share for n in term.variables
+                    if (share := outside_share(term.variables[n][train], term.variables[n][validation])) > OUT_OF_RANGE_SHARE}
+    exclude = {*exclude, channel, *term.aliases.get(channel, ())}
+    candidates = [n for n in term.variables if n not in exclude and n not in out_of_range
+                  and np.ptp(term.variables[n][train]) > 0]
+    candidates.sort(key=lambda n: (n not in term.measured, KIND_ORDER.get(term.kinds.get(n), 5)))
+    kept, duplicates = distinct_variables(term.variables, candidates, train)
+    y_train, y_validation = target[train], target[validation]
+    baseline = float(np.mean((y_validation - np.mean(y_train)) ** 2))
+    chosen, error, steps = [], baseline, []
+    while True:
+        trials = {n: smoother_error(term.variables, [*chosen, n], train, validation, target)
+                  for n in kept if n not in chosen}
+        if not trials:
+            break
+        lowest = min(trials.values())
+        best = next(n for n in trials if trials[n] <= (1.0 + TIE) * lowest)   # trials keep the preference order
+        if not trials[best] < (1.0 - MIN_GAIN) * error:
+            break
+        chosen.append(best)
+        error = trials[best]
+        steps.append({"variable": best, "validation_error": error})
+    return InputChoice(channel, chosen, error, baseline, steps, out_of_range, duplicates)
+
+
+def equal_to(variables: dict, channel: str) -> list[str]:
+    """Variables equal to the channel's derivative along the run (a power whose integral is an
+    energy state): an ANN reading them would read its own output."""
+    if channel not in variables:
+        return []
+    reference = variables[channel]
+    tolerance = 1e-9 * max(float(np.max(np.abs(reference))), 1e-300)
+    return [n for n, v in variables.items() if n != channel and float(np.max(np.abs(v - reference))) <= tolerance]
+
+
+def outside_share(train_values: np.ndarray, held_out: np.ndarray) -> float:
+    """Share of held-out values outside the training range widened by RANGE_MARGIN of its width."""
+    lo, hi = float(np.min(train_values)), float(np.max(train_values))
+    margin = RANGE_MARGIN * (hi - lo)
+    return float(np.mean((held_out < lo - margin) | (held_out > hi + margin))) if held_out.size else 0.0
+
+
+def distinct_variables(variables: dict, ordered: list[str], mask: np.ndarray) -> tuple[list[str], dict]:
+    """`ordered` without variables that are (anti)proportional to an earlier one on the training samples."""
+    kept, duplicates = [], {}
+    for name in ordered:
+        x = variables[name][mask]
+        twin = next((k for k in kept if abs(np.corrcoef(x, variables[k][mask])[0, 1]) > DUPLICATE_CORRELATION), None)
+        if twin is None:
+            kept.append(name)
+        else:
+            duplicates[name] = twin
+    return kept, duplicates
+
+
+def smoother_error(variables: dict, names: list[str], train: np.ndarray, validation: np.ndarray,
+                   target: np.ndarray) -> float:
+    """Held-out MSE of a k-nearest-neighbour mean of the target, inputs scaled by their training spread."""
+    from scipy.spatial import cKDTree
+    x = np.column_stack([variables[n] for n in names])
+    scale = np.std(x[train], axis=0)
+    x = x / np.where(scale > 0, scale, 1.0)
+    k = min(NEIGHBOURS, int(train.sum()))
+    _, index = cKDTree(x[train]).query(x[validation], k=k)
+    predicted = target[train][np.asarray(index).reshape(len(x[validation]), k)].mean(axis=1)
+    return float(np.mean((target[validation] - predicted) ** 2))
+
+
+# -- the workflow's choice: channels and inputs -----------------------------------------------------
+
+# A channel the diagnosis found about as good as its best one is corrected too when the inputs
+# predict this share of its estimated missing term on held-out data.
+EXTRA_CHANNEL_EXPLAINED = 0.5
+
+
+@dataclass
+class AnnChoice:
+    channels: list[str]
+    inputs: list[str]
+    per_channel: list[InputChoice]
+
+    def to_dict(self) -> dict:
+        return {"channels": self.channels, "inputs": self.inputs, "rule": "greedy forward selection by the "
+                "held-out error of a nearest-neighbour smoother of the estimated missing term",
+                "per_channel": [c.to_dict() for c in self.per_channel]}
+
+
+def choose_ann(model_fmu, info, train_parts, validation_parts, channel: str, further: list[str],
+               step: float, solver: str) -> AnnChoice | None:
+    """Channels and inputs of the ANN: `channel` (the diagnosis' best) and those of `further`
+    whose missing term the chosen inputs predict on held-out data. Parts: objects with `data`,
+    `start_values` and `window` (the workflow's roles). None when the channel's state is not
+    measured or no variable predicts its missing term: the caller falls back to the diagnosis."""
+    from ..diagnose.trace import candidate_variables
+    channels = [channel, *further]
+    runs, terms = [], []
+    for part in [*train_parts[:1], *validation_parts]:     # each run once
+        if all(part.data is not run.data for run in runs):
+            runs.append(part)
+            terms.append(estimate_missing_terms(model_fmu, info, part.data, part.start_values, channels,
+                                                candidate_variables(info), step, solver))
+    if any(t is None or channel not in t.missing for t in terms):
+        return None
+    term = _joined(terms)
+    train = np.concatenate([_in_windows(t, r.data, train_parts[:1]) for t, r in zip(terms, runs)])
+    validation = np.concatenate([_in_windows(t, r.data, validation_parts) for t, r in zip(terms, runs)])
+    first = choose_inputs(term, channel, train, validation)
+    if not first.inputs:
+        return None
+    chosen = [first]
+    for extra in further:
+        if extra in term.missing:
+            choice = choose_inputs(term, extra, train, validation)
+            if choice.inputs and choice.explained >= EXTRA_CHANNEL_EXPLAINED:
+                chosen.append(choice)
+    inputs = list(dict.fromkeys(n for c in chosen for n in c.inputs))
+    return AnnChoice([c.channel for c in chosen], inputs, chosen)
+
+
+def _in_windows(term: MissingTerm, data, parts) -> np.ndarray:
+    """Mask over term.time: the samples inside the windows of the parts of the run `data`."""
+    mask = np.zeros(term.time.size, dtype=bool)
+    for part in parts:
+        if part.data is data:
+            mask |= (term.time >= part.window[0]) & (term.time <= part.window[1])
+    return mask
+
+
+def _joined(terms: list[MissingTerm]) -> MissingTerm:
+    """One MissingTerm of several runs, one after the other (the smoother ignores time)."""
+    if len(terms) == 1:
+        return terms[0]
+    first = terms[0]
+    channels = [c for c in first.missing if all(c in t.missing for t in terms)]
+    return MissingTerm(np.concatenate([t.time for t in terms]),
+                       {c: np.concatenate([t.missing[c] for t in terms]) for c in channels},
+                       {n: np.concatenate([t.variables[n] for t in terms]) for n in first.variables},
+                       first.kinds, set.union(*(t.measured for t in terms)), first.aliases)
