@@ -9,7 +9,7 @@ simulations, not seconds:
                  simulation each over the first SCREEN_SAMPLES samples of the first training run.
                  The change of the signals, regressed on their residual, says how much of the
                  residual that parameter can remove (its `explained` share, 0..1); rank by it
-    fit       -> the best MAX_CALIBRATED parameters, each on the training role (all training runs)
+    fit       -> the best MAX_CALIBRATED parameters (see RUNNER_UP_SHARE), each on the training role (all training runs)
                  by Gauss-Newton with step halving, in at most FIT_SIMULATIONS simulations each,
                  within [start / RANGE, start * RANGE]
 
@@ -38,8 +38,10 @@ SCREEN_SAMPLES = 1000
 # Parameters fitted after the screening, and simulations per fit.
 MAX_CALIBRATED = 2
 FIT_SIMULATIONS = 8
-# A screened parameter must explain at least this share of the residual to be fitted.
+# A screened parameter is fitted when it explains at least MIN_EXPLAINED of the residual and at
+# least RUNNER_UP_SHARE of what the leading one explains (a distant runner-up rarely wins).
 MIN_EXPLAINED = 0.05
+RUNNER_UP_SHARE = 0.5
 # The fit stays within a factor RANGE of the declared value (same sign).
 RANGE = 10.0
 # Screened parameters listed in the report.
@@ -220,7 +222,9 @@ def calibrate(model_fmu, info, runs: Runs, scoring: Scoring, *, say=None) -> tup
     say = say or (lambda *a, **k: None)
     ranked = screen_parameters(model_fmu, info, runs, scoring)
     fits = []
-    for sensitivity in [s for s in ranked if s.explained >= MIN_EXPLAINED][:MAX_CALIBRATED]:
+    leading = ranked[0].explained if ranked else 0.0
+    chosen = [s for s in ranked if s.explained >= max(MIN_EXPLAINED, RUNNER_UP_SHARE * leading)]
+    for sensitivity in chosen[:MAX_CALIBRATED]:
         say(f"      calibrating {sensitivity.name} (explains {sensitivity.explained:.0%} of the residual "
             f"on the first {SCREEN_SAMPLES} samples) ...")
         fit = fit_parameter(model_fmu, runs, scoring, sensitivity.name, sensitivity.declared)
