@@ -159,13 +159,15 @@ def screen_parameters(model_fmu, info, runs: Runs, scoring: Scoring) -> list[Sen
     plain.set_scale(errors)
     residual = plain.scaled(errors)
     total = float(residual @ residual)
+    if total == 0.0:
+        return []          # the plain model fits the data exactly: nothing to explain
     ranked = []
     for var in calibratable_parameters(info, set(start_values)):
         declared = float(var.start)
         delta = PERTURBATION * declared
         objective = _Objective(model_fmu, screen_runs, scoring, var.name)
         perturbed = objective.errors(declared + delta)
-        if perturbed is None or total == 0.0:
+        if perturbed is None:
             continue
         gradient = plain.scaled(perturbed - errors) / delta
         gg = float(gradient @ gradient)
