@@ -30,9 +30,13 @@ from ..data import MeasuredData
 from ..errors import FmuBuilderError
 from .evaluate import Scoring, evaluate
 
-# Relative perturbation of a parameter for its finite-difference sensitivity. Large enough that
-# a fixed-step simulation with events responds smoothly, small enough to stay linear.
-PERTURBATION = 1e-2
+# Relative perturbation of a parameter for its finite-difference sensitivity: of the size of the
+# errors sought. A model with events (a driver's relays, a sampled controller) answers a 1 % change
+# with shifted event times that hide the parameter's effect (on the VLDM, a 1 % larger mass
+# correlates with the speed residual of a 10 % larger one at cos^2 = 0.14, a 10 % one at 0.82).
+# The fit shrinks it to its last step, down to MIN_PERTURBATION, as it closes in.
+PERTURBATION = 0.1
+MIN_PERTURBATION = 0.01
 # Samples of the first training run the screening simulates (the diagnosis traces as many).
 SCREEN_SAMPLES = 1000
 # Parameters fitted after the screening, and simulations per fit.
@@ -191,8 +195,9 @@ def fit_parameter(model_fmu, runs: Runs, scoring: Scoring, name: str, declared: 
     value, residual = declared, objective.scaled(errors)
     score = float(residual @ residual)
     history = [(value, score)]
+    relative_delta = PERTURBATION
     while objective.simulations + 2 <= budget:
-        delta = PERTURBATION * value
+        delta = relative_delta * value
         perturbed = objective.errors(value + delta)
         if perturbed is None:
             break
@@ -209,6 +214,7 @@ def fit_parameter(model_fmu, runs: Runs, scoring: Scoring, name: str, declared: 
                 trial_residual = objective.scaled(trial)
                 trial_score = float(trial_residual @ trial_residual)
                 if trial_score < score:
+                    relative_delta = min(PERTURBATION, max(MIN_PERTURBATION, abs(trial_value - value) / abs(value)))
                     value, residual, score, accepted = trial_value, trial_residual, trial_score, True
                     history.append((value, score))
                     break
