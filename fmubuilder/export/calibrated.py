@@ -7,11 +7,12 @@ its own value, and an importer that sets no start values (fmpy's default) simula
 So the calibrated FMU carries the original whole (binaries, resources, documentation, extra) and
 beside its binary a small library, `<id>_calibrated.so` (fmubuilder/export/calibrated_fmu.c),
 that loads the original's binary privately, sets the calibrated values at fmi2Instantiate and
-again after fmi2Reset, and forwards every other call unchanged. Its modelDescription.xml is the original's with the new start
-values, a new GUID and modelIdentifier, and no SourceFiles (they build the original, not this).
+again after fmi2Reset, and forwards every other call unchanged. Its modelDescription.xml is the
+original's with the new start values, a new GUID and modelIdentifier, and no SourceFiles (they
+build the original, not this). The export runs fmpy's validation on the result.
 
-`validate_calibrated` checks the result: fmpy's validation, and fmpy running the calibrated FMU
-without start values against fmpy and fmubuilder's engine running the original with them.
+`validate_calibrated` is the round trip: fmpy running the calibrated FMU without start values
+against fmpy and fmubuilder's engine running the original with them.
 """
 from __future__ import annotations
 

@@ -9,9 +9,9 @@ simulations, not seconds:
                  simulation each over the first SCREEN_SAMPLES samples of the first training run.
                  The change of the signals, regressed on their residual, says how much of the
                  residual that parameter can remove (its `explained` share, 0..1); rank by it
-    fit       -> the best MAX_CALIBRATED parameters (see RUNNER_UP_SHARE), each on the training role (all training runs)
-                 by Gauss-Newton with step halving, in at most FIT_SIMULATIONS simulations each,
-                 within [start / RANGE, start * RANGE]
+    fit       -> the best MAX_CALIBRATED parameters (see RUNNER_UP_SHARE), each on the training
+                 role (all training runs) by Gauss-Newton with step halving, in at most
+                 FIT_SIMULATIONS simulations each, within [start / RANGE, start * RANGE]
 
 Every run is scored as the workflow scores candidates (`evaluate`: the engine with the scoring
 solver and step, the data's sensor lag), and the objective is the workflow's score: the mean over
@@ -224,7 +224,8 @@ def fit_parameter(model_fmu, runs: Runs, scoring: Scoring, name: str, declared: 
     return Calibration(name, declared, value, score, objective.simulations, history)
 
 
-def calibrate(model_fmu, info, runs: Runs, scoring: Scoring, *, say=None) -> tuple[list[Sensitivity], list[Calibration]]:
+def calibrate(model_fmu, info, runs: Runs, scoring: Scoring, *,
+              say=None) -> tuple[list[Sensitivity], list[Calibration]]:
     """Screen the parameters on the first run, fit the best MAX_CALIBRATED on all `runs`.
     Returns the screening (all parameters, ranked) and the fits that lowered the training score."""
     say = say or (lambda *a, **k: None)

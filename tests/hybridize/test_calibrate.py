@@ -14,7 +14,6 @@ from fmpy.validation import validate_fmu
 
 from fmubuilder import synth
 from fmubuilder.build import example_fmu
-from fmubuilder.data import MeasuredData
 from fmubuilder.errors import FmuBuilderError
 from fmubuilder.export.calibrated import export_calibrated
 from fmubuilder.fmi import read_model_info
