@@ -370,7 +370,8 @@ def _leader(group: list[Trial]) -> Trial:
 
 def _cos2(a: np.ndarray, b: np.ndarray) -> float:
     # Through the norms: a response that ran off (1e160) must not overflow the squared products.
-    na, nb = float(np.linalg.norm(a)), float(np.linalg.norm(b))
+    with np.errstate(over="ignore"):
+        na, nb = float(np.linalg.norm(a)), float(np.linalg.norm(b))
     if not (na > 0 and nb > 0 and np.isfinite(na) and np.isfinite(nb)):
         return 0.0
     return float((a / na) @ (b / nb)) ** 2
