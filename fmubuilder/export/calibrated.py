@@ -12,7 +12,7 @@ original's with the new start values, a new GUID and modelIdentifier, and no Sou
 build the original, not this). The export runs fmpy's validation on the result.
 
 `validate_calibrated` is the round trip: fmpy running the calibrated FMU without start values
-against fmpy and fmubuilder's engine running the original with them.
+against fmpy and fmubuilder's replica of fmpy's Euler loop running the original with them.
 """
 from __future__ import annotations
 
@@ -166,13 +166,17 @@ def _check_with_fmpy(fmu: Path, original: Path) -> None:
 
 def validate_calibrated(calibrated_fmu, original_fmu, parameters: dict[str, float], *, start_values=None,
                         start_time: float = 0.0, stop_time: float, step_size: float, variables=None) -> dict:
-    """fmpy (Euler) on the calibrated FMU without the calibrated values against fmpy and the engine
-    on the original with them: the same binary and arithmetic, so equal to round-off.
+    """fmpy (Euler) on the calibrated FMU without the calibrated values against fmpy and
+    fmubuilder's replica of fmpy's Euler loop on the original with them: the same binary and
+    arithmetic, so equal to round-off.
     Returns {"passed", "max_rel_error", "rows", "table"}."""
     import fmpy
 
     from fmubuilder.fmi import read_model_info
-    from fmubuilder.simulation import simulate
+    from fmubuilder.fmi.instance import Fmu
+    from fmubuilder.simulation import FmuSystem
+
+    from .validate import simulate_fmpy_euler
     info = read_model_info(original_fmu)
     start_values = dict(start_values or {})
     names = list(variables or [v.name for v in info.variables.values()
@@ -186,11 +190,17 @@ def validate_calibrated(calibrated_fmu, original_fmu, parameters: dict[str, floa
 
     calibrated = fmpy_run(calibrated_fmu, start_values)
     original = fmpy_run(original_fmu, {**start_values, **parameters})
-    engine = simulate(original_fmu, start_time=start_time, stop_time=stop_time, solver="euler", step_size=step_size,
-                      output_interval=step_size, start_values={**start_values, **parameters}, variables=names)
+    # fmubuilder's replica of fmpy's Euler loop (export/validate.py) on the original, in the engine's
+    # FMU access: independent of fmpy's binding, same event handling as fmpy's loop.
+    with Fmu(original_fmu) as fmu:
+        system = FmuSystem(fmu, variables=names, start_values={**start_values, **parameters})
+        try:
+            replica = simulate_fmpy_euler(system, start_time, stop_time, step_size)
+        finally:
+            system.close()
     rows = [_compare("fmpy Euler: calibrated FMU vs original with the values", calibrated, original, names),
-            _compare("fmpy Euler (calibrated FMU) vs engine Euler (original with the values)", calibrated,
-                     {n: np.asarray(engine[n]) for n in names} | {"time": np.asarray(engine.time)}, names)]
+            _compare("fmpy Euler (calibrated FMU) vs fmubuilder's fmpy-Euler loop (original with the values)",
+                     calibrated, {"time": replica.time, **replica.values}, names)]
     worst = max(r["max_rel"] for r in rows)
     table = "\n".join(f"{r['label']}: max relative difference {r['max_rel']:.3g} over {r['samples']} samples"
                       for r in rows)
