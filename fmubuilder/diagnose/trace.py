@@ -372,8 +372,12 @@ def _leader(group: list[Trial]) -> Trial:
 
 
 def _cos2(a: np.ndarray, b: np.ndarray) -> float:
-    aa, bb = float(a @ a), float(b @ b)
-    return float(a @ b) ** 2 / (aa * bb) if aa > 0 and bb > 0 else 0.0
+    # Through the norms: a response that ran off (1e160) must not overflow the squared products.
+    with np.errstate(over="ignore"):
+        na, nb = float(np.linalg.norm(a)), float(np.linalg.norm(b))
+    if not (na > 0 and nb > 0 and np.isfinite(na) and np.isfinite(nb)):
+        return 0.0
+    return float((a / na) @ (b / nb)) ** 2
 
 
 def variable_kind(info, name: str) -> str:

@@ -9,8 +9,9 @@ The data play three roles, and each number in the report comes from one of them:
                   reported, the chosen one's and the others'
 
     diagnosis  -> is there an effect beyond noise? which derivative, which variables?
-    candidates -> a NeuralFMU with the ANN at the traced channel and inputs, and the fitted
-                  symbolic term when the diagnosis offers one; each exported as a hybrid FMU
+    candidates -> a NeuralFMU with the ANN at the traced channel and inputs, the fitted
+                  symbolic term when the diagnosis offers one, and the FMU with a parameter
+                  calibrated (hybridize/calibrate.py); each exported as an FMU
     selection  -> the candidate with the lower validation error, if it beats the plain FMU there
     round trip -> of the chosen hybrid FMU (fmpy vs the Python reference)
     report     -> DIR/report.json, DIR/report.md, DIR/report.html (plots inline) and the plots
@@ -98,7 +99,7 @@ class Scores:
 
 @dataclass
 class Candidate:
-    name: str                      # "neural" or "fitted term"
+    name: str                      # "neural", "fitted term" or "calibrated <parameter>"
     description: str
     fmu: Path
     spec_dir: Path
@@ -290,6 +291,7 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
         term = _fitted_term_candidate(ctx, fitted, _aliases_of(ctx, fitted["channel"]))
         if term is not None:
             candidates.append(term)
+    candidates += _calibrated_candidates(ctx)
     channels, inputs = _ann_channels_and_inputs(ctx, diagnosis)
     aliases = {name: c for channel in channels for name, c in _aliases_of(ctx, channel).items()}
     ctx.say(f"[3/5] training a NeuralFMU: ANN on {', '.join(channels)} with inputs {', '.join(inputs)} "
@@ -380,6 +382,23 @@ def _fitted_term_candidate(ctx: _Context, fitted: dict, aliases: dict[str, str])
                        "fitted_on": ctx.roles.train[0].label})
 
 
+def _calibrated_candidates(ctx: _Context) -> list[Candidate]:
+    """One candidate per calibrated parameter: the original FMU with the value fitted on the training data."""
+    from .calibrate import calibrated_fmu, calibrate
+    ctx.say("[2/5] screening the FMU's parameters for one that explains the residual ...")
+    ranked, fits = calibrate(ctx.model_fmu, ctx.info, [(p.samples(), p.start_values) for p in ctx.roles.train],
+                             ctx.scoring, say=ctx.say)
+    candidates = []
+    for fit in fits:
+        folder = ctx.work / f"calibrated_{len(candidates)}"
+        folder.mkdir()
+        fmu = calibrated_fmu(ctx.model_fmu, fit, folder)
+        candidates.append(_candidate(ctx, f"calibrated {fit.name}", fit.description, fmu, folder,
+                                     fit.details(ranked, ctx.roles.train[0].label, ctx.model_fmu,
+                                                 ctx.scoring.step)))
+    return candidates
+
+
 def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], aliases: dict[str, str],
                       settings: dict) -> Candidate:
     from ..export import export_hybrid
@@ -427,6 +446,9 @@ def _roundtrip(chosen: Candidate, test: Part) -> dict:
     from ..export import validate_hybrid
     data = test.data
     stop = min(data.stop, data.start + ROUNDTRIP_SPAN)
+    if "calibrated" in chosen.details:
+        from .calibrate import roundtrip
+        return roundtrip(chosen.fmu, chosen.details, test.start_values, data.start, stop)
     report = validate_hybrid(chosen.fmu, spec=chosen.spec_dir / "spec.json", start_values=test.start_values,
                              stop_time=stop)
     rows = [c for c in report.comparisons if not c.informational and c.compared]

@@ -1,0 +1,258 @@
+"""Calibration of one FMU parameter: a candidate beside the fitted term and the NeuralFMU.
+
+Many models are wrong in a number rather than in a missing term: a mass, a resistance, a friction.
+Then the best correction is the parameter's value, not a network. The search is budgeted in
+simulations, not seconds:
+
+    screening -> each Real parameter (causality "parameter", variability fixed or tunable, not set
+                 by the data's start values) is perturbed once by PERTURBATION of its value: one
+                 simulation each over the first SCREEN_SAMPLES samples of the first training run.
+                 The change of the signals, regressed on their residual, says how much of the
+                 residual that parameter can remove (its `explained` share, 0..1); rank by it
+    fit       -> the best MAX_CALIBRATED parameters (see RUNNER_UP_SHARE), each on the training
+                 role (all training runs) by Gauss-Newton with step halving, in at most
+                 FIT_SIMULATIONS simulations each, within [start / RANGE, start * RANGE]
+
+Every run is scored as the workflow scores candidates (`evaluate`: the engine with the scoring
+solver and step, the data's sensor lag), and the objective is the workflow's score: the mean over
+the signals of MSE / MSE of the plain FMU. So the fit minimises on the training data exactly what
+the choice compares on the validation data.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..data import MeasuredData
+from ..errors import FmuBuilderError
+from .evaluate import Scoring, evaluate
+
+# Relative perturbation of a parameter for its finite-difference sensitivity: of the size of the
+# errors sought. A model with events (a driver's relays, a sampled controller) answers a 1 % change
+# with shifted event times that hide the parameter's effect (on the VLDM, a 1 % larger mass
+# correlates with the speed residual of a 10 % larger one at cos^2 = 0.14, a 10 % one at 0.82).
+# The fit shrinks it to its last step, down to MIN_PERTURBATION, as it closes in.
+PERTURBATION = 0.1
+MIN_PERTURBATION = 0.01
+# Samples of the first training run the screening simulates (the diagnosis traces as many).
+SCREEN_SAMPLES = 1000
+# Parameters fitted after the screening, and simulations per fit.
+MAX_CALIBRATED = 2
+FIT_SIMULATIONS = 8
+# A screened parameter is fitted when it explains at least MIN_EXPLAINED of the residual and at
+# least RUNNER_UP_SHARE of what the leading one explains (a distant runner-up rarely wins).
+MIN_EXPLAINED = 0.05
+RUNNER_UP_SHARE = 0.5
+# The fit stays within a factor RANGE of the declared value (same sign).
+RANGE = 10.0
+# Screened parameters listed in the report.
+SCREEN_REPORTED = 5
+# The fit stops when a step changes the value by less than this (relative).
+STEP_TOLERANCE = 1e-4
+
+Runs = list[tuple[MeasuredData, dict]]      # training samples and the start values of their run
+
+
+@dataclass
+class Sensitivity:
+    """How far perturbing one parameter goes towards the measured data."""
+    name: str
+    declared: float
+    explained: float          # share of the score the best linear step along this parameter removes
+    linear_estimate: float    # the value that step reaches
+
+
+@dataclass
+class Calibration:
+    """One parameter fitted on the training data."""
+    name: str
+    declared: float
+    value: float
+    train_score: float        # mean over signals of MSE / MSE plain, on the training samples
+    simulations: int
+    history: list = field(default_factory=list)     # (value, score) of every accepted step
+
+    @property
+    def description(self) -> str:
+        return f"{self.name} = {self.value:.6g} (declared {self.declared:.6g})"
+
+    def details(self, ranked: list[Sensitivity], fitted_on: str, original_fmu, step: float) -> dict:
+        """What the report says about this candidate (and what its round trip needs)."""
+        return {"calibrated": {self.name: self.value}, "declared": {self.name: self.declared},
+                "train_score": self.train_score, "simulations": self.simulations, "fitted_on": fitted_on,
+                "screening": [{"parameter": s.name, "explained": s.explained} for s in ranked[:SCREEN_REPORTED]],
+                "original_fmu": str(original_fmu), "step": step}
+
+
+def calibratable_parameters(info, fixed_by_data: set[str]) -> list:
+    """Real parameters the data leave free, with a non-zero finite start value to perturb from
+    (a zero start gives no scale for the perturbation)."""
+    chosen = []
+    for var in info.parameters:
+        if var.causality != "parameter" or var.type != "Real" or var.variability not in ("fixed", "tunable"):
+            continue
+        if var.name in fixed_by_data:
+            continue
+        try:
+            start = float(var.start)
+        except (TypeError, ValueError):
+            continue
+        if start != 0.0 and math.isfinite(start):
+            chosen.append(var)
+    return chosen
+
+
+class _Objective:
+    """The score of a parameter value on some runs, and the scaled error vector behind it:
+    score(value) = ||e(value)||^2 with e = (model - measured) / sqrt(n_signals * N_s * MSE_plain_s)."""
+
+    def __init__(self, model_fmu, runs: Runs, scoring: Scoring, name: str | None):
+        self.model_fmu, self.runs, self.scoring, self.name = model_fmu, runs, scoring, name
+        self.simulations = 0
+        self.scale = None
+
+    def errors(self, value: float | None) -> np.ndarray | None:
+        """The unscaled errors of all signals on all runs, or None where the simulation fails."""
+        pieces = {}
+        for data, start_values in self.runs:
+            starts = dict(start_values) if value is None else {**start_values, self.name: value}
+            self.simulations += 1
+            try:
+                run = evaluate(self.model_fmu, data, starts, self.scoring)
+            except FmuBuilderError:
+                return None
+            for signal in data.names:
+                pieces.setdefault(signal, []).append(run.predicted[signal] - data.signals[signal])
+        errors = np.concatenate([np.concatenate(pieces[s]) for s in sorted(pieces)])
+        return errors if np.all(np.isfinite(errors)) else None
+
+    def set_scale(self, plain_errors: np.ndarray) -> None:
+        """Per-sample weights from the plain model's errors, as `relative_mse` weighs signals."""
+        sizes = {}
+        for data, _ in self.runs:
+            for signal in data.names:
+                sizes[signal] = sizes.get(signal, 0) + data.signals[signal].size
+        scale, offset, used = [], 0, 0
+        for signal in sorted(sizes):
+            piece = plain_errors[offset:offset + sizes[signal]]
+            mse = float(np.mean(piece ** 2))
+            scale.append(np.full(sizes[signal], 1.0 / math.sqrt(sizes[signal] * mse) if mse > 0 else 0.0))
+            used += mse > 0
+            offset += sizes[signal]
+        self.scale = np.concatenate(scale) / math.sqrt(max(used, 1))
+
+    def scaled(self, errors: np.ndarray) -> np.ndarray:
+        return errors * self.scale
+
+
+def screen_parameters(model_fmu, info, runs: Runs, scoring: Scoring) -> list[Sensitivity]:
+    """Every calibratable parameter, ranked by the share of the residual its sensitivity explains
+    on the first SCREEN_SAMPLES samples of the first run (one simulation per parameter, plus one
+    of the plain model)."""
+    data, start_values = runs[0]
+    screen = data.window(data.start, float(data.time[min(SCREEN_SAMPLES, data.time.size) - 1]))
+    screen_runs = [(screen, start_values)]
+    plain = _Objective(model_fmu, screen_runs, scoring, None)
+    errors = plain.errors(None)
+    if errors is None:
+        raise FmuBuilderError(f"{model_fmu}: the plain model does not simulate over the training data; "
+                              "check the data's start values")
+    plain.set_scale(errors)
+    residual = plain.scaled(errors)
+    total = float(residual @ residual)
+    if total == 0.0:
+        return []          # the plain model fits the data exactly: nothing to explain
+    ranked = []
+    for var in calibratable_parameters(info, set(start_values)):
+        declared = float(var.start)
+        delta = PERTURBATION * declared
+        objective = _Objective(model_fmu, screen_runs, scoring, var.name)
+        perturbed = objective.errors(declared + delta)
+        if perturbed is None:
+            continue
+        gradient = plain.scaled(perturbed - errors) / delta
+        gg = float(gradient @ gradient)
+        if gg == 0.0:
+            continue
+        step = -float(gradient @ residual) / gg
+        ranked.append(Sensitivity(var.name, declared, float(gradient @ residual) ** 2 / (gg * total), declared + step))
+    return sorted(ranked, key=lambda s: s.explained, reverse=True)
+
+
+def fit_parameter(model_fmu, runs: Runs, scoring: Scoring, name: str, declared: float,
+                  budget: int = FIT_SIMULATIONS) -> Calibration | None:
+    """Gauss-Newton on the score over `runs`, one sensitivity simulation per step, a step that
+    does not lower the score halved; None when the plain model does not simulate."""
+    objective = _Objective(model_fmu, runs, scoring, name)
+    errors = objective.errors(declared)
+    if errors is None:
+        return None
+    objective.set_scale(errors)
+    low, high = sorted((declared / RANGE, declared * RANGE))
+    value, residual = declared, objective.scaled(errors)
+    score = float(residual @ residual)
+    history = [(value, score)]
+    relative_delta = PERTURBATION
+    while objective.simulations + 2 <= budget:
+        delta = relative_delta * value
+        perturbed = objective.errors(value + delta)
+        if perturbed is None:
+            break
+        gradient = (objective.scaled(perturbed) - residual) / delta
+        gg = float(gradient @ gradient)
+        if gg == 0.0:
+            break
+        step = -float(gradient @ residual) / gg
+        accepted = False
+        while objective.simulations < budget and abs(step) > STEP_TOLERANCE * abs(value):
+            trial_value = min(max(value + step, low), high)
+            trial = objective.errors(trial_value)
+            if trial is not None:
+                trial_residual = objective.scaled(trial)
+                trial_score = float(trial_residual @ trial_residual)
+                if trial_score < score:
+                    relative_delta = min(PERTURBATION, max(MIN_PERTURBATION, abs(trial_value - value) / abs(value)))
+                    value, residual, score, accepted = trial_value, trial_residual, trial_score, True
+                    history.append((value, score))
+                    break
+            step /= 2.0
+        if not accepted or abs(step) <= STEP_TOLERANCE * abs(value):
+            break
+    return Calibration(name, declared, value, score, objective.simulations, history)
+
+
+def calibrate(model_fmu, info, runs: Runs, scoring: Scoring, *,
+              say=None) -> tuple[list[Sensitivity], list[Calibration]]:
+    """Screen the parameters on the first run, fit the best MAX_CALIBRATED on all `runs`.
+    Returns the screening (all parameters, ranked) and the fits that lowered the training score."""
+    say = say or (lambda *a, **k: None)
+    ranked = screen_parameters(model_fmu, info, runs, scoring)
+    fits = []
+    leading = ranked[0].explained if ranked else 0.0
+    chosen = [s for s in ranked if s.explained >= max(MIN_EXPLAINED, RUNNER_UP_SHARE * leading)]
+    for sensitivity in chosen[:MAX_CALIBRATED]:
+        say(f"      calibrating {sensitivity.name} (explains {sensitivity.explained:.0%} of the residual "
+            f"on the first {SCREEN_SAMPLES} samples) ...")
+        fit = fit_parameter(model_fmu, runs, scoring, sensitivity.name, sensitivity.declared)
+        if fit is not None and fit.value != fit.declared:
+            fits.append(fit)
+    return ranked, fits
+
+
+def calibrated_fmu(model_fmu, fit: Calibration, folder) -> Path:
+    """The original FMU with the fitted value as its own (see fmubuilder.export.calibrated)."""
+    from ..export.calibrated import export_calibrated
+    return export_calibrated(model_fmu, {fit.name: fit.value}, Path(folder) / "calibrated.fmu")
+
+
+def roundtrip(fmu, details: dict, start_values: dict, start: float, stop: float) -> dict:
+    """The workflow's round trip of a calibrated candidate: the exported FMU in fmpy against the
+    original with the calibrated values (fmpy and the engine, Euler at the scoring step)."""
+    from ..export.calibrated import validate_calibrated
+    check = validate_calibrated(fmu, details["original_fmu"], details["calibrated"], start_values=start_values,
+                                start_time=start, stop_time=stop, step_size=details["step"])
+    return {"passed": check["passed"], "max_rel_error": check["max_rel_error"], "span": [start, stop],
+            "table": check["table"], "not_compared": []}
