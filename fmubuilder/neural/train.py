@@ -27,7 +27,8 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
 3. Optional collocation pre-training (CCPT) for channels der(s) whose state s is measured: the FMU is
    run with the measured states forced to the data (its events still happen), the derivative of
    s is estimated from the data by local linear fits, and the ANN is fitted to the residual without
-   the ODE solver. The ANN gate is set to 1 first if it was 0.
+   the ODE solver. The ANN gate is set to 1 first if it was 0. The warm start (`warm_start`,
+   warm_start.py) fits the same target full-batch with L-BFGS instead of Adam on minibatches.
 4. Training: the data are cut into elements (default 100 s) simulated side by side; the loss is the
    MSE per measured signal (weighted by the uncertainty band when the CSV has <signal>_std columns)
    divided by the plain FMU's MSE on the same elements, averaged over the signals: every signal
@@ -86,6 +87,8 @@ class TrainSettings:
     nipt_iterations: int = 400
     ccpt_iterations: int = 0          # 0: no collocation pre-training
     ccpt_window: float = 1.0          # seconds of data per local derivative fit
+    warm_start: bool = False          # fit the ANN to the collocation estimate (L-BFGS) before training
+    warm_start_iterations: int = 300  # L-BFGS iterations of the warm start
     time_budget: float | None = None  # seconds for the whole training call
     seed: int = 0
     loss_signals: list[str] | None = None  # default: every measured signal
@@ -146,7 +149,8 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
                    "seconds": time.perf_counter() - started, "epochs": trainer.epochs_done,
                    "epochs_planned": settings.epochs, "cut_short_by_time_budget": trainer.cut_short,
                    "loss": trainer.history[-1]["loss"] if trainer.history else None,
-                   "settings": asdict(settings), "element_start_replays": dict(model.replays)}
+                   "settings": asdict(settings), "element_start_replays": dict(model.replays),
+                   "warm_start": trainer.warm_start}
         if test_data is not None:
             test = test_data if isinstance(test_data, MeasuredData) else load_data(test_data, model.info)
             if test_start_values is None:
@@ -277,6 +281,7 @@ class Trainer:
         self.cut_short = False     # the time budget ended the training before its epochs
         self.elements: list[_Element] = []
         self.reference = None
+        self.warm_start: dict | None = None   # what the warm start did (see warm_start.py)
         self.best_loss, self.best_state, self._best = math.inf, None, None   # see _keep_best
 
     def elapsed(self) -> float:
@@ -301,6 +306,9 @@ class Trainer:
             neutral_pretraining(self.model, *self._scaling_samples(), iterations=self.settings.nipt_iterations)
         if self.settings.ccpt_iterations and self.model.topology.has_ann:
             collocation_pretraining(self)
+        if self.settings.warm_start and self.model.topology.has_ann:
+            from .warm_start import warm_start
+            self.warm_start = warm_start(self)
         if not self.model.topology.is_neutral():
             self._capture_starts(plain=False)
 
@@ -654,22 +662,11 @@ def _fit_ann(topology, x: torch.Tensor, target: torch.Tensor, iterations: int, b
 
 
 def collocation_pretraining(trainer: Trainer) -> float:
-    """CCPT (see the module docstring); returns the final relative fit error, nan if no channel
-    has a measured state."""
-    from .collocation import collocation_samples
-    model, settings = trainer.model, trainer.settings
-    samples = collocation_samples(model, trainer.data, trainer.step, settings.solver, settings.ccpt_window,
-                                  trainer.inputs)
+    """CCPT (see the module docstring): the collocation target fitted with Adam on minibatches;
+    returns the final relative fit error, nan if no channel has a measured state."""
+    from .warm_start import collocation_targets
+    samples = collocation_targets(trainer)
     if samples is None:
         return math.nan
-    inputs, fmu_channels, measured, mask = samples
-    topology = model.topology
-    with torch.no_grad():
-        if topology.config.kind == "gates" and bool((topology.gate_ann == 0).any()):
-            topology.gate_ann.fill_(1.0)
-        gate_ann, gate_fmu = topology.gate_ann.detach(), topology.gate_fmu.detach()
-    # gate_ann * r + gate_fmu * der_fmu = measured  ->  r = (measured - gate_fmu der_fmu) / gate_ann
-    target = (torch.from_numpy(measured) - gate_fmu * torch.from_numpy(fmu_channels)) / gate_ann
-    neutral = topology.neutral_target(torch.from_numpy(fmu_channels))
-    target = torch.where(torch.from_numpy(mask), target, neutral)  # channels without data stay neutral
-    return _fit_ann(topology, torch.from_numpy(inputs), target, settings.ccpt_iterations, 512, 3e-3)
+    x, target = samples
+    return _fit_ann(trainer.model.topology, x, target, trainer.settings.ccpt_iterations, 512, 3e-3)
