@@ -102,6 +102,15 @@ class TrainSettings:
 
 
 @dataclass
+class Validation:
+    """Held-out samples that pick the parameters the training ends with: the samples of `data`
+    within `window` (the model is simulated over the whole run, from its start)."""
+    data: MeasuredData
+    window: tuple[float, float]
+    start_values: dict = field(default_factory=dict)
+
+
+@dataclass
 class TrainingResult:
     model: NeuralFMU
     metrics: dict
@@ -114,15 +123,21 @@ class TrainingResult:
 def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, targets: Sequence[str],
                      inputs: Sequence[str], start_values: dict | None = None, topology: str = "residual",
                      hidden: Sequence[int] = (16, 16), activation: str = "tanh", parameters: Sequence[str] = (),
+                     base_terms: Sequence[dict] = (),
                      settings: TrainSettings | None = None, output: str | Path | None = None,
                      metrics_path: str | Path | None = None, force: bool = False,
                      test_data: str | Path | MeasuredData | None = None,
-                     test_start_values: dict | None = None, on_epoch=None, **overrides) -> TrainingResult:
+                     test_start_values: dict | None = None, validation: Validation | None = None,
+                     on_epoch=None, **overrides) -> TrainingResult:
     """Train a NeuralFMU around `fmu` on `data` (see the module docstring).
 
     targets: derivative channels, e.g. ["der(speed)"]; inputs: FMU variables fed to the ANN;
     topology: "residual" (default; on the VLDM it learns about ten times faster per epoch) or "gates";
+    base_terms: a fitted term (the diagnosis' terms) the residual ANN adds to: it learns what the
+    term leaves, starting from the term itself (see base_term.py);
     settings or keyword overrides of TrainSettings (epochs=...).
+    validation: held-out samples scored before the first epoch and after each one; the training
+    ends with the parameters of the best score there, the start included (Trainer.validation_score).
     Writes the trained model to `output` and the errors to `metrics_path` (JSON) when given.
     on_epoch(epoch, trainer) is called after every epoch; returning True stops the training.
     """
@@ -133,13 +148,14 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
     if settings.threads:
         torch.set_num_threads(settings.threads)
     config = TopologyConfig(channels=list(targets), inputs=list(inputs), hidden=list(hidden),
-                            activation=activation, kind=topology, parameters=list(parameters))
+                            activation=activation, kind=topology, parameters=list(parameters),
+                            base_terms=[dict(t) for t in base_terms])
     model = NeuralFMU(fmu, config, start_values)
     try:
         data = data if isinstance(data, MeasuredData) else load_data(data, model.info)
         if settings.sensor_lag is None:
             settings.sensor_lag = data.sensor_lag
-        trainer = Trainer(model, data, settings, started)
+        trainer = Trainer(model, data, settings, started, validation)
         trainer.prepare()
         before = trainer.evaluate_plain()
         trainer.fit(checkpoint=_checkpoint_path(settings, output), on_epoch=on_epoch)
@@ -150,7 +166,7 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
                    "epochs_planned": settings.epochs, "cut_short_by_time_budget": trainer.cut_short,
                    "loss": trainer.history[-1]["loss"] if trainer.history else None,
                    "settings": asdict(settings), "element_start_replays": dict(model.replays),
-                   "warm_start": trainer.warm_start}
+                   "warm_start": trainer.warm_start, "validation": trainer.validation_summary()}
         if test_data is not None:
             test = test_data if isinstance(test_data, MeasuredData) else load_data(test_data, model.info)
             if test_start_values is None:
@@ -264,8 +280,12 @@ def measured_initial_states(model: NeuralFMU, data: MeasuredData) -> dict:
 class Trainer:
     """One training run: reference, pre-training, the epoch loop (see the module docstring)."""
 
-    def __init__(self, model: NeuralFMU, data: MeasuredData, settings: TrainSettings, started: float):
+    def __init__(self, model: NeuralFMU, data: MeasuredData, settings: TrainSettings, started: float,
+                 validation: Validation | None = None):
         self.model, self.data, self.settings, self.started = model, data, settings, started
+        self.validation = validation
+        self._validation_plain: dict | None = None
+        self.validation_best: tuple[float, int, dict] | None = None   # (score, epoch, parameters)
         info = model.info
         self.step = float(settings.step_size or info.default_experiment.step_size or
                           (data.stop - data.start) / max(10 * data.time.size, 1000))
@@ -403,6 +423,8 @@ class Trainer:
         if settings.resume and checkpoint is not None and checkpoint.is_file():
             first_epoch = self._load_checkpoint(checkpoint, optimizer, scheduler)
         batches = self._batches_per_epoch()
+        if self.validation_best is None:
+            self._track_validation(first_epoch)
         bar = _progress(settings.progress, total=settings.epochs * batches, initial=first_epoch * batches)
         rng = np.random.default_rng(settings.seed + first_epoch)
         try:
@@ -419,7 +441,8 @@ class Trainer:
                 backtracked = self._keep_best(loss, before, optimizer, rewind=batches == 1)
                 self.epochs_done = epoch + 1
                 self.history.append({"epoch": epoch + 1, "loss": loss, "seconds": self.elapsed(),
-                                     "lr": optimizer.param_groups[0]["lr"], "backtracked": backtracked})
+                                     "lr": optimizer.param_groups[0]["lr"], "backtracked": backtracked,
+                                     "validation": self._track_validation(epoch + 1)})
                 if checkpoint is not None:
                     self._save_checkpoint(checkpoint, optimizer, scheduler, epoch + 1)
                 if on_epoch is not None and on_epoch(epoch + 1, self):
@@ -486,9 +509,42 @@ class Trainer:
         return True
 
     def restore_best(self) -> None:
-        """Put back the parameters with the lowest epoch loss (see _keep_best)."""
-        if self.settings.keep_best and self.best_state is not None:
+        """Put back the parameters with the best validation score when there are validation data,
+        else those with the lowest epoch loss (see _keep_best)."""
+        if self.validation_best is not None:
+            self.model.topology.load_state_dict(self.validation_best[2])
+        elif self.settings.keep_best and self.best_state is not None:
             self.model.topology.load_state_dict(self.best_state)
+
+    # -- validation ---------------------------------------------------------------------------
+    def validation_score(self) -> float:
+        """Mean over the validation data's signals of the hybrid's MSE divided by the plain FMU's,
+        on the validation window, the model seen through the sensors (1: as good as the FMU)."""
+        plain = self._validation_plain = self._validation_plain or self._validation_errors(plain=True)
+        errors = self._validation_errors(plain=False)
+        ratios = [errors[name] / plain[name] if plain[name] > 0 else 1.0 for name in plain]
+        return float(np.mean(ratios))
+
+    def _validation_errors(self, plain: bool) -> dict:
+        part = self.validation
+        result = simulate_over(self.model, part.data, self.step, self.settings.solver, part.start_values, plain)
+        errors = data_errors(part.data.window(*part.window), result, self.settings.sensor_lag or 0.0)
+        return {name: errors[name]["mse"] for name in errors}
+
+    def _track_validation(self, epoch: int) -> float | None:
+        """Score the current parameters on the validation data and keep them if they are the best."""
+        if self.validation is None:
+            return None
+        score = self.validation_score()
+        if self.validation_best is None or score < self.validation_best[0]:
+            self.validation_best = (score, epoch, _copy_state(self.model.topology))
+        return score
+
+    def validation_summary(self) -> dict | None:
+        if self.validation_best is None:
+            return None
+        return {"best_score": self.validation_best[0], "best_epoch": self.validation_best[1],
+                "window": list(self.validation.window)}
 
     def _batches_per_epoch(self) -> int:
         if self.settings.order == "sequential":
