@@ -51,6 +51,10 @@ MAX_ANN_INPUTS = 1
 # lets the training rewind an epoch that made the loss worse (see neural.train.Trainer._keep_best).
 MAX_ELEMENT_LENGTH = 100.0
 MIN_ELEMENTS = 8
+# Warm start of the NeuralFMU before its epochs: Gauss-Newton steps on the ANN's last layer through
+# the solver (neural/gauss_newton.py; one step costs about as many simulations as the last layer has
+# weights).
+GAUSS_NEWTON_STEPS = 1
 # Seconds of the training data on which outputs equal to the corrected derivative are detected.
 ALIAS_SPAN = 60.0
 
@@ -283,6 +287,10 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
             f"({ctx.epochs} epochs) ...")
     settings = _training_settings(ctx.roles.train[0].samples(), diagnosis)
     candidates.append(_neural_candidate(ctx, diagnosis.channel, inputs, aliases, settings))
+    from .term_started import term_started_candidate
+    started_from_term = term_started_candidate(ctx, fitted, inputs, settings)
+    if started_from_term is not None:
+        candidates.append(started_from_term)
     return candidates
 
 
@@ -352,11 +360,13 @@ def _fitted_term_candidate(ctx: _Context, fitted: dict, aliases: dict[str, str])
 
 
 def _neural_candidate(ctx: _Context, channel: str, inputs: list[str], aliases: dict[str, str],
-                      settings: dict) -> Candidate:
+                      settings: dict, name: str = "neural", base_terms: list[dict] = ()) -> Candidate:
+    """A trained NeuralFMU exported as a hybrid; with base_terms its ANN adds to that fitted term."""
     from ..export import export_hybrid
     from ..neural import train_neural_fmu
+    from ..neural.train import Validation
     from .terms import spec_from_neural
-    folder = ctx.work / "neural"
+    folder = ctx.work / name.replace(" ", "_")
     folder.mkdir()
     first = ctx.roles.train[0]
     cap = None
@@ -364,8 +374,13 @@ def _neural_candidate(ctx: _Context, channel: str, inputs: list[str], aliases: d
         cap = max(1.0, ctx.time_budget - (time.perf_counter() - ctx.started))
     # The training sees the model through the data's sensor lag (from the sidecar), at the step and
     # with the solver every model is scored with.
+    # The validation part of the training run picks the epoch the training ends with (the start
+    # included), by the score the candidates are chosen with.
+    held_out = ctx.roles.validation[0]
+    validation = Validation(held_out.data, held_out.window, held_out.start_values)
     trained = train_neural_fmu(ctx.model_fmu, first.samples(), targets=[channel], inputs=inputs,
                                start_values=first.start_values, topology="residual", epochs=ctx.epochs,
+                               base_terms=base_terms, validation=validation,
                                seed=ctx.seed, time_budget=cap, solver=ctx.scoring.solver,
                                step_size=ctx.scoring.step, output=folder / "trained.neuralfmu",
                                progress=ctx.progress, **settings)
@@ -375,13 +390,19 @@ def _neural_candidate(ctx: _Context, channel: str, inputs: list[str], aliases: d
         trained.model.close()
     fmu = export_hybrid(spec, folder / "hybrid.fmu")
     metrics = trained.metrics
-    ctx.training = {"epochs": ctx.epochs, "epochs_done": metrics.get("epochs"), "seed": ctx.seed,
-                    "time_budget": ctx.time_budget, "cut_short_by_time_budget": bool(metrics.get("cut_short_by_time_budget")),
-                    "trained_on": first.label}
+    if not base_terms:         # the report's training summary is the plain NeuralFMU's
+        ctx.training = {"epochs": ctx.epochs, "epochs_done": metrics.get("epochs"), "seed": ctx.seed,
+                        "time_budget": ctx.time_budget,
+                        "cut_short_by_time_budget": bool(metrics.get("cut_short_by_time_budget")),
+                        "trained_on": first.label}
     details = {"channel": channel, "inputs": inputs, "aliases": aliases, "epochs": metrics.get("epochs"),
                "training_seconds": metrics.get("seconds"), "loss_signals": settings["loss_signals"],
-               "trained_on": first.label}
-    return _candidate(ctx, "neural", f"ANN on {channel} with inputs {', '.join(inputs)}", fmu, folder, details)
+               "trained_on": first.label, "warm_start": metrics.get("warm_start"),
+               "validation_checkpoint": metrics.get("validation")}
+    description = f"ANN on {channel} with inputs {', '.join(inputs)}"
+    if base_terms:
+        description += " added to the fitted term"
+    return _candidate(ctx, name, description, fmu, folder, details)
 
 
 def _training_settings(data: MeasuredData, diagnosis) -> dict:
@@ -390,7 +411,8 @@ def _training_settings(data: MeasuredData, diagnosis) -> dict:
     at the noise level and their fit to noise pulls the ANN away from the effect."""
     span = float(data.time[-1] - data.time[0])
     showing = [e.signal for e in diagnosis.errors if e.significant]
-    return {"element_length": min(MAX_ELEMENT_LENGTH, span / MIN_ELEMENTS), "loss_signals": showing or None}
+    return {"element_length": min(MAX_ELEMENT_LENGTH, span / MIN_ELEMENTS), "loss_signals": showing or None,
+            "gauss_newton_iterations": GAUSS_NEWTON_STEPS}
 
 
 def _roundtrip(chosen: Candidate, test: Part) -> dict:

@@ -28,7 +28,11 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    run with the measured states forced to the data (its events still happen), the derivative of
    s is estimated from the data by local linear fits, and the ANN is fitted to the residual without
    the ODE solver. The ANN gate is set to 1 first if it was 0. The warm start (`warm_start`,
-   warm_start.py) fits the same target full-batch with L-BFGS instead of Adam on minibatches.
+   warm_start.py) fits the same target full-batch with L-BFGS instead of Adam on minibatches, with
+   the forced states smoothed and read a sensor lag later, and keeps the fit only if it lowers the
+   training loss. Where the model's controllers make collocation unreliable, the Gauss-Newton warm
+   start (`gauss_newton_iterations`, gauss_newton.py) fits the ANN's last layer through the solver
+   to the closed-loop response itself.
 4. Training: the data are cut into elements (default 100 s) simulated side by side; the loss is the
    MSE per measured signal (weighted by the uncertainty band when the CSV has <signal>_std columns)
    divided by the plain FMU's MSE on the same elements, averaged over the signals: every signal
@@ -39,8 +43,10 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    epoch, the pre-/post-processing at a tenth of the step size; with one batch per epoch, rewinds
    after an epoch that made the loss worse (see Trainer._keep_best), and the parameters of the
    lowest loss at the end. Elements in random order, `batch_size` side by side, or sequential (time
-   order, one at a time, each continuing the state just computed). Fixed seeds, a time budget, a
-   checkpoint after every epoch, and resume.
+   order, one at a time, each continuing the state just computed). Or `optimizer="lbfgs"`: one
+   L-BFGS step over all elements per epoch, its line search on fixed element starts. With
+   `validation` data the training ends instead with the parameters of the best validation score,
+   the start included. Fixed seeds, a time budget, a checkpoint after every epoch, and resume.
 5. Errors before (plain FMU) and after (trained hybrid) over the whole data, simulated with
    fmubuilder's engine.
 """
@@ -80,6 +86,7 @@ class TrainSettings:
     step_size: float | None = None    # default: the FMU's DefaultExperiment stepSize
     solver: str = "euler"
     learning_rate: float = 3e-3
+    optimizer: str = "adam"           # "adam" (one step per batch) or "lbfgs" (full batch, line search)
     processing_step_factor: float = 0.1   # step size of the pre-/post-processing relative to the ANN's (0: fixed)
     decay: float = 0.95               # step-size factor per epoch
     backtrack: bool = True            # an epoch worse than the best: back to the best, half the step size
@@ -89,6 +96,7 @@ class TrainSettings:
     ccpt_window: float = 1.0          # seconds of data per local derivative fit
     warm_start: bool = False          # fit the ANN to the collocation estimate (L-BFGS) before training
     warm_start_iterations: int = 300  # L-BFGS iterations of the warm start
+    gauss_newton_iterations: int = 0  # Gauss-Newton steps on the ANN's last layer before training (gauss_newton.py)
     time_budget: float | None = None  # seconds for the whole training call
     seed: int = 0
     loss_signals: list[str] | None = None  # default: every measured signal
@@ -166,7 +174,8 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
                    "epochs_planned": settings.epochs, "cut_short_by_time_budget": trainer.cut_short,
                    "loss": trainer.history[-1]["loss"] if trainer.history else None,
                    "settings": asdict(settings), "element_start_replays": dict(model.replays),
-                   "warm_start": trainer.warm_start, "validation": trainer.validation_summary()}
+                   "loss_evaluations": trainer.loss_evaluations, "warm_start": trainer.warm_start,
+                   "gauss_newton": trainer.gauss_newton, "validation": trainer.validation_summary()}
         if test_data is not None:
             test = test_data if isinstance(test_data, MeasuredData) else load_data(test_data, model.info)
             if test_start_values is None:
@@ -193,6 +202,8 @@ def _settings(settings: TrainSettings | None, overrides: dict) -> TrainSettings:
     settings = dataclasses.replace(settings or TrainSettings(), **overrides)
     if settings.loss_scale not in ("reference", "variance"):
         raise FmuBuilderError(f"unknown loss scale '{settings.loss_scale}': use reference or variance")
+    if settings.optimizer not in ("adam", "lbfgs"):
+        raise FmuBuilderError(f"unknown optimizer '{settings.optimizer}': use adam or lbfgs")
     if settings.order not in ("random", "sequential"):
         raise FmuBuilderError(f"unknown element order '{settings.order}': use random or sequential")
     if settings.epochs < 0:
@@ -286,6 +297,7 @@ class Trainer:
         self.validation = validation
         self._validation_plain: dict | None = None
         self.validation_best: tuple[float, int, dict] | None = None   # (score, epoch, parameters)
+        self.validation_start: float | None = None                     # the score before training
         info = model.info
         self.step = float(settings.step_size or info.default_experiment.step_size or
                           (data.stop - data.start) / max(10 * data.time.size, 1000))
@@ -298,10 +310,12 @@ class Trainer:
         self.inputs = data.input_signals(self.model.info)
         self.history: list[dict] = []
         self.epochs_done = 0
+        self.loss_evaluations = 0   # forward and backward passes through the solver, over a batch
         self.cut_short = False     # the time budget ended the training before its epochs
         self.elements: list[_Element] = []
         self.reference = None
         self.warm_start: dict | None = None   # what the warm start did (see warm_start.py)
+        self.gauss_newton: dict | None = None  # what the Gauss-Newton warm start did (gauss_newton.py)
         self.best_loss, self.best_state, self._best = math.inf, None, None   # see _keep_best
 
     def elapsed(self) -> float:
@@ -322,6 +336,7 @@ class Trainer:
         self.reference = self._reference(starts)
         self._check_finite_scale()
         self.model.topology.initialise_scaling(*self._scaling_samples())
+        self._track_validation(0)      # the start: the plain FMU, or the base term alone
         if self.settings.nipt_iterations and self.model.topology.has_ann and self.model.config.kind == "gates":
             neutral_pretraining(self.model, *self._scaling_samples(), iterations=self.settings.nipt_iterations)
         if self.settings.ccpt_iterations and self.model.topology.has_ann:
@@ -329,6 +344,11 @@ class Trainer:
         if self.settings.warm_start and self.model.topology.has_ann:
             from .warm_start import warm_start
             self.warm_start = warm_start(self)
+            self._track_validation(0)
+        if self.settings.gauss_newton_iterations and self.model.topology.has_ann:
+            from .gauss_newton import gauss_newton_warm_start
+            self.gauss_newton = gauss_newton_warm_start(self, self.settings.gauss_newton_iterations)
+            self._track_validation(0)
         if not self.model.topology.is_neutral():
             self._capture_starts(plain=False)
 
@@ -416,15 +436,14 @@ class Trainer:
         settings, model = self.settings, self.model
         parameters = [p for p in model.topology.parameters() if p.requires_grad]
         if not parameters or settings.epochs == 0:
+            self.restore_best()
             return
         optimizer = self._optimizer(parameters)
-        scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=settings.decay)
+        scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=settings.decay if settings.optimizer == "adam" else 1.0)
         first_epoch = 0
         if settings.resume and checkpoint is not None and checkpoint.is_file():
             first_epoch = self._load_checkpoint(checkpoint, optimizer, scheduler)
         batches = self._batches_per_epoch()
-        if self.validation_best is None:
-            self._track_validation(first_epoch)
         bar = _progress(settings.progress, total=settings.epochs * batches, initial=first_epoch * batches)
         rng = np.random.default_rng(settings.seed + first_epoch)
         try:
@@ -438,7 +457,8 @@ class Trainer:
                     break
                 scheduler.step()
                 loss = float(np.mean(losses))
-                backtracked = self._keep_best(loss, before, optimizer, rewind=batches == 1)
+                rewind = batches == 1 and settings.optimizer == "adam"   # L-BFGS has its line search
+                backtracked = self._keep_best(loss, before, optimizer, rewind=rewind)
                 self.epochs_done = epoch + 1
                 self.history.append({"epoch": epoch + 1, "loss": loss, "seconds": self.elapsed(),
                                      "lr": optimizer.param_groups[0]["lr"], "backtracked": backtracked,
@@ -454,6 +474,8 @@ class Trainer:
 
     def _epoch(self, rng, optimizer, bar, epoch: int) -> list[float]:
         """One pass over the elements, one optimizer step per batch; the batches' losses."""
+        if isinstance(optimizer, torch.optim.LBFGS):
+            return self._lbfgs_step(optimizer, bar, epoch)
         losses = []
         for batch in self._epoch_batches(rng):
             if self.out_of_time():
@@ -462,17 +484,36 @@ class Trainer:
             loss = self.batch_loss(batch)
             loss.backward()
             optimizer.step()
+            self.loss_evaluations += 1
             losses.append(float(loss.detach()))
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(epoch=epoch + 1, loss=f"{losses[-1]:.4g}")
         return losses
 
+    def _lbfgs_step(self, optimizer, bar, epoch: int) -> list[float]:
+        """One L-BFGS iteration over all elements at once; its line search evaluates the loss a few
+        times on the same element starts (no carry-over: the loss must be one function). Returns
+        the loss at the parameters the step started from."""
+        def closure():
+            optimizer.zero_grad()
+            loss = self.batch_loss(self.elements, carry=False)
+            loss.backward()
+            self.loss_evaluations += 1
+            return loss
+        loss = float(optimizer.step(closure).detach())
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(epoch=epoch + 1, loss=f"{loss:.4g}")
+        return [loss] if math.isfinite(loss) else []
+
     def _optimizer(self, parameters):
         """Adam; the pre-/post-processing at processing_step_factor times the step size. Adam moves
         every parameter by about the step size whatever its units, and a shift in the channel's
         units (m/s² for a speed) moved by 3e-3 per epoch outruns the network: the correction turns
         into a constant offset, wrong at standstill, before the network has shaped it."""
+        if self.settings.optimizer == "lbfgs":
+            return torch.optim.LBFGS(parameters, lr=1.0, max_iter=1, history_size=10, line_search_fn="strong_wolfe")
         processing = {id(p) for p in self.model.topology.processing_parameters()}
         network = [p for p in parameters if id(p) not in processing]
         slow = [p for p in parameters if id(p) in processing]
@@ -536,6 +577,8 @@ class Trainer:
         if self.validation is None:
             return None
         score = self.validation_score()
+        if self.validation_start is None:
+            self.validation_start = score
         if self.validation_best is None or score < self.validation_best[0]:
             self.validation_best = (score, epoch, _copy_state(self.model.topology))
         return score
@@ -543,7 +586,8 @@ class Trainer:
     def validation_summary(self) -> dict | None:
         if self.validation_best is None:
             return None
-        return {"best_score": self.validation_best[0], "best_epoch": self.validation_best[1],
+        return {"start_score": self.validation_start, "best_score": self.validation_best[0],
+                "best_epoch": self.validation_best[1],
                 "window": list(self.validation.window)}
 
     def _batches_per_epoch(self) -> int:
@@ -577,17 +621,31 @@ class Trainer:
                     if abs(final.t0 - following.start.t0) <= 1e-6 * self.step:
                         final.t0 = following.start.t0
                         following.start = self._with_measured_states(final)
-        errors = {}
+        return {name: (residual ** 2).mean() for name, residual in self._residuals(trajectory, batch).items()}
+
+    def _residuals(self, trajectory, batch: list["_Element"]) -> dict:
+        """{signal: (prediction - data) * sqrt(weight) at the batch's data points} (tensors)."""
+        residuals = {}
         for j, name in enumerate(self.loss_signals):
             values = self._through_sensor(trajectory.values[:, :, j])
-            squared = []
+            pieces = []
             for b, element in enumerate(batch):
                 k0, frac, target, weight = element.targets[name]
                 column = values[:, b]
                 predicted = column[k0] * (1.0 - frac) + column[k0 + 1] * frac
-                squared.append(weight * (predicted - target) ** 2)
-            errors[name] = torch.cat(squared).mean()
-        return errors
+                pieces.append(weight.sqrt() * (predicted - target))
+            residuals[name] = torch.cat(pieces)
+        return residuals
+
+    def scaled_residuals(self) -> torch.Tensor:
+        """All elements' residuals in one vector whose squared sum is the loss (batch_loss of all
+        elements from their current starts, no carry-over), without gradient."""
+        with torch.no_grad():
+            trajectory = simulate(self.model, self.element_duration, self.step, starts=[e.start for e in self.elements],
+                                  record=self.loss_signals, solver=self.settings.solver, inputs=self.inputs)
+            residuals = self._residuals(trajectory, self.elements)
+        count = len(self.loss_signals)
+        return torch.cat([r / math.sqrt(r.numel() * self.scale[name] * count) for name, r in residuals.items()])
 
     def _through_sensor(self, values: torch.Tensor) -> torch.Tensor:
         """[K+1, B] simulated values seen through the sensors' first-order lag, settled at each

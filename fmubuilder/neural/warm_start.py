@@ -25,7 +25,7 @@ def collocation_targets(trainer):
     target (the ANN leaves them unchanged)."""
     model, settings = trainer.model, trainer.settings
     samples = collocation_samples(model, trainer.data, trainer.step, settings.solver, settings.ccpt_window,
-                                  trainer.inputs)
+                                  trainer.inputs, settings.sensor_lag or 0.0)
     if samples is None:
         return None
     inputs, fmu_channels, measured, mask = samples
@@ -71,14 +71,36 @@ def fit_full_batch(topology, x: torch.Tensor, target: torch.Tensor, iterations: 
 
 
 def warm_start(trainer) -> dict:
-    """Fit the ANN to the collocation estimate of the missing term (see the module docstring).
-    Returns what it did: samples, relative fit error (nan without a measured channel state)."""
+    """Fit the ANN to the collocation estimate of the missing term (see the module docstring), and
+    keep the fit only if it lowers the training loss (simulated over all elements, each from the
+    start the hybrid reaches): where the forced controllers react to sensor noise and lag more
+    than to the effect, the estimate is wrong. Returns what it did: samples, relative fit error
+    (nan without a measured channel state), the loss before and after, whether it was kept."""
     samples = collocation_targets(trainer)
     if samples is None:
-        return {"samples": 0, "fit_error": math.nan}
+        return {"samples": 0, "fit_error": math.nan, "kept": False}
+    topology = trainer.model.topology
+    before_fit = _copy(topology.ann.parameters())
+    loss_before = _loss_from_own_starts(trainer)
     x, target = samples
-    error = fit_full_batch(trainer.model.topology, x, target, trainer.settings.warm_start_iterations)
-    return {"samples": int(x.shape[0]), "fit_error": error}
+    error = fit_full_batch(topology, x, target, trainer.settings.warm_start_iterations)
+    loss_after = _loss_from_own_starts(trainer)
+    kept = loss_after < loss_before
+    if not kept:
+        with torch.no_grad():
+            for p, saved in zip(topology.ann.parameters(), before_fit):
+                p.copy_(saved)
+        _loss_from_own_starts(trainer)      # the element starts back at the kept parameters
+    # simulations without gradient: the forced run, and a capture and a loss per evaluation
+    return {"samples": int(x.shape[0]), "fit_error": error, "loss_before": loss_before, "loss_after": loss_after,
+            "kept": kept, "simulations": 5 if kept else 7}
+
+
+def _loss_from_own_starts(trainer) -> float:
+    """The training loss over all elements, their starts captured from the current hybrid."""
+    trainer._capture_starts(plain=trainer.model.topology.is_neutral())
+    residual = trainer.scaled_residuals()
+    return float(residual @ residual)
 
 
 def _copy(parameters) -> list[torch.Tensor]:

@@ -223,7 +223,7 @@ def test_vldm_extra_resistance_on_short_windows(tmp_path):
     assert diagnosis["significant"] and diagnosis["channel"] == "der(speed)"
     assert diagnosis["inputs"][0] == "speed"
     assert diagnosis["fitted_term"]["terms"][0]["coefficient"] < 0      # a resistance slows the car
-    assert {m["name"] for m in report["models"]} == {"fitted term", "neural"}
+    assert {m["name"] for m in report["models"]} == {"fitted term", "neural", "neural on the fitted term"}
     assert report["data"]["validation"] == [validation.name] and report["data"]["train"] == [train.name]
     assert validate_fmu(str(result.hybrid_fmu)) == [] and report["roundtrip"]["passed"]
     # the driver holds the speed on the cycle; the energy shows the effect
