@@ -7,22 +7,25 @@ variables and the ANN's inputs.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 NAME = "neural on the fitted term"
 
 
-def term_started_candidate(ctx, fitted: dict | None, inputs: list[str], settings: dict):
-    """The candidate, or None when the diagnosis offers no term an FMU can read (none, or one of
-    time itself)."""
+@dataclass
+class TermStart:
+    channel: str
+    inputs: list[str]       # the term's variables, then the ANN's other inputs
+    terms: list[dict]       # the diagnosis' fitted terms (base_term.py)
+
+
+def term_start(fitted: dict | None, ann_inputs: list[str]) -> TermStart | None:
+    """What the candidate trains, or None when the diagnosis offers no term an FMU can read (none,
+    or one of time itself)."""
     from ..neural.base_term import term_inputs
-    from .workflow import _aliases_of, _neural_candidate
     if not fitted or not fitted.get("offered"):
         return None
     terms = fitted["terms"]
     if any(t["variable"] == "time" for t in terms if t["basis"] != "1") or not term_inputs(terms):
         return None
-    channel = fitted["channel"]
-    reads = list(dict.fromkeys([*term_inputs(terms), *inputs]))
-    ctx.say(f"      training an ANN on top of the fitted term: {channel} with inputs {', '.join(reads)} "
-            f"({ctx.epochs} epochs) ...")
-    return _neural_candidate(ctx, channel, reads, _aliases_of(ctx, channel), settings, name=NAME,
-                             base_terms=terms)
+    return TermStart(fitted["channel"], list(dict.fromkeys([*term_inputs(terms), *ann_inputs])), terms)

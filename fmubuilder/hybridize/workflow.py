@@ -290,10 +290,13 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
             f"({ctx.epochs} epochs) ...")
     settings = _training_settings(ctx.roles.train[0].samples(), diagnosis)
     candidates.append(_neural_candidate(ctx, diagnosis.channel, inputs, aliases, settings))
-    from .term_started import term_started_candidate
-    started_from_term = term_started_candidate(ctx, fitted, inputs, settings)
-    if started_from_term is not None:
-        candidates.append(started_from_term)
+    from .term_started import NAME, term_start
+    start = term_start(fitted, inputs)
+    if start is not None:
+        ctx.say(f"      training an ANN on top of the fitted term: {start.channel} with inputs "
+                f"{', '.join(start.inputs)} ({ctx.epochs} epochs) ...")
+        candidates.append(_neural_candidate(ctx, start.channel, start.inputs, _aliases_of(ctx, start.channel),
+                                            settings, name=NAME, base_terms=start.terms))
     return candidates
 
 
