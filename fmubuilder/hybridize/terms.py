@@ -15,6 +15,7 @@ from torch import nn
 from ..errors import FmuBuilderError
 from ..export import freeze
 from ..export.spec import HybridSpec
+from ..neural.base_term import FittedTerm, term_inputs
 
 DTYPE = torch.float64
 
@@ -57,39 +58,6 @@ def to_hybrid_spec(trained_path: Path, folder: Path) -> HybridSpec:
         model.close()
 
 
-class FittedTerm(nn.Module):
-    """sum_k coefficient_k * basis_k(w_k - center_k) over the terms of a fitted expression,
-    written with ops the C kernel supports (MatMul, Sub, Abs, Mul, Add): each term gets its own
-    column w_k = u @ select_k, since one variable may appear with different centers."""
-
-    BASES = ("w", "|w|", "w*|w|", "w^2")
-
-    def __init__(self, terms: list[dict], inputs: list[str]):
-        super().__init__()
-        variable_terms = [t for t in terms if t["basis"] != "1"]
-        count = max(len(variable_terms), 1)
-        self.register_buffer("select", torch.zeros(len(inputs), count, dtype=DTYPE))
-        self.register_buffer("center", torch.zeros(count, dtype=DTYPE))
-        self.register_buffer("weights", torch.zeros(len(self.BASES), count, 1, dtype=DTYPE))
-        self.register_buffer("bias", torch.tensor([sum(float(t["coefficient"]) for t in terms if t["basis"] == "1")],
-                                                  dtype=DTYPE))
-        for k, term in enumerate(variable_terms):
-            if term["basis"] not in self.BASES:
-                raise FmuBuilderError(f"cannot export the term form {term['basis']!r}")
-            self.select[inputs.index(term["variable"]), k] = 1.0
-            self.center[k] = float(term["center"])
-            self.weights[self.BASES.index(term["basis"]), k, 0] = float(term["coefficient"])
-        self.used = [b for b in range(len(self.BASES)) if bool(self.weights[b].any())]
-
-    def forward(self, u):
-        w = u @ self.select - self.center
-        out = self.bias
-        for b in self.used:
-            phi = (w, torch.abs(w), w * torch.abs(w), w * w)[b]
-            out = out + phi @ self.weights[b]
-        return out
-
-
 def spec_from_fitted_term(fitted: dict, fmu_path: Path, guid: str, folder: Path,
                           aliases: dict[str, str] | None = None) -> HybridSpec | None:
     """The hybrid of a fitted term from the diagnosis (None when it depends on time itself,
@@ -97,7 +65,7 @@ def spec_from_fitted_term(fitted: dict, fmu_path: Path, guid: str, folder: Path,
     terms = fitted["terms"]
     if any(t["variable"] == "time" for t in terms if t["basis"] != "1"):
         return None
-    inputs = list(dict.fromkeys(t["variable"] for t in terms if t["basis"] != "1"))
+    inputs = term_inputs(terms)
     if not inputs:
         return None
     onnx_path = folder / "term.onnx"

@@ -10,8 +10,10 @@ The data play three roles, and each number in the report comes from one of them:
 
     diagnosis  -> is there an effect beyond noise? which derivative, which variables?
     candidates -> a NeuralFMU with the ANN at the traced channel and inputs, the fitted
-                  symbolic term when the diagnosis offers one, and the FMU with a parameter
-                  calibrated (hybridize/calibrate.py); each exported as an FMU
+                  symbolic term when the diagnosis offers one, the FMU with a parameter calibrated
+                  (hybridize/calibrate.py), and an ANN added to the fitted term (term_started.py);
+                  each exported as an FMU. The ANN on the term ends with its best epoch on the
+                  validation data, the start included
     selection  -> the candidate with the lower validation error, if it beats the plain FMU there
     round trip -> of the chosen hybrid FMU (fmpy vs the Python reference)
     report     -> DIR/report.json, DIR/report.md, DIR/report.html (plots inline) and the plots
@@ -53,6 +55,11 @@ MAX_ANN_INPUTS = 1
 # lets the training rewind an epoch that made the loss worse (see neural.train.Trainer._keep_best).
 MAX_ELEMENT_LENGTH = 100.0
 MIN_ELEMENTS = 8
+# Warm start of the NeuralFMU before its epochs: the ANN fitted to the collocation estimate of the
+# effect, kept if it lowers the training loss (neural/warm_start.py). benchmarks/bench_training.py:
+# it halves the held-out error of 8 epochs on the DC drive; the Gauss-Newton warm start
+# (neural/gauss_newton.py) fits the training data better but extrapolates worse.
+WARM_START = True
 # Seconds of the training data on which outputs equal to the corrected derivative are detected.
 ALIAS_SPAN = 60.0
 
@@ -298,6 +305,13 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
             f"({ctx.epochs} epochs) ...")
     settings = _training_settings(ctx.roles.train[0].samples(), diagnosis)
     candidates.append(_neural_candidate(ctx, channels, inputs, aliases, settings))
+    from .term_started import NAME, term_start
+    start = term_start(fitted, inputs)
+    if start is not None:
+        ctx.say(f"      training an ANN on top of the fitted term: {start.channel} with inputs "
+                f"{', '.join(start.inputs)} ({ctx.epochs} epochs) ...")
+        candidates.append(_neural_candidate(ctx, [start.channel], start.inputs, _aliases_of(ctx, start.channel),
+                                            settings, name=NAME, base_terms=start.terms))
     return candidates
 
 
@@ -400,11 +414,13 @@ def _calibrated_candidates(ctx: _Context) -> list[Candidate]:
 
 
 def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], aliases: dict[str, str],
-                      settings: dict) -> Candidate:
+                      settings: dict, name: str = "neural", base_terms: list[dict] = ()) -> Candidate:
+    """A trained NeuralFMU exported as a hybrid; with base_terms its ANN adds to that fitted term."""
     from ..export import export_hybrid
     from ..neural import train_neural_fmu
+    from ..neural.train import Validation
     from .terms import spec_from_neural
-    folder = ctx.work / "neural"
+    folder = ctx.work / name.replace(" ", "_")
     folder.mkdir()
     first = ctx.roles.train[0]
     cap = None
@@ -412,8 +428,15 @@ def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], ali
         cap = max(1.0, ctx.time_budget - (time.perf_counter() - ctx.started))
     # The training sees the model through the data's sensor lag (from the sidecar), at the step and
     # with the solver every model is scored with.
+    # An ANN on a fitted term ends with its best epoch on the validation data, the start (the term)
+    # included, so it is never worse there than the term. The plain NeuralFMU keeps its lowest
+    # training loss: on the VLDM the validation score (speed and power at the noise level) picked an
+    # epoch with 7 times the test energy error.
+    held_out = ctx.roles.validation[0]
+    validation = Validation(held_out.data, held_out.window, held_out.start_values) if base_terms else None
     trained = train_neural_fmu(ctx.model_fmu, first.samples(), targets=channels, inputs=inputs,
                                start_values=first.start_values, topology="residual", epochs=ctx.epochs,
+                               base_terms=base_terms, validation=validation,
                                seed=ctx.seed, time_budget=cap, solver=ctx.scoring.solver,
                                step_size=ctx.scoring.step, output=folder / "trained.neuralfmu",
                                progress=ctx.progress, **settings)
@@ -423,14 +446,20 @@ def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], ali
         trained.model.close()
     fmu = export_hybrid(spec, folder / "hybrid.fmu")
     metrics = trained.metrics
-    ctx.training = {"epochs": ctx.epochs, "epochs_done": metrics.get("epochs"), "seed": ctx.seed,
-                    "time_budget": ctx.time_budget, "cut_short_by_time_budget": bool(metrics.get("cut_short_by_time_budget")),
-                    "trained_on": first.label}
+    if not base_terms:         # the report's training summary is the plain NeuralFMU's
+        ctx.training = {"epochs": ctx.epochs, "epochs_done": metrics.get("epochs"), "seed": ctx.seed,
+                        "time_budget": ctx.time_budget,
+                        "cut_short_by_time_budget": bool(metrics.get("cut_short_by_time_budget")),
+                        "trained_on": first.label}
     details = {"channel": ", ".join(channels), "channels": channels, "inputs": inputs, "aliases": aliases,
                "epochs": metrics.get("epochs"), "training_seconds": metrics.get("seconds"),
-               "loss_signals": settings["loss_signals"], "trained_on": first.label, "input_choice": ctx.input_choice}
-    return _candidate(ctx, "neural", f"ANN on {', '.join(channels)} with inputs {', '.join(inputs)}", fmu, folder,
-                      details)
+               "loss_signals": settings["loss_signals"], "trained_on": first.label,
+               "input_choice": ctx.input_choice if not base_terms else None,
+               "warm_start": metrics.get("warm_start"), "validation_checkpoint": metrics.get("validation")}
+    description = f"ANN on {', '.join(channels)} with inputs {', '.join(inputs)}"
+    if base_terms:
+        description += " added to the fitted term"
+    return _candidate(ctx, name, description, fmu, folder, details)
 
 
 def _training_settings(data: MeasuredData, diagnosis) -> dict:
@@ -439,7 +468,8 @@ def _training_settings(data: MeasuredData, diagnosis) -> dict:
     at the noise level and their fit to noise pulls the ANN away from the effect."""
     span = float(data.time[-1] - data.time[0])
     showing = [e.signal for e in diagnosis.errors if e.significant]
-    return {"element_length": min(MAX_ELEMENT_LENGTH, span / MIN_ELEMENTS), "loss_signals": showing or None}
+    return {"element_length": min(MAX_ELEMENT_LENGTH, span / MIN_ELEMENTS), "loss_signals": showing or None,
+            "warm_start": WARM_START}
 
 
 def _roundtrip(chosen: Candidate, test: Part) -> dict:

@@ -4,6 +4,12 @@ The FMU is simulated with its measured states forced to the data after every ste
 controllers and relays react to the measured behaviour; along that run the ANN inputs and the
 FMU's channel derivatives are recorded, and the derivative of each measured state is estimated
 from the data by a local linear fit over a window (robust to sensor noise, any time stamps).
+
+The states forced are the local fits' values, not the raw samples: a controller fed the raw noise
+turns it into actuator noise, which relays and saturations bend into a bias. And they are read
+`sensor_lag` later than the time simulated: a first-order sensor delays a smooth signal by its time
+constant, and a controller forced with the delayed speed pushes harder than the real one did
+(on the VLDM's driver that bias is of the size of the effect itself).
 """
 from __future__ import annotations
 
@@ -17,9 +23,10 @@ from .solve import ElementStart, simulate
 MAX_SAMPLES = 50_000
 
 
-def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solver: str, window: float, inputs):
+def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solver: str, window: float, inputs,
+                        sensor_lag: float = 0.0):
     """(ANN inputs [N, n_in], FMU channel derivatives [N, C], measured derivatives [N, C], mask [N, C])
-    or None when no channel's state is measured."""
+    or None when no channel's state is measured. sensor_lag: the sensors' first-order time constant."""
     config = model.config
     state_names = model.state_names()
     derivative_names = [v.name for v in model.info.derivatives]
@@ -29,8 +36,11 @@ def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solve
     forced = [s for s in state_names if s in data.signals]
     indices = [state_names.index(s) for s in forced]
 
+    fits = [local_fitter(data.time, data.signals[s], window) for s in forced]
+
     def values(t):
-        return np.stack([np.interp(t, data.time, data.signals[s]) for s in forced], axis=1)
+        t = np.atleast_1d(np.asarray(t, dtype=float)) + sensor_lag
+        return np.stack([fit(t)[0] for fit in fits], axis=1)
 
     names = list(dict.fromkeys(config.inputs + config.channels))
     with torch.no_grad(), model.topology.ann_off():
@@ -46,7 +56,7 @@ def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solve
     mask = np.zeros(fmu_channels.shape, dtype=bool)
     for j, state in enumerate(channel_states):
         if state in data.signals:
-            slope, valid = local_slope(data.time, data.signals[state], times[keep], window)
+            _, slope, valid = local_fit(data.time, data.signals[state], times[keep] + sensor_lag, window)
             measured[:, j], mask[:, j] = slope, valid
     return ann_inputs, fmu_channels, measured, mask
 
@@ -54,13 +64,31 @@ def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solve
 def local_slope(time: np.ndarray, values: np.ndarray, at: np.ndarray, window: float):
     """Slope of a least-squares line through the samples within +-window/2 of each time in `at`;
     (slopes, valid) where valid needs at least 3 samples."""
+    _, slope, valid = local_fit(time, values, at, window)
+    return slope, valid
+
+
+def local_fit(time: np.ndarray, values: np.ndarray, at: np.ndarray, window: float):
+    """Value and slope at each time in `at` of a least-squares line through the samples within
+    +-window/2 of it; (values, slopes, valid). Where fewer than 3 samples lie in the window
+    (valid false) the slope is 0 and the value the data's, interpolated."""
+    return local_fitter(time, values, window)(at)
+
+
+def local_fitter(time: np.ndarray, values: np.ndarray, window: float):
+    """local_fit for one signal and window, its running sums computed once: at -> (values, slopes, valid)."""
     origin = time[0]
     t = time - origin
     prefix = [np.concatenate(([0.0], np.cumsum(q))) for q in (np.ones_like(t), t, values, t * t, t * values)]
-    lo = np.searchsorted(time, at - 0.5 * window, side="left")
-    hi = np.searchsorted(time, at + 0.5 * window, side="right")
-    s0, st, sy, stt, sty = (p[hi] - p[lo] for p in prefix)
-    denominator = s0 * stt - st * st
-    valid = (s0 >= 3) & (denominator > 1e-12 * np.maximum(s0 * stt, 1e-300))
-    slope = np.where(valid, (s0 * sty - st * sy) / np.where(valid, denominator, 1.0), 0.0)
-    return slope, valid
+
+    def fit(at):
+        lo = np.searchsorted(time, at - 0.5 * window, side="left")
+        hi = np.searchsorted(time, at + 0.5 * window, side="right")
+        s0, st, sy, stt, sty = (p[hi] - p[lo] for p in prefix)
+        denominator = s0 * stt - st * st
+        valid = (s0 >= 3) & (denominator > 1e-12 * np.maximum(s0 * stt, 1e-300))
+        slope = np.where(valid, (s0 * sty - st * sy) / np.where(valid, denominator, 1.0), 0.0)
+        count = np.maximum(s0, 1)
+        value = np.where(valid, sy / count + slope * (at - origin - st / count), np.interp(at, time, values))
+        return value, slope, valid
+    return fit

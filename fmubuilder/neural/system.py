@@ -47,6 +47,9 @@ class NumpyTopology:
         self.layers = []
         if not self.active:
             return
+        # A base term (base_term.py) is added to the network's output, through the ANN gate.
+        self._base = topology.base.numpy_kernel() if topology.base is not None else None
+        self._base_gate = topology.gate_ann.detach().numpy().copy()
         with torch.no_grad():
             for layer in topology.folded():   # the torch topology's own fold, as numpy arrays
                 self.layers.append(tuple(a.numpy().copy() for a in layer) if isinstance(layer, tuple)
@@ -79,6 +82,7 @@ class NumpyTopology:
         sources = (x, der, variables)
         for j, (kind, index) in enumerate(self._gather):
             z[j] = sources[kind][index]
+        base = 0.0 if self._base is None else self._base_gate[0] * self._base(z)
         dot, add = np.dot, np.add
         for W, b, act, out in self._hidden:
             dot(W, z, out=out)
@@ -88,7 +92,7 @@ class NumpyTopology:
             z = out
         c = self._single_channel
         if c is not None:
-            der[c] = dot(self._single_row, z) + self._last_b[0] + self._single_gate * der[c]
+            der[c] = dot(self._single_row, z) + self._last_b[0] + self._single_gate * der[c] + base
         else:
             der[self.channels] = self._last_W @ z + self._last_b + self.gate_fmu * der[self.channels]
         return der
@@ -99,12 +103,13 @@ class NumpyTopology:
         if not self.active:
             return der
         z = np.concatenate((x, der, variables), axis=1)[:, self.source]
+        base = 0.0 if self._base is None else self._base_gate[0] * self._base(z)[:, None]
         for layer in self.layers:
             if isinstance(layer, tuple):
                 z = z @ layer[0].T + layer[1]
             else:
                 layer(z, z)
-        der[:, self.channels] = z + self.gate_fmu * der[:, self.channels]
+        der[:, self.channels] = z + base + self.gate_fmu * der[:, self.channels]
         return der
 
 

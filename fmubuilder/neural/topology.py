@@ -52,6 +52,7 @@ class TopologyConfig:
     activation: str = "tanh"
     kind: str = "gates"
     parameters: list[str] = field(default_factory=list)  # tunable FMU parameters trained as well
+    base_terms: list[dict] = field(default_factory=list)  # a fitted term added to the ANN (base_term.py)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -88,6 +89,13 @@ class TopologyConfig:
                 raise FmuBuilderError(f"ANN input '{name}' is a {var.type} variable; use Real variables")
         if self.inputs and not self.channels:
             raise FmuBuilderError("ANN inputs given but no targets: give at least one derivative, e.g. --target 'der(v)'")
+        if self.base_terms:
+            from .base_term import term_inputs
+            if self.kind != "residual" or len(self.channels) != 1:
+                raise FmuBuilderError("a base term needs the residual topology with one target derivative")
+            missing = [name for name in term_inputs(self.base_terms) if name not in self.inputs]
+            if missing:
+                raise FmuBuilderError(f"the base term reads {', '.join(missing)}: add it to the ANN inputs")
 
 
 class Topology(nn.Module):
@@ -118,6 +126,10 @@ class Topology(nn.Module):
         self.register_buffer("channels_t", torch.tensor(self.channel_index, dtype=torch.long), persistent=False)
         n_in, n_out = len(config.inputs), len(config.channels)
         self.ann = build_ann(n_in, config.hidden, n_out, config.activation) if n_out else None
+        self.base = None
+        if config.base_terms:
+            from .base_term import FittedTerm
+            self.base = FittedTerm(config.base_terms, config.inputs)
         ones_in, ones_out = torch.ones(n_in, dtype=DTYPE), torch.ones(n_out, dtype=DTYPE)
         self.pre_shift = nn.Parameter(torch.zeros(n_in, dtype=DTYPE))
         self.pre_scale = nn.Parameter(ones_in.clone())
@@ -167,6 +179,8 @@ class Topology(nn.Module):
         last layer with a zero post-shift."""
         if self.ann is None or not bool(self.gate_ann.any()):
             return True
+        if self.base is not None:
+            return False
         last = self.ann[-1]
         return not (bool(last.weight.any()) or bool(last.bias.any()) or bool(self.post_shift.any()))
 
@@ -183,7 +197,8 @@ class Topology(nn.Module):
         # The layers called directly: nn.Module dispatch costs more than these tiny products.
         for layer in self.ann:
             z = F.linear(z, layer.weight, layer.bias) if isinstance(layer, nn.Linear) else _ACTIVATION_FN[type(layer)](z)
-        return z * self.post_scale + self.post_shift
+        r = z * self.post_scale + self.post_shift
+        return r if self.base is None else r + self.base(inputs)
 
     def folded(self) -> list:
         """The ANN with the pre-processing folded into its first Linear layer and the post-processing
@@ -212,9 +227,11 @@ class Topology(nn.Module):
     def mix(self, layers: list, x: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
         """Hybrid state derivatives [B, n] from states x, FMU results out = [der | variables] and
         the folded ANN `layers`: dx_c = ANN'(inputs) + gate_fmu der_fmu_c (see the module docstring)."""
-        z = self.ann_inputs(x, out)
+        raw = z = self.ann_inputs(x, out)
         for layer in layers:
             z = F.linear(z, *layer) if isinstance(layer, tuple) else layer(z)
+        if self.base is not None:        # not foldable: the term on the raw inputs, through the gate
+            z = z + self.gate_ann * self.base(raw)
         derivatives = out[:, : self.n_states]
         mixed = torch.addcmul(z, self.gate_fmu, derivatives.index_select(1, self.channels_t))
         return derivatives.index_copy(1, self.channels_t, mixed)

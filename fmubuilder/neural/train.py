@@ -27,7 +27,12 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
 3. Optional collocation pre-training (CCPT) for channels der(s) whose state s is measured: the FMU is
    run with the measured states forced to the data (its events still happen), the derivative of
    s is estimated from the data by local linear fits, and the ANN is fitted to the residual without
-   the ODE solver. The ANN gate is set to 1 first if it was 0.
+   the ODE solver. The ANN gate is set to 1 first if it was 0. The warm start (`warm_start`,
+   warm_start.py) fits the same target full-batch with L-BFGS instead of Adam on minibatches, with
+   the forced states smoothed and read a sensor lag later, and keeps the fit only if it lowers the
+   training loss. Where the model's controllers make collocation unreliable, the Gauss-Newton warm
+   start (`gauss_newton_iterations`, gauss_newton.py) fits the ANN's last layer through the solver
+   to the closed-loop response itself.
 4. Training: the data are cut into elements (default 100 s) simulated side by side; the loss is the
    MSE per measured signal (weighted by the uncertainty band when the CSV has <signal>_std columns)
    divided by the plain FMU's MSE on the same elements, averaged over the signals: every signal
@@ -38,8 +43,10 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    epoch, the pre-/post-processing at a tenth of the step size; with one batch per epoch, rewinds
    after an epoch that made the loss worse (see Trainer._keep_best), and the parameters of the
    lowest loss at the end. Elements in random order, `batch_size` side by side, or sequential (time
-   order, one at a time, each continuing the state just computed). Fixed seeds, a time budget, a
-   checkpoint after every epoch, and resume.
+   order, one at a time, each continuing the state just computed). Or `optimizer="lbfgs"`: one
+   L-BFGS step over all elements per epoch, its line search on fixed element starts. With
+   `validation` data the training ends instead with the parameters of the best validation score,
+   the start included. Fixed seeds, a time budget, a checkpoint after every epoch, and resume.
 5. Errors before (plain FMU) and after (trained hybrid) over the whole data, simulated with
    fmubuilder's engine.
 """
@@ -79,6 +86,7 @@ class TrainSettings:
     step_size: float | None = None    # default: the FMU's DefaultExperiment stepSize
     solver: str = "euler"
     learning_rate: float = 3e-3
+    optimizer: str = "adam"           # "adam" (one step per batch) or "lbfgs" (full batch, line search)
     processing_step_factor: float = 0.1   # step size of the pre-/post-processing relative to the ANN's (0: fixed)
     decay: float = 0.95               # step-size factor per epoch
     backtrack: bool = True            # an epoch worse than the best: back to the best, half the step size
@@ -86,6 +94,9 @@ class TrainSettings:
     nipt_iterations: int = 400
     ccpt_iterations: int = 0          # 0: no collocation pre-training
     ccpt_window: float = 1.0          # seconds of data per local derivative fit
+    warm_start: bool = False          # fit the ANN to the collocation estimate (L-BFGS) before training
+    warm_start_iterations: int = 300  # L-BFGS iterations of the warm start
+    gauss_newton_iterations: int = 0  # Gauss-Newton steps on the ANN's last layer before training (gauss_newton.py)
     time_budget: float | None = None  # seconds for the whole training call
     seed: int = 0
     loss_signals: list[str] | None = None  # default: every measured signal
@@ -96,6 +107,15 @@ class TrainSettings:
     resume: bool = False
     progress: bool = True
     threads: int | None = 1           # torch intra-op threads (tiny tensors: 1 is fastest)
+
+
+@dataclass
+class Validation:
+    """Held-out samples that pick the parameters the training ends with: the samples of `data`
+    within `window` (the model is simulated over the whole run, from its start)."""
+    data: MeasuredData
+    window: tuple[float, float]
+    start_values: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -111,15 +131,21 @@ class TrainingResult:
 def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, targets: Sequence[str],
                      inputs: Sequence[str], start_values: dict | None = None, topology: str = "residual",
                      hidden: Sequence[int] = (16, 16), activation: str = "tanh", parameters: Sequence[str] = (),
+                     base_terms: Sequence[dict] = (),
                      settings: TrainSettings | None = None, output: str | Path | None = None,
                      metrics_path: str | Path | None = None, force: bool = False,
                      test_data: str | Path | MeasuredData | None = None,
-                     test_start_values: dict | None = None, on_epoch=None, **overrides) -> TrainingResult:
+                     test_start_values: dict | None = None, validation: Validation | None = None,
+                     on_epoch=None, **overrides) -> TrainingResult:
     """Train a NeuralFMU around `fmu` on `data` (see the module docstring).
 
     targets: derivative channels, e.g. ["der(speed)"]; inputs: FMU variables fed to the ANN;
     topology: "residual" (default; on the VLDM it learns about ten times faster per epoch) or "gates";
+    base_terms: a fitted term (the diagnosis' terms) the residual ANN adds to: it learns what the
+    term leaves, starting from the term itself (see base_term.py);
     settings or keyword overrides of TrainSettings (epochs=...).
+    validation: held-out samples scored before the first epoch and after each one; the training
+    ends with the parameters of the best score there, the start included (Trainer.validation_score).
     Writes the trained model to `output` and the errors to `metrics_path` (JSON) when given.
     on_epoch(epoch, trainer) is called after every epoch; returning True stops the training.
     """
@@ -130,13 +156,14 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
     if settings.threads:
         torch.set_num_threads(settings.threads)
     config = TopologyConfig(channels=list(targets), inputs=list(inputs), hidden=list(hidden),
-                            activation=activation, kind=topology, parameters=list(parameters))
+                            activation=activation, kind=topology, parameters=list(parameters),
+                            base_terms=[dict(t) for t in base_terms])
     model = NeuralFMU(fmu, config, start_values)
     try:
         data = data if isinstance(data, MeasuredData) else load_data(data, model.info)
         if settings.sensor_lag is None:
             settings.sensor_lag = data.sensor_lag
-        trainer = Trainer(model, data, settings, started)
+        trainer = Trainer(model, data, settings, started, validation)
         trainer.prepare()
         before = trainer.evaluate_plain()
         trainer.fit(checkpoint=_checkpoint_path(settings, output), on_epoch=on_epoch)
@@ -146,7 +173,9 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
                    "seconds": time.perf_counter() - started, "epochs": trainer.epochs_done,
                    "epochs_planned": settings.epochs, "cut_short_by_time_budget": trainer.cut_short,
                    "loss": trainer.history[-1]["loss"] if trainer.history else None,
-                   "settings": asdict(settings), "element_start_replays": dict(model.replays)}
+                   "settings": asdict(settings), "element_start_replays": dict(model.replays),
+                   "loss_evaluations": trainer.loss_evaluations, "warm_start": trainer.warm_start,
+                   "gauss_newton": trainer.gauss_newton, "validation": trainer.validation_summary()}
         if test_data is not None:
             test = test_data if isinstance(test_data, MeasuredData) else load_data(test_data, model.info)
             if test_start_values is None:
@@ -173,6 +202,8 @@ def _settings(settings: TrainSettings | None, overrides: dict) -> TrainSettings:
     settings = dataclasses.replace(settings or TrainSettings(), **overrides)
     if settings.loss_scale not in ("reference", "variance"):
         raise FmuBuilderError(f"unknown loss scale '{settings.loss_scale}': use reference or variance")
+    if settings.optimizer not in ("adam", "lbfgs"):
+        raise FmuBuilderError(f"unknown optimizer '{settings.optimizer}': use adam or lbfgs")
     if settings.order not in ("random", "sequential"):
         raise FmuBuilderError(f"unknown element order '{settings.order}': use random or sequential")
     if settings.epochs < 0:
@@ -260,8 +291,13 @@ def measured_initial_states(model: NeuralFMU, data: MeasuredData) -> dict:
 class Trainer:
     """One training run: reference, pre-training, the epoch loop (see the module docstring)."""
 
-    def __init__(self, model: NeuralFMU, data: MeasuredData, settings: TrainSettings, started: float):
+    def __init__(self, model: NeuralFMU, data: MeasuredData, settings: TrainSettings, started: float,
+                 validation: Validation | None = None):
         self.model, self.data, self.settings, self.started = model, data, settings, started
+        self.validation = validation
+        self._validation_plain: dict | None = None
+        self.validation_best: tuple[float, int, dict] | None = None   # (score, epoch, parameters)
+        self.validation_start: float | None = None                     # the score before training
         info = model.info
         self.step = float(settings.step_size or info.default_experiment.step_size or
                           (data.stop - data.start) / max(10 * data.time.size, 1000))
@@ -274,9 +310,12 @@ class Trainer:
         self.inputs = data.input_signals(self.model.info)
         self.history: list[dict] = []
         self.epochs_done = 0
+        self.loss_evaluations = 0   # forward and backward passes through the solver, over a batch
         self.cut_short = False     # the time budget ended the training before its epochs
         self.elements: list[_Element] = []
         self.reference = None
+        self.warm_start: dict | None = None   # what the warm start did (see warm_start.py)
+        self.gauss_newton: dict | None = None  # what the Gauss-Newton warm start did (gauss_newton.py)
         self.best_loss, self.best_state, self._best = math.inf, None, None   # see _keep_best
 
     def elapsed(self) -> float:
@@ -297,10 +336,19 @@ class Trainer:
         self.reference = self._reference(starts)
         self._check_finite_scale()
         self.model.topology.initialise_scaling(*self._scaling_samples())
+        self._track_validation(0)      # the start: the plain FMU, or the base term alone
         if self.settings.nipt_iterations and self.model.topology.has_ann and self.model.config.kind == "gates":
             neutral_pretraining(self.model, *self._scaling_samples(), iterations=self.settings.nipt_iterations)
         if self.settings.ccpt_iterations and self.model.topology.has_ann:
             collocation_pretraining(self)
+        if self.settings.warm_start and self.model.topology.has_ann:
+            from .warm_start import warm_start
+            self.warm_start = warm_start(self)
+            self._track_validation(0)
+        if self.settings.gauss_newton_iterations and self.model.topology.has_ann:
+            from .gauss_newton import gauss_newton_warm_start
+            self.gauss_newton = gauss_newton_warm_start(self, self.settings.gauss_newton_iterations)
+            self._track_validation(0)
         if not self.model.topology.is_neutral():
             self._capture_starts(plain=False)
 
@@ -388,9 +436,10 @@ class Trainer:
         settings, model = self.settings, self.model
         parameters = [p for p in model.topology.parameters() if p.requires_grad]
         if not parameters or settings.epochs == 0:
+            self.restore_best()
             return
         optimizer = self._optimizer(parameters)
-        scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=settings.decay)
+        scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=settings.decay if settings.optimizer == "adam" else 1.0)
         first_epoch = 0
         if settings.resume and checkpoint is not None and checkpoint.is_file():
             first_epoch = self._load_checkpoint(checkpoint, optimizer, scheduler)
@@ -412,10 +461,12 @@ class Trainer:
                     break
                 scheduler.step()
                 loss = float(np.mean(losses))
-                backtracked = self._keep_best(loss, before, optimizer, rewind=batches == 1)
+                rewind = batches == 1 and settings.optimizer == "adam"   # L-BFGS has its line search
+                backtracked = self._keep_best(loss, before, optimizer, rewind=rewind)
                 self.epochs_done = epoch + 1
                 self.history.append({"epoch": epoch + 1, "loss": loss, "seconds": self.elapsed(),
-                                     "lr": optimizer.param_groups[0]["lr"], "backtracked": backtracked})
+                                     "lr": optimizer.param_groups[0]["lr"], "backtracked": backtracked,
+                                     "validation": self._track_validation(epoch + 1)})
                 if checkpoint is not None:
                     self._save_checkpoint(checkpoint, optimizer, scheduler, epoch + 1)
                 if on_epoch is not None and on_epoch(epoch + 1, self):
@@ -430,6 +481,8 @@ class Trainer:
 
     def _epoch(self, rng, optimizer, bar, epoch: int) -> list[float]:
         """One pass over the elements, one optimizer step per batch; the batches' losses."""
+        if isinstance(optimizer, torch.optim.LBFGS):
+            return self._lbfgs_step(optimizer, bar, epoch)
         losses = []
         for batch in self._epoch_batches(rng):
             if self.out_of_time():
@@ -438,15 +491,34 @@ class Trainer:
             loss = self.batch_loss(batch)
             loss.backward()
             optimizer.step()
+            self.loss_evaluations += 1
             losses.append(float(loss.detach()))
             bar.advance(1, epoch=f"{epoch + 1}/{self.settings.epochs}", loss=f"{losses[-1]:.4g}")
         return losses
+
+    def _lbfgs_step(self, optimizer, bar, epoch: int) -> list[float]:
+        """One L-BFGS iteration over all elements at once; its line search evaluates the loss a few
+        times on the same element starts (no carry-over: the loss must be one function). Returns
+        the loss at the parameters the step started from."""
+        def closure():
+            optimizer.zero_grad()
+            loss = self.batch_loss(self.elements, carry=False)
+            loss.backward()
+            self.loss_evaluations += 1
+            return loss
+        loss = float(optimizer.step(closure).detach())
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(epoch=epoch + 1, loss=f"{loss:.4g}")
+        return [loss] if math.isfinite(loss) else []
 
     def _optimizer(self, parameters):
         """Adam; the pre-/post-processing at processing_step_factor times the step size. Adam moves
         every parameter by about the step size whatever its units, and a shift in the channel's
         units (m/s² for a speed) moved by 3e-3 per epoch outruns the network: the correction turns
         into a constant offset, wrong at standstill, before the network has shaped it."""
+        if self.settings.optimizer == "lbfgs":
+            return torch.optim.LBFGS(parameters, lr=1.0, max_iter=1, history_size=10, line_search_fn="strong_wolfe")
         processing = {id(p) for p in self.model.topology.processing_parameters()}
         network = [p for p in parameters if id(p) not in processing]
         slow = [p for p in parameters if id(p) in processing]
@@ -483,9 +555,45 @@ class Trainer:
         return True
 
     def restore_best(self) -> None:
-        """Put back the parameters with the lowest epoch loss (see _keep_best)."""
-        if self.settings.keep_best and self.best_state is not None:
+        """Put back the parameters with the best validation score when there are validation data,
+        else those with the lowest epoch loss (see _keep_best)."""
+        if self.validation_best is not None:
+            self.model.topology.load_state_dict(self.validation_best[2])
+        elif self.settings.keep_best and self.best_state is not None:
             self.model.topology.load_state_dict(self.best_state)
+
+    # -- validation ---------------------------------------------------------------------------
+    def validation_score(self) -> float:
+        """Mean over the validation data's signals of the hybrid's MSE divided by the plain FMU's,
+        on the validation window, the model seen through the sensors (1: as good as the FMU)."""
+        plain = self._validation_plain = self._validation_plain or self._validation_errors(plain=True)
+        errors = self._validation_errors(plain=False)
+        ratios = [errors[name] / plain[name] if plain[name] > 0 else 1.0 for name in plain]
+        return float(np.mean(ratios))
+
+    def _validation_errors(self, plain: bool) -> dict:
+        part = self.validation
+        result = simulate_over(self.model, part.data, self.step, self.settings.solver, part.start_values, plain)
+        errors = data_errors(part.data.window(*part.window), result, self.settings.sensor_lag or 0.0)
+        return {name: errors[name]["mse"] for name in errors}
+
+    def _track_validation(self, epoch: int) -> float | None:
+        """Score the current parameters on the validation data and keep them if they are the best."""
+        if self.validation is None:
+            return None
+        score = self.validation_score()
+        if self.validation_start is None:
+            self.validation_start = score
+        if self.validation_best is None or score < self.validation_best[0]:
+            self.validation_best = (score, epoch, _copy_state(self.model.topology))
+        return score
+
+    def validation_summary(self) -> dict | None:
+        if self.validation_best is None:
+            return None
+        return {"start_score": self.validation_start, "best_score": self.validation_best[0],
+                "best_epoch": self.validation_best[1],
+                "window": list(self.validation.window)}
 
     def _batches_per_epoch(self) -> int:
         if self.settings.order == "sequential":
@@ -518,17 +626,31 @@ class Trainer:
                     if abs(final.t0 - following.start.t0) <= 1e-6 * self.step:
                         final.t0 = following.start.t0
                         following.start = self._with_measured_states(final)
-        errors = {}
+        return {name: (residual ** 2).mean() for name, residual in self._residuals(trajectory, batch).items()}
+
+    def _residuals(self, trajectory, batch: list["_Element"]) -> dict:
+        """{signal: (prediction - data) * sqrt(weight) at the batch's data points} (tensors)."""
+        residuals = {}
         for j, name in enumerate(self.loss_signals):
             values = self._through_sensor(trajectory.values[:, :, j])
-            squared = []
+            pieces = []
             for b, element in enumerate(batch):
                 k0, frac, target, weight = element.targets[name]
                 column = values[:, b]
                 predicted = column[k0] * (1.0 - frac) + column[k0 + 1] * frac
-                squared.append(weight * (predicted - target) ** 2)
-            errors[name] = torch.cat(squared).mean()
-        return errors
+                pieces.append(weight.sqrt() * (predicted - target))
+            residuals[name] = torch.cat(pieces)
+        return residuals
+
+    def scaled_residuals(self) -> torch.Tensor:
+        """All elements' residuals in one vector whose squared sum is the loss (batch_loss of all
+        elements from their current starts, no carry-over), without gradient."""
+        with torch.no_grad():
+            trajectory = simulate(self.model, self.element_duration, self.step, starts=[e.start for e in self.elements],
+                                  record=self.loss_signals, solver=self.settings.solver, inputs=self.inputs)
+            residuals = self._residuals(trajectory, self.elements)
+        count = len(self.loss_signals)
+        return torch.cat([r / math.sqrt(r.numel() * self.scale[name] * count) for name, r in residuals.items()])
 
     def _through_sensor(self, values: torch.Tensor) -> torch.Tensor:
         """[K+1, B] simulated values seen through the sensors' first-order lag, settled at each
@@ -652,22 +774,11 @@ def _fit_ann(topology, x: torch.Tensor, target: torch.Tensor, iterations: int, b
 
 
 def collocation_pretraining(trainer: Trainer) -> float:
-    """CCPT (see the module docstring); returns the final relative fit error, nan if no channel
-    has a measured state."""
-    from .collocation import collocation_samples
-    model, settings = trainer.model, trainer.settings
-    samples = collocation_samples(model, trainer.data, trainer.step, settings.solver, settings.ccpt_window,
-                                  trainer.inputs)
+    """CCPT (see the module docstring): the collocation target fitted with Adam on minibatches;
+    returns the final relative fit error, nan if no channel has a measured state."""
+    from .warm_start import collocation_targets
+    samples = collocation_targets(trainer)
     if samples is None:
         return math.nan
-    inputs, fmu_channels, measured, mask = samples
-    topology = model.topology
-    with torch.no_grad():
-        if topology.config.kind == "gates" and bool((topology.gate_ann == 0).any()):
-            topology.gate_ann.fill_(1.0)
-        gate_ann, gate_fmu = topology.gate_ann.detach(), topology.gate_fmu.detach()
-    # gate_ann * r + gate_fmu * der_fmu = measured  ->  r = (measured - gate_fmu der_fmu) / gate_ann
-    target = (torch.from_numpy(measured) - gate_fmu * torch.from_numpy(fmu_channels)) / gate_ann
-    neutral = topology.neutral_target(torch.from_numpy(fmu_channels))
-    target = torch.where(torch.from_numpy(mask), target, neutral)  # channels without data stay neutral
-    return _fit_ann(topology, torch.from_numpy(inputs), target, settings.ccpt_iterations, 512, 3e-3)
+    x, target = samples
+    return _fit_ann(trainer.model.topology, x, target, trainer.settings.ccpt_iterations, 512, 3e-3)

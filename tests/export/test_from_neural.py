@@ -63,11 +63,17 @@ def test_a_time_term_is_not_offered_for_export(tmp_path):
     assert spec_from_fitted_term(fitted, example_fmu("bouncing_ball"), "{guid}", tmp_path) is None
 
 
-@pytest.fixture
-def trained_file(tmp_path):
-    """A NeuralFMU with a random ANN switched on, saved as `fmubuilder train` saves it."""
+BASE_TERMS = [{"variable": "v", "basis": "w*|w|", "center": 0.0, "coefficient": -0.02},
+              {"variable": "h", "basis": "w", "center": 0.5, "coefficient": 0.3}]
+
+
+@pytest.fixture(params=["ann", "term + ann"])
+def trained_file(tmp_path, request):
+    """A NeuralFMU with a random ANN switched on (alone, or added to a fitted term), saved as
+    `fmubuilder train` saves it."""
     torch.manual_seed(3)
-    config = TopologyConfig(channels=["der(v)"], inputs=["h", "v"], hidden=[8], kind="residual")
+    base_terms = BASE_TERMS if request.param == "term + ann" else []
+    config = TopologyConfig(channels=["der(v)"], inputs=["h", "v"], hidden=[8], kind="residual", base_terms=base_terms)
     model = NeuralFMU(example_fmu("bouncing_ball"), config)
     with torch.no_grad():
         for parameter in model.topology.ann.parameters():

@@ -1,0 +1,107 @@
+"""Warm start of a NeuralFMU from the data, without the ODE solver.
+
+Closed-loop-aware collocation: the FMU runs along the measured trajectory (its measured states
+forced to the data after every step, so its own controllers, relays and integrators react to the
+measured behaviour as the real ones did), the derivative of each measured state is estimated from
+the data by local linear fits (a smoothing differentiator, see collocation.local_slope), and the
+difference, measured derivative minus the FMU's own, estimates the missing term as a function of
+the ANN's inputs along that run. The ANN is fitted to it full-batch with L-BFGS (a few hundred
+evaluations of a tiny network on some 10^4 samples: a second or two), then the training through
+the solver fine-tunes it from there instead of from zero.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from .collocation import collocation_samples
+
+
+def collocation_targets(trainer):
+    """(raw ANN inputs [N, n_in], target of the ANN part [N, C]) along the measured trajectory, or
+    None when no channel's state is measured. Channels without a measured state keep the neutral
+    target (the ANN leaves them unchanged)."""
+    model, settings = trainer.model, trainer.settings
+    samples = collocation_samples(model, trainer.data, trainer.step, settings.solver, settings.ccpt_window,
+                                  trainer.inputs, settings.sensor_lag or 0.0)
+    if samples is None:
+        return None
+    inputs, fmu_channels, measured, mask = samples
+    topology = model.topology
+    with torch.no_grad():
+        if topology.config.kind == "gates" and bool((topology.gate_ann == 0).any()):
+            topology.gate_ann.fill_(1.0)
+        gate_ann, gate_fmu = topology.gate_ann.detach(), topology.gate_fmu.detach()
+    # gate_ann * r + gate_fmu * der_fmu = measured  ->  r = (measured - gate_fmu der_fmu) / gate_ann
+    target = (torch.from_numpy(measured) - gate_fmu * torch.from_numpy(fmu_channels)) / gate_ann
+    target = torch.where(torch.from_numpy(mask), target, topology.neutral_target(torch.from_numpy(fmu_channels)))
+    return torch.from_numpy(np.ascontiguousarray(inputs)), target
+
+
+def fit_full_batch(topology, x: torch.Tensor, target: torch.Tensor, iterations: int) -> float:
+    """Least-squares fit of topology.correction(x) to target with L-BFGS over all samples at once
+    (the ANN's weights only; the pre-/post-processing stays). Returns the final mean squared error
+    relative to the target's variance; a line search that made it worse leaves the start."""
+    scale = target.var(dim=0, unbiased=False).clamp_min(1e-12) if len(target) > 1 else torch.ones(target.shape[1])
+    parameters = list(topology.ann.parameters())
+    optimizer = torch.optim.LBFGS(parameters, lr=1.0, max_iter=iterations, max_eval=int(iterations * 1.25) + 1,
+                                  history_size=20, tolerance_grad=1e-10, tolerance_change=1e-14,
+                                  line_search_fn="strong_wolfe")
+
+    def closure():
+        optimizer.zero_grad()
+        loss = (((topology.correction(x) - target) ** 2) / scale).mean()
+        loss.backward()
+        return loss
+
+    best = _copy(parameters)
+    with torch.no_grad():
+        start_loss = float((((topology.correction(x) - target) ** 2) / scale).mean())
+    optimizer.step(closure)
+    optimizer.zero_grad(set_to_none=True)
+    with torch.no_grad():
+        loss = float((((topology.correction(x) - target) ** 2) / scale).mean())
+        if not math.isfinite(loss) or loss > start_loss:     # a diverged line search: keep the start
+            for p, saved in zip(parameters, best):
+                p.copy_(saved)
+            loss = start_loss
+    return loss
+
+
+def warm_start(trainer) -> dict:
+    """Fit the ANN to the collocation estimate of the missing term (see the module docstring), and
+    keep the fit only if it lowers the training loss (simulated over all elements, each from the
+    start the hybrid reaches): where the forced controllers react to sensor noise and lag more
+    than to the effect, the estimate is wrong. Returns what it did: samples, relative fit error
+    (nan without a measured channel state), the loss before and after, whether it was kept."""
+    samples = collocation_targets(trainer)
+    if samples is None:
+        return {"samples": 0, "fit_error": math.nan, "kept": False}
+    topology = trainer.model.topology
+    before_fit = _copy(topology.ann.parameters())
+    loss_before = _loss_from_own_starts(trainer)
+    x, target = samples
+    error = fit_full_batch(topology, x, target, trainer.settings.warm_start_iterations)
+    loss_after = _loss_from_own_starts(trainer)
+    kept = loss_after < loss_before
+    if not kept:
+        with torch.no_grad():
+            for p, saved in zip(topology.ann.parameters(), before_fit):
+                p.copy_(saved)
+        _loss_from_own_starts(trainer)      # the element starts back at the kept parameters
+    # simulations without gradient: the forced run, and a capture and a loss per evaluation
+    return {"samples": int(x.shape[0]), "fit_error": error, "loss_before": loss_before, "loss_after": loss_after,
+            "kept": kept, "simulations": 5 if kept else 7}
+
+
+def _loss_from_own_starts(trainer) -> float:
+    """The training loss over all elements, their starts captured from the current hybrid."""
+    trainer._capture_starts(plain=trainer.model.topology.is_neutral())
+    residual = trainer.scaled_residuals()
+    return float(residual @ residual)
+
+
+def _copy(parameters) -> list[torch.Tensor]:
+    return [p.detach().clone() for p in parameters]

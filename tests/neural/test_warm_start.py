@@ -1,0 +1,97 @@
+"""The warm start: the ANN fitted to the closed-loop collocation estimate of the missing term,
+checked against the term compiled into the DC drive's truth variant (windage)."""
+import numpy as np
+import pytest
+import torch
+
+from fmubuilder.build import example_fmu
+from fmubuilder.data import MeasuredData
+from fmubuilder.neural.train import train_neural_fmu
+from fmubuilder.simulation import simulate
+
+# examples/dc_drive/model.c: windage torque 3e-6 * w|w| on an inertia of 0.01 kg m2.
+WINDAGE_PER_INERTIA = 3e-6 / 0.01
+
+
+@pytest.fixture(scope="module")
+def windage_data():
+    """10 s of the speed-controlled drive with undeclared windage; speed and current measured with noise."""
+    truth = simulate(example_fmu("dc_drive_truth_windage"), stop_time=10.0, solver="rk4", step_size=0.0005,
+                     output_interval=0.01, variables=["speed", "current"])
+    rng = np.random.default_rng(0)
+    signals = {"speed": truth["speed"] + 0.5 * rng.standard_normal(truth.time.size),
+               "current": truth["current"] + 0.05 * rng.standard_normal(truth.time.size)}
+    return MeasuredData(truth.time, signals, source="dc_drive windage")
+
+
+def first_loss(fmu, data, **settings):
+    """The training loss of the start parameters (one element batch: the first epoch measures them)
+    and the trained model."""
+    result = train_neural_fmu(fmu, data, targets=["der(speed)"], inputs=["speed"], topology="residual", hidden=[8],
+                              epochs=1, element_length=2.0, step_size=0.002, progress=False, ccpt_window=0.2,
+                              **settings)
+    return result.history[0]["loss"], result
+
+
+@pytest.fixture(scope="module")
+def zero_init_loss(dc_drive_fmu, windage_data):
+    loss, result = first_loss(dc_drive_fmu, windage_data)
+    result.model.close()
+    return loss
+
+
+@pytest.mark.parametrize("warm_start", [{"warm_start": True}, {"gauss_newton_iterations": 1}],
+                         ids=["collocation", "gauss-newton"])
+def test_warm_start_lowers_the_initial_loss_and_finds_the_windage(dc_drive_fmu, windage_data, zero_init_loss,
+                                                                  warm_start):
+    warm, result = first_loss(dc_drive_fmu, windage_data, **warm_start)
+    try:
+        assert zero_init_loss == pytest.approx(1.0)         # the residual ANN starts at zero: the plain FMU
+        assert warm < 0.7 * zero_init_loss
+        speeds = torch.tensor([[100.0], [150.0]], dtype=torch.float64)
+        with torch.no_grad():
+            learned = result.model.topology.correction(speeds)[:, 0].numpy()
+        expected = -WINDAGE_PER_INERTIA * speeds[:, 0].numpy() ** 2
+        np.testing.assert_allclose(learned, expected, rtol=0.25)
+    finally:
+        result.model.close()
+
+
+@pytest.mark.parametrize("coefficient", [1.0, 0.5])
+def test_an_ann_started_from_a_term_never_ends_worse_on_validation(dc_drive_fmu, windage_data, coefficient):
+    """The ANN adds to a fitted windage term (exact, or half of it) and trains with a step size that
+    overshoots; it ends with its best validation score, which is at most the term's own."""
+    from fmubuilder.neural.train import Validation
+    terms = [{"variable": "speed", "basis": "w*|w|", "center": 0.0, "coefficient": -coefficient * WINDAGE_PER_INERTIA}]
+    split = 8.0
+    result = train_neural_fmu(dc_drive_fmu, windage_data.window(0.0, split), targets=["der(speed)"], inputs=["speed"],
+                              base_terms=terms, topology="residual", hidden=[8], epochs=4, element_length=2.0,
+                              step_size=0.002, learning_rate=0.1, progress=False,
+                              validation=Validation(windage_data, (split + 1e-6, windage_data.stop)))
+    try:
+        history = [h["validation"] for h in result.history]
+        summary = result.metrics["validation"]
+        start = summary["start_score"]
+        assert summary["best_score"] <= start and summary["best_score"] == min([start, *history])
+        # The model returned is the best one: recomputed independently, and no worse than the term alone.
+        trained = result.model
+        best = trained.topology.state_dict()
+        with torch.no_grad():
+            trained.topology.ann[-1].weight.zero_()
+            trained.topology.ann[-1].bias.zero_()
+            trained.topology.post_shift.zero_()
+        term_alone = np.mean(_ratios(trained, windage_data, split))
+        trained.topology.load_state_dict(best)
+        returned = np.mean(_ratios(trained, windage_data, split))
+        assert returned == pytest.approx(summary["best_score"], rel=1e-6)
+        assert returned <= term_alone * (1 + 1e-9)
+    finally:
+        result.model.close()
+
+
+def _ratios(model, data, split):
+    from fmubuilder.neural.train import data_errors, simulate_over
+    held_out = data.window(split + 1e-6, data.stop)
+    hybrid = data_errors(held_out, simulate_over(model, data, 0.002))
+    plain = data_errors(held_out, simulate_over(model, data, 0.002, plain=True))
+    return [hybrid[name]["mse"] / plain[name]["mse"] for name in data.signals]
