@@ -508,8 +508,7 @@ class Trainer:
             return loss
         loss = float(optimizer.step(closure).detach())
         if bar is not None:
-            bar.update(1)
-            bar.set_postfix(epoch=epoch + 1, loss=f"{loss:.4g}")
+            bar.advance(1, epoch=f"{epoch + 1}/{self.settings.epochs}", loss=f"{loss:.4g}")
         return [loss] if math.isfinite(loss) else []
 
     def _optimizer(self, parameters):
