@@ -54,6 +54,9 @@ def add_hybridize_parser(subparsers, common=None) -> None:
     p.add_argument("--allow-insignificant", action="store_true",
                    help="build and publish a hybrid even when the diagnosis finds no significant effect "
                         "(it may then fit noise; the validation data still decide whether one is published)")
+    p.add_argument("--ann-on-term", action="store_true",
+                   help="also train an ANN added to the fitted term, as a further candidate (it stops at its best "
+                        "validation epoch, so its validation score is optimistic next to the others')")
     p.add_argument("--force", action="store_true",
                    help="overwrite the outputs; the old ones stay in place until the new ones are complete")
     p.set_defaults(func=cmd_hybridize, outputs=lambda args: [args.output, args.report])
@@ -68,7 +71,7 @@ def cmd_hybridize(args) -> None:
                        validation_start=parse_assignments(args.validation_start, "--validation-start"),
                        test_start=parse_assignments(args.test_start, "--test-start"), epochs=args.epochs,
                        seed=args.seed, time_budget=args.time_budget, force=args.force,
-                       allow_insignificant=args.allow_insignificant)
+                       allow_insignificant=args.allow_insignificant, ann_on_term=args.ann_on_term)
     print(summary(result))
 
 
