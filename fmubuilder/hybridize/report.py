@@ -212,7 +212,7 @@ def _cell(text: str) -> str:
 def _candidate_note(model: dict, training: dict | None) -> str:
     """Why a row looks the way it does."""
     notes = []
-    if model["name"] == "neural":
+    if model.get("epochs") is not None:       # a NeuralFMU, plain or on the fitted term
         done = model.get("epochs")
         asked = (training or {}).get("epochs")
         notes.append(f"trained {done} of {asked} epochs" if asked is not None else f"trained {done} epochs")
@@ -221,6 +221,9 @@ def _candidate_note(model: dict, training: dict | None) -> str:
                          if (training or {}).get("cut_short_by_time_budget") else "no epochs were asked for")
         elif (training or {}).get("cut_short_by_time_budget"):
             notes.append("cut short by the wall-clock cap")
+    elif model.get("calibrated"):
+        notes.append(f"calibrated by Gauss-Newton on `{model.get('fitted_on', 'the training data')}` in "
+                     f"{model.get('simulations', '?')} simulations, no training")
     else:
         notes.append(f"fitted by the diagnosis on `{model.get('fitted_on', 'the training data')}`, no training")
     if all(model[f"{role}_relative_mse"] == 1.0 for role in ROLES):

@@ -186,3 +186,15 @@ def test_cumulative_signals_are_monotone_states():
     found = cumulative_signals(["energy", "speed", "distance_output"],
                                {"energy": ramp, "speed": wave, "distance_output": ramp}, {"energy", "speed"})
     assert found == {"energy"}
+
+
+def test_candidate_notes_say_how_each_kind_was_made():
+    from fmubuilder.hybridize.report import _candidate_note
+    scores = {f"{role}_relative_mse": 0.5 for role in ("train", "validation", "test")}
+    term = _candidate_note({"name": "fitted term", "fitted_on": "a.csv", **scores}, None)
+    calibrated = _candidate_note({"name": "calibrated mass", "calibrated": {"mass": 1.0}, "simulations": 7,
+                                  "fitted_on": "a.csv", **scores}, None)
+    on_term = _candidate_note({"name": "neural on the fitted term", "epochs": 4, **scores}, {"epochs": 10})
+    assert term.startswith("fitted by the diagnosis on `a.csv`")
+    assert calibrated.startswith("calibrated by Gauss-Newton on `a.csv` in 7 simulations")
+    assert on_term.startswith("trained 4 of 10 epochs")
