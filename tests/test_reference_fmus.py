@@ -1,7 +1,7 @@
 """The Modelica Reference FMUs (written by others) through every stage: inspect, the engine against
 fmpy's CVode, training a NeuralFMU on data with a known added effect, export, validation, and fmpy's
 CVode on the hybrid. Run as a script (`python tests/test_reference_fmus.py`) it prints the table of
-stages per FMU. Skips visibly when the folder `../shared/fmus/reference/` is missing."""
+stages per FMU. Skips visibly when the FMUs are not found (see tests/reference_fmus.py)."""
 from __future__ import annotations
 
 import sys
@@ -16,7 +16,7 @@ import pytest
 if __name__ == "__main__":
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from tests.reference_fmus import reference_dir  # noqa: E402
+from tests.reference_fmus import NOT_FOUND, reference_dir  # noqa: E402
 
 STAGES = ("inspect", "simulate vs fmpy CVode", "train", "export", "validate", "fmpy CVode on the hybrid")
 
@@ -53,7 +53,6 @@ def model_exchange_fmus() -> list[Path]:
 
 
 FMUS = model_exchange_fmus()
-NOT_FOUND = "the Reference FMUs are not beside the repository (../shared/fmus/reference/)"
 
 
 class NotApplicable(Exception):
