@@ -143,13 +143,11 @@ def _forced_run(model_fmu, info, data, start_values, forced: dict, names, step, 
     """(grid, {name: values}) of the plain FMU with the states in `forced` (name -> values at the
     data's stamps) set after every step, so that its controllers react to the measured behaviour
     (none forced: the plain run)."""
-    import torch
     from ..neural import NeuralFMU
-    from ..neural.solve import ElementStart, simulate
+    from ..neural.collocation import forced_run
     from ..neural.topology import TopologyConfig
     states = [v.name for v in info.states]
     order = list(forced)
-    indices = [states.index(s) for s in order]
 
     def values_at(t):
         return np.stack([np.interp(t, data.time, forced[s]) for s in order], axis=1)
@@ -157,11 +155,7 @@ def _forced_run(model_fmu, info, data, start_values, forced: dict, names, step, 
     config = TopologyConfig(channels=[info.derivatives[0].name], inputs=[states[0]], kind="residual")
     model = NeuralFMU(model_fmu, config, start_values)
     try:
-        first = ElementStart(data.start, states=dict(zip(order, values_at(np.array([data.start]))[0])) if order else None)
-        forcing = (indices, values_at) if order else None
-        with torch.no_grad(), model.topology.ann_off():
-            run = simulate(model, data.stop - data.start, step, starts=[first], record=list(names), solver=solver,
-                           inputs=data.input_signals(info), forcing=forcing)
+        run = forced_run(model, data, step, solver, order, values_at, list(names), data.input_signals(info))
         return data.start + np.asarray(run.times), {n: np.asarray(run.numpy(n)[:, 0], dtype=float) for n in names}
     finally:
         model.close()

@@ -34,8 +34,6 @@ def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solve
     if not any(s in data.signals for s in channel_states):
         return None
     forced = [s for s in state_names if s in data.signals]
-    indices = [state_names.index(s) for s in forced]
-
     fits = [local_fitter(data.time, data.signals[s], window) for s in forced]
 
     def values(t):
@@ -43,10 +41,7 @@ def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solve
         return np.stack([fit(t)[0] for fit in fits], axis=1)
 
     names = list(dict.fromkeys(config.inputs + config.channels))
-    with torch.no_grad(), model.topology.ann_off():
-        run = simulate(model, data.stop - data.start, step, starts=[ElementStart(data.start, states=dict(
-            zip(forced, values(np.array([data.start]))[0])))], record=names, solver=solver, inputs=inputs,
-            forcing=(indices, values))
+    run = forced_run(model, data, step, solver, forced, values, names, inputs)
     times = data.start + run.times
     every = max(1, len(times) // MAX_SAMPLES)
     keep = slice(0, len(times), every)
@@ -59,6 +54,19 @@ def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solve
             _, slope, valid = local_fit(data.time, data.signals[state], times[keep] + sensor_lag, window)
             measured[:, j], mask[:, j] = slope, valid
     return ann_inputs, fmu_channels, measured, mask
+
+
+def forced_run(model: NeuralFMU, data: MeasuredData, step: float, solver: str, forced: list[str], values,
+               record: list[str], inputs):
+    """The FMU alone (ANN off, no gradient) over the data's span, with the states `forced` set to
+    values(t) [len(t), len(forced)] after every step; none forced: the plain run."""
+    state_names = model.state_names()
+    start = values(np.array([data.start]))[0] if forced else None
+    first = ElementStart(data.start, states=dict(zip(forced, start)) if forced else None)
+    forcing = ([state_names.index(s) for s in forced], values) if forced else None
+    with torch.no_grad(), model.topology.ann_off():
+        return simulate(model, data.stop - data.start, step, starts=[first], record=record, solver=solver,
+                        inputs=inputs, forcing=forcing)
 
 
 def local_slope(time: np.ndarray, values: np.ndarray, at: np.ndarray, window: float):
