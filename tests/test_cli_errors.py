@@ -121,3 +121,14 @@ def test_numeric_warnings_are_folded_into_the_one_line_error(tmp_path, bouncing_
                    "--report", tmp_path / "report", "--time-budget", "10")
     assert_one_line_error(proc, "overflow")
     assert not (tmp_path / "report").exists() and not (tmp_path / "h.fmu").exists()
+
+
+def test_every_command_prints_its_help():
+    """argparse formats each help text with %-interpolation: a stray '%' crashes `--help`."""
+    import argparse
+    from fmubuilder.cli import build_parser
+    parser = build_parser()
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    assert len(commands) >= 10
+    for name, command in commands.items():
+        assert name in command.format_help(), name

@@ -37,7 +37,7 @@ def add_hybridize_parser(subparsers, common=None) -> None:
                    help="start value for the --train file before it (repeatable; default: the file's .json sidecar)")
     p.add_argument("--validation", metavar="VAL.csv",
                    help="a separate run that chooses the candidate and decides whether to publish it "
-                        f"(default: the last {VALIDATION_SHARE:.0%} of each training run, held out of the fit)")
+                        f"(default: the last {VALIDATION_SHARE:.0%}% of each training run, held out of the fit)")
     p.add_argument("--validation-start", action="append", metavar="NAME=VALUE",
                    help="start value for the validation run")
     p.add_argument("--test", required=True, metavar="TEST.csv",
