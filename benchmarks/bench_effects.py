@@ -4,27 +4,36 @@ For each case (an example's truth variant: its training and test data sets, see
 fmubuilder/examples_zoo.py) `hybridize` runs as a user would run it: diagnosis, the fitted term and
 the NeuralFMU as candidates, the choice on the held-out late share of the training run. Printed per
 case and measured signal: the test MSE (the separate test run, held out of everything) divided by
-the noise variance of the measured value, for the plain FMU, the fitted term and the NeuralFMU.
-1 is the noise floor: a model that matches the truth exactly scores about 1. The noise variance is
-the generator's (the sidecar's bench: the sensor's standard deviation squared over the number of
-runs averaged); a cell is "-" when the candidate was not built (no significant effect, no term).
+the noise variance of the measured value, for the truth FMU (the model that made the data), the
+plain FMU, the fitted term and the NeuralFMU. 1 is the noise floor: the truth column shows that
+the scoring (`Scoring.checked`, the same for every column) reaches it, so the other columns measure
+the models, not the integrator. The noise variance is the generator's (the sidecar's bench: the
+sensor's standard deviation squared over the number of runs averaged); a cell is "-" when the
+candidate was not built (no significant effect, no term). The seconds are the case's wall time
+(the whole hybridize call; with --truth-only the step check and the truth's run).
 
 The work is counted: `--budget` is the NeuralFMU's epochs (the diagnosis' work is fixed), so the
-numbers do not depend on how busy the machine is.
+numbers do not depend on how busy the machine is. `--truth-only` scores the truth FMU alone: a
+quick check of the scoring.
 
     python benchmarks/bench_effects.py [--cases dc_drive,vldm | dc_drive:stribeck,...] [--budget EPOCHS]
+                                       [--truth-only]
 """
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 from fmubuilder.build import example_fmu
 from fmubuilder.data import read_sidecar
-from fmubuilder.examples_zoo import cached_data, example_data_sets
+from fmubuilder.examples_zoo import EXAMPLES, cached_data, example_data_sets
+from fmubuilder.fmi import read_model_info
 from fmubuilder.hybridize import hybridize
+from fmubuilder.hybridize.evaluate import Scoring, evaluate, read_data
+from fmubuilder.hybridize.workflow import VALIDATION_SHARE
 
 DECLARED = {"dc_drive": "dc_drive", "vldm": "vldm"}
 
@@ -34,19 +43,30 @@ def main() -> None:
     parser.add_argument("--cases", default="dc_drive,vldm",
                         help="examples, or example:variant, comma-separated")
     parser.add_argument("--budget", type=int, default=10, help="NeuralFMU epochs per case")
+    parser.add_argument("--truth-only", action="store_true",
+                        help="score the truth FMU alone (checks the scoring; no hybridize)")
     args = parser.parse_args()
+    try:
+        cases = _cases(args.cases)
+    except ValueError as exc:
+        sys.exit(f"error: {exc}")
     folder = Path(tempfile.mkdtemp(prefix="bench_effects_"))
     rows = []
-    for example, variant in _cases(args.cases):
+    for example, variant in cases:
         train, test = _data(example, variant)
         started = time.perf_counter()
-        result = hybridize(example_fmu(DECLARED[example]), train, test, folder / f"{example}_{variant}.fmu",
-                           folder / f"{example}_{variant}", epochs=args.budget, progress=False)
-        rows += _rows(f"{example} {variant}", result.report, read_sidecar(test), time.perf_counter() - started)
-        print(f"done: {example} {variant} ({time.perf_counter() - started:.0f} s)", flush=True)
+        scoring, truth = _truth_errors(example, variant, train, test)
+        report = None
+        if not args.truth_only:
+            report = hybridize(example_fmu(DECLARED[example]), train, test, folder / f"{example}_{variant}.fmu",
+                               folder / f"{example}_{variant}", epochs=args.budget, progress=False).report
+        seconds = time.perf_counter() - started
+        rows += _rows(f"{example} {variant}", truth, report, read_sidecar(test), seconds)
+        print(f"done: {example} {variant} ({seconds:.0f} s), {scoring.describe()}", flush=True)
     print(f"\nTest MSE / noise variance of the measured value (1 = noise floor), {args.budget} epochs:\n")
-    print("| case | signal | plain FMU | fitted term | NeuralFMU | chosen | NeuralFMU channels and inputs |")
-    print("|---|---|---|---|---|---|---|")
+    print("| case | signal | truth FMU | plain FMU | fitted term | NeuralFMU | chosen | NeuralFMU channels and inputs "
+          "| seconds |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for row in rows:
         print("| " + " | ".join(row) + " |")
 
@@ -54,10 +74,28 @@ def main() -> None:
 def _cases(spec: str) -> list[tuple[str, str]]:
     cases = []
     for item in spec.split(","):
-        example, _, variant = item.partition(":")
+        example, _, variant = item.strip().partition(":")
+        if example not in EXAMPLES:
+            raise ValueError(f"--cases: unknown example '{example}'; choose among {', '.join(EXAMPLES)}")
         variants = list(dict.fromkeys(s.variant.key for s in example_data_sets(example)))
+        if variant and variant not in variants:
+            raise ValueError(f"--cases: {example} has no variant '{variant}'; choose among {', '.join(variants)}")
         cases += [(example, v) for v in variants if not variant or v == variant]
     return cases
+
+
+def _truth_errors(example: str, variant: str, train: Path, test: Path) -> tuple[Scoring, dict]:
+    """The truth FMU's test errors, scored as hybridize scores every model: the step checked with the
+    declared FMU on the training samples (the run without its held-out late share)."""
+    declared = example_fmu(DECLARED[example])
+    info = read_model_info(declared)
+    train_data = read_data(train, info)
+    split = train_data.start + (1.0 - VALIDATION_SHARE) * (train_data.stop - train_data.start)
+    scoring = Scoring.checked(declared, train_data.window(train_data.start, split), train_data.start_values)
+    data_set = next(s for s in example_data_sets(example) if s.variant.key == variant)
+    test_data = read_data(test, info)
+    starts = {**test_data.start_values, **data_set.variant.truth_parameters}
+    return scoring, evaluate(example_fmu(data_set.variant.fmu), test_data, starts, scoring).errors
 
 
 def _data(example: str, variant: str) -> tuple[Path, Path]:
@@ -67,22 +105,27 @@ def _data(example: str, variant: str) -> tuple[Path, Path]:
     return by_role["train"], by_role["test"]
 
 
-def _rows(case: str, report: dict, sidecar: dict, seconds: float) -> list[list[str]]:
+def _rows(case: str, truth: dict, report: dict | None, sidecar: dict, seconds: float) -> list[list[str]]:
     bench = sidecar["bench"]
-    plain = report["errors"]["test"]["before"]
-    models = {m["name"]: m for m in report["models"]}
+    models = {m["name"]: m for m in report["models"]} if report else {}
     neural = models.get("neural")
     described = "-"
     if neural:
         described = f"{neural.get('channel')} <- {', '.join(neural.get('inputs', []))}"
     rows = []
-    for signal, errors in plain.items():
+    for signal, truth_errors in truth.items():
         floor = bench["noise_std"][signal] ** 2 / bench["runs"]
-        cells = [_ratio(errors["mse"], floor)]
-        for name in ("fitted term", "neural"):
-            model = models.get(name)
-            cells.append(_ratio(errors["mse"] / model["test_mse_factor"][signal], floor) if model else "-")
-        rows.append([case, signal, *cells, report["chosen"] or "none", described])
+        cells = [_ratio(truth_errors["mse"], floor)]
+        if report:
+            plain = report["errors"]["test"]["before"][signal]["mse"]
+            cells.append(_ratio(plain, floor))
+            for name in ("fitted term", "neural"):
+                model = models.get(name)
+                cells.append(_ratio(plain / model["test_mse_factor"][signal], floor) if model else "-")
+        else:
+            cells += ["-"] * 3
+        chosen = (report["chosen"] or "none") if report else "-"
+        rows.append([case, signal, *cells, chosen, described, f"{seconds:.0f}"])
     return rows
 
 

@@ -78,6 +78,13 @@ class MeasuredData:
         inverse = 1.0 / (variance + floor)
         return inverse / inverse.mean()
 
+    def noise_variance(self, name: str) -> float | None:
+        """Noise variance of the measured value (the mean over the runs): the spread's mean square
+        over the runs, as the significance test takes it; None without a spread column."""
+        if name not in self.std or not np.size(self.std[name]):
+            return None
+        return float(np.mean(np.asarray(self.std[name], dtype=float) ** 2)) / self.runs
+
     def window(self, start: float, stop: float) -> "MeasuredData":
         """The samples with start <= time <= stop, same bench and start values."""
         keep = (self.time >= start) & (self.time <= stop)

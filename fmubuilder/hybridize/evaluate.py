@@ -2,12 +2,16 @@
 
 Every model is simulated the same way (`Scoring`: the engine with the solver and step the
 NeuralFMU trains with, the bench's sensor lag applied to the model's signals), so "before" and
-"after", and the candidates among themselves, differ only in the model.
+"after", and the candidates among themselves, differ only in the model. `Scoring.checked` picks
+an RK4 step whose discretisation error lies well below the measurement noise, so that an error
+at the noise floor means a model as good as the data can tell, not one that matches the solver.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+
+import math
 
 import numpy as np
 
@@ -15,12 +19,23 @@ from ..data import MeasuredData, first_order_lag, load_data
 from ..errors import FmuBuilderError
 from ..fmi import read_model_info
 
+# Scoring.checked: the first step is this share of the sample period (rounded down to 1, 2 or 5 x
+# 10^n); h and h/2 may differ by at most STEP_TOLERANCE times a signal's noise variance (mean
+# square over the training samples); at most MAX_HALVINGS halvings.
+FIRST_STEP_SHARE = 0.1
+STEP_TOLERANCE = 0.1
+MAX_HALVINGS = 4
+
 
 @dataclass(frozen=True)
 class Scoring:
-    """How every model is simulated for its errors: a fixed-step solver at `step` seconds."""
+    """How every model is simulated for its errors: a fixed-step solver at `step` seconds.
+    `check`: largest mean square difference between h and h/2 over a signal's noise variance, from
+    `checked` (None: the step was not checked)."""
     solver: str
     step: float
+    check: float | None = None
+    halvings: int = 0
 
     @classmethod
     def like_training(cls, info, data: MeasuredData) -> "Scoring":
@@ -29,8 +44,44 @@ class Scoring:
         step = info.default_experiment.step_size or (data.stop - data.start) / max(10 * data.time.size, 1000)
         return cls("euler", float(step))
 
+    @classmethod
+    def checked(cls, fmu_path: Path, data: MeasuredData, start_values: dict) -> "Scoring":
+        """Classical RK4 at a step checked on the plain model over `data` (the training samples):
+        start at FIRST_STEP_SHARE of the sample period, halve while h and h/2 differ by more than
+        STEP_TOLERANCE of some signal's noise variance (`MeasuredData.noise_variance`), at most
+        MAX_HALVINGS times. Without a spread in the data the noise is unknown: the first step, unchecked."""
+        noise = {name: data.noise_variance(name) for name in data.names}
+        noise = {name: value for name, value in noise.items() if value is not None and value > 0}
+        step = first_step(data)
+        if not noise:
+            return cls("rk4", step)
+        coarse = evaluate(fmu_path, data, start_values, cls("rk4", step))
+        for halvings in range(MAX_HALVINGS + 1):
+            fine = evaluate(fmu_path, data, start_values, cls("rk4", step / 2))
+            ratio = max(float(np.mean((coarse.predicted[name] - fine.predicted[name]) ** 2)) / variance
+                        for name, variance in noise.items())
+            if ratio <= STEP_TOLERANCE or halvings == MAX_HALVINGS:    # nan (a run-off) halves too
+                return cls("rk4", step, ratio, halvings)
+            step, coarse = step / 2, fine
+        raise AssertionError("unreachable")
+
     def describe(self) -> str:
-        return f"engine {self.solver.capitalize()}, h = {self.step:g} s"
+        text = f"engine {self.solver.upper() if self.solver == 'rk4' else self.solver.capitalize()}, h = {self.step:g} s"
+        if self.check is None:
+            return text
+        if self.check <= STEP_TOLERANCE:
+            return text + f" (checked: h/2 differs by < {STEP_TOLERANCE:g} noise)"
+        return text + (f" (checked: h/2 still differs by {self.check:.2g} noise after {self.halvings} halvings, "
+                       "the most allowed)")
+
+
+def first_step(data: MeasuredData) -> float:
+    """FIRST_STEP_SHARE of the median sample period, rounded down to 1, 2 or 5 x 10^n seconds."""
+    period = float(np.median(np.diff(data.time))) if data.time.size > 1 else 1.0
+    target = FIRST_STEP_SHARE * period
+    decade = 10.0 ** math.floor(math.log10(target))
+    mantissa = next(m for m in (5.0, 2.0, 1.0) if m * decade <= target * (1 + 1e-9))
+    return float(f"{mantissa * decade:.12g}")
 
 
 @dataclass
