@@ -17,6 +17,7 @@ A sidecar ``<csv>.json`` (written by ``fmubuilder synth``, or by hand) describes
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -28,6 +29,12 @@ from .errors import FmuBuilderError
 
 UNCERTAINTY_SUFFIX = "_std"
 DEFAULT_RUNS = 2
+# A simulation started at a measured time (MeasuredData.start_estimate): the line through the
+# samples of the first START_SECONDS (at least START_MIN_SAMPLES), and the model's own value kept
+# while it lies within START_AGREEMENT standard errors of that line's value.
+START_SECONDS = 1.0
+START_MIN_SAMPLES = 5
+START_AGREEMENT = 3.0
 
 
 @dataclass
@@ -84,6 +91,21 @@ class MeasuredData:
         if name not in self.std or not np.size(self.std[name]):
             return None
         return float(np.mean(np.asarray(self.std[name], dtype=float) ** 2)) / self.runs
+
+    def start_estimate(self, name: str, t0: float, model_value: float | None = None) -> float:
+        """The value of signal `name` to start a simulation with at t0: `model_value` if the samples
+        of the first seconds from t0 agree with it (within START_AGREEMENT standard errors of a line
+        fitted through them), else that line's value at t0: a single sample carries its full noise."""
+        first = int(np.searchsorted(self.time, t0 - 1e-9 * max(1.0, abs(t0))))
+        last = max(int(np.searchsorted(self.time, t0 + START_SECONDS, side="right")), first + START_MIN_SAMPLES)
+        t, y = self.time[first:last] - t0, np.asarray(self.signals[name][first:last], dtype=float)
+        if t.size < 3:
+            fitted, error = float(np.interp(t0, self.time, self.signals[name])), math.inf
+        else:
+            fitted, error = _intercept(t, y)
+        if model_value is not None and abs(float(model_value) - fitted) <= START_AGREEMENT * error:
+            return float(model_value)
+        return fitted
 
     def window(self, start: float, stop: float) -> "MeasuredData":
         """The samples with start <= time <= stop, same bench and start values."""
@@ -204,6 +226,20 @@ def first_order_lag(time: np.ndarray, signal: np.ndarray, tau: float) -> np.ndar
         y = a * y + b * u[k] + c * (u[k + 1] - u[k])
         out[k + 1] = y
     return out
+
+
+def _intercept(t: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Value at t = 0 of the least-squares line through (t, y) and its standard error, widened for
+    residuals correlated from sample to sample (a filtered sensor's noise): by sqrt((1 + r) / (1 - r))
+    with r their lag-one autocorrelation."""
+    design = np.column_stack([np.ones_like(t), t])
+    coefficients, *_ = np.linalg.lstsq(design, y, rcond=None)
+    residual = y - design @ coefficients
+    variance = float(residual @ residual) / max(t.size - 2, 1)
+    r = float(residual[1:] @ residual[:-1]) / float(residual @ residual) if np.any(residual) else 0.0
+    r = min(max(r, 0.0), 0.9)
+    unit = float(np.linalg.pinv(design.T @ design)[0, 0])
+    return float(coefficients[0]), math.sqrt(variance * unit * (1.0 + r) / (1.0 - r))
 
 
 def _positive_or_none(value) -> float | None:

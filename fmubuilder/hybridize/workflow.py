@@ -143,7 +143,6 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
         raise FmuBuilderError(f"time budget {time_budget:g} s: give a positive number of seconds or none")
     info = read_model_info(model_fmu)
     roles = _assign_roles(info, train_csv, train_start, validation_csv, validation_start, test_csv, test_start)
-    scoring = Scoring.like_training(info, roles.train[0].data)
     work = Path(tempfile.mkdtemp(prefix="fmubuilder-hybridize-"))
     final_report_dir, report_dir = report_dir, staging_folder(report_dir)   # swapped in when complete
     try:
@@ -157,6 +156,9 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
             if part.data is first.data:
                 part.start_values = {**part.start_values, **diagnosis.start_values}
         say(f"      {_diagnosis_line(diagnosis)}")
+        # Every model, and the NeuralFMU's training, at an RK4 step whose error lies below the noise.
+        scoring = Scoring.checked(model_fmu, first.samples(), first.start_values)
+        say(f"      scoring: {scoring.describe()}")
         timings = {"diagnosis": time.perf_counter() - started}
         plain = score(Scores(model_fmu), roles, scoring, ("train", "validation"), "scoring the plain FMU")
         candidates: list[Candidate] = []

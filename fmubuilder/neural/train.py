@@ -280,9 +280,15 @@ def simulate_over(model: NeuralFMU, data: MeasuredData, step: float, solver: str
         model.start_values = original
 
 
-def measured_initial_states(model: NeuralFMU, data: MeasuredData) -> dict:
-    """Start values of the measured continuous states: their first measured value."""
-    return {s: float(data.signals[s][0]) for s in model.state_names() if s in data.signals}
+def measured_initial_states(model: NeuralFMU, data: MeasuredData, t0: float | None = None,
+                            model_values: dict | None = None) -> dict:
+    """Values of the measured continuous states to start at t0 (default: the data's start) with: the
+    model's own value (its start value, or `model_values` along a run) where the first seconds of
+    data agree with it, else a line fitted through them (see MeasuredData.start_estimate)."""
+    t0 = data.start if t0 is None else t0
+    own = model_values if model_values is not None else {
+        s: model.start_values.get(s, model.info.variable(s).start) for s in model.state_names()}
+    return {s: data.start_estimate(s, t0, own.get(s)) for s in model.state_names() if s in data.signals}
 
 
 # ------------------------------------------------------------------------------------------
@@ -389,14 +395,16 @@ class Trainer:
             run = simulate(model, data.stop - data.start, self.step, starts=[first],
                            record=self._reference_names(), solver=self.settings.solver, inputs=self.inputs,
                            capture=grid_index)
-        self._captured = [self._with_measured_states(run.captured[k][0]) for k in grid_index]
+        self._captured = [self._with_measured_states(run.captured[k][0], run, k) for k in grid_index]
         for element, start in zip(self.elements, self._captured):
             element.start = start
         return run
 
-    def _with_measured_states(self, start: ElementStart) -> ElementStart:
+    def _with_measured_states(self, start: ElementStart, run, k: int) -> ElementStart:
+        """The element starts at the measured states, or at the run's where the data agree with them."""
         measured = [s for s in self.model.state_names() if s in self.data.signals]
-        start.states = {s: float(self.data.at(s, start.t0)) for s in measured}
+        along_run = {s: float(run.numpy(s)[k, 0]) for s in measured}
+        start.states = measured_initial_states(self.model, self.data, start.t0, along_run)
         return start
 
     def _reference_names(self) -> list[str]:
