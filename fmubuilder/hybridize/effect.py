@@ -24,6 +24,7 @@ from ..data import read_sidecar
 from ..errors import FmuBuilderError
 from ..export.network import OnnxNetwork
 from ..export.spec import HybridSpec
+from .evaluate import Scoring
 
 # Points of the declared FMU's run at which the effects are evaluated.
 EFFECT_POINTS = 600
@@ -39,16 +40,17 @@ class Effect:
     truth_source: str = ""                # where the truth came from, or why there is none
 
 
-def effect_of(spec_path: Path, declared_fmu: Path, data, start_values: dict, step: float) -> Effect:
-    """The learned (and, if known, true) effect along the declared FMU's run over `data`."""
+def effect_of(spec_path: Path, declared_fmu: Path, data, start_values: dict, scoring: Scoring) -> Effect:
+    """The learned (and, if known, true) effect along the declared FMU's run over `data`, simulated
+    as every model is scored (`scoring`)."""
     from ..simulation import simulate
     spec = HybridSpec.load(spec_path)
     info_states = _state_names(declared_fmu)
-    interval = max(step, (data.stop - data.start) / EFFECT_POINTS)
+    interval = max(scoring.step, (data.stop - data.start) / EFFECT_POINTS)
     inputs = {"time": data.time, **data.inputs} if data.inputs else None
     run = simulate(declared_fmu, start_time=data.start, stop_time=data.stop, start_values=start_values,
-                   inputs=inputs, variables=list(dict.fromkeys([*spec.inputs, *info_states])), solver="euler",
-                   step_size=step, output_interval=interval)
+                   inputs=inputs, variables=list(dict.fromkeys([*spec.inputs, *info_states])),
+                   solver=scoring.solver, step_size=scoring.step, output_interval=interval)
     channel = spec.channels[0]
     network = OnnxNetwork(spec.onnx)
     values = np.column_stack([np.asarray(run[name], dtype=float) for name in spec.inputs])

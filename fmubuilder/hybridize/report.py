@@ -321,7 +321,7 @@ def _plots(folder: Path, report, diagnosis, plain, chosen, roles, scoring, model
         try:
             from .effect import effect_of
             effect = effect_of(chosen.spec_dir / "spec.json", Path(model_fmu), first.data, first.start_values,
-                               scoring.step)
+                               scoring)
             paths.append(plot_effect(folder / "effect.png", effect, {**units_of(read_model_info(model_fmu)),
                                                                      **{k: v for k, v in units.items() if v}},
                                      f"What the {chosen.name} adds to {effect.channel}"))

@@ -395,15 +395,19 @@ class Trainer:
             run = simulate(model, data.stop - data.start, self.step, starts=[first],
                            record=self._reference_names(), solver=self.settings.solver, inputs=self.inputs,
                            capture=grid_index)
-        self._captured = [self._with_measured_states(run.captured[k][0], run, k) for k in grid_index]
+        measured = self._measured_states()
+        self._captured = [self._with_measured_states(run.captured[k][0], {s: float(run.numpy(s)[k, 0]) for s in measured})
+                          for k in grid_index]
         for element, start in zip(self.elements, self._captured):
             element.start = start
         return run
 
-    def _with_measured_states(self, start: ElementStart, run, k: int) -> ElementStart:
-        """The element starts at the measured states, or at the run's where the data agree with them."""
-        measured = [s for s in self.model.state_names() if s in self.data.signals]
-        along_run = {s: float(run.numpy(s)[k, 0]) for s in measured}
+    def _measured_states(self) -> list[str]:
+        return [s for s in self.model.state_names() if s in self.data.signals]
+
+    def _with_measured_states(self, start: ElementStart, along_run: dict) -> ElementStart:
+        """The element starts at the measured states, or at the run's (`along_run`) where the data
+        agree with them."""
         start.states = measured_initial_states(self.model, self.data, start.t0, along_run)
         return start
 
@@ -627,12 +631,15 @@ class Trainer:
                               record=self.loss_signals, solver=self.settings.solver, inputs=self.inputs,
                               keep_final_state=keep_final_state)
         if keep_final_state:
-            for element, final in zip(batch, trajectory.final_starts):
+            for position, (element, final) in enumerate(zip(batch, trajectory.final_starts)):
                 if element.index + 1 < len(self.elements):
                     following = self.elements[element.index + 1]
                     if abs(final.t0 - following.start.t0) <= 1e-6 * self.step:
                         final.t0 = following.start.t0
-                        following.start = self._with_measured_states(final)
+                        names = self.model.state_names()
+                        final_values = trajectory.final_states[position].detach()
+                        following.start = self._with_measured_states(
+                            final, {s: float(final_values[names.index(s)]) for s in self._measured_states()})
         return {name: (residual ** 2).mean() for name, residual in self._residuals(trajectory, batch).items()}
 
     def _residuals(self, trajectory, batch: list["_Element"]) -> dict:

@@ -24,6 +24,7 @@ from fmubuilder.export.spec import HybridSpec
 from fmubuilder.fmi import read_model_info
 from fmubuilder.hybridize import hybridize
 from fmubuilder.hybridize.effect import effect_of
+from fmubuilder.hybridize.evaluate import Scoring
 from fmubuilder.hybridize.plots import plot_effect
 from fmubuilder.hybridize.report import _candidate_note
 
@@ -158,7 +159,7 @@ def test_the_effect_of_a_network_against_the_truth(files, tmp_path):
     HybridSpec(original_fmu=example_fmu("dc_drive"), original_guid=info.guid, channels=["der(speed)"],
                inputs=["speed"], onnx=tmp_path / "network.onnx", p_ann=[0.5]).save(tmp_path / "spec.json")
     data = load_data(files["train"], info)
-    effect = effect_of(tmp_path / "spec.json", example_fmu("dc_drive"), data, {}, step=1e-3)
+    effect = effect_of(tmp_path / "spec.json", example_fmu("dc_drive"), data, {}, Scoring("euler", 1e-3))
     speed = effect.inputs["speed"]
     assert effect.kind == "network" and speed.min() < 1.0 and speed.max() > 140.0
     with torch.no_grad():
