@@ -8,10 +8,9 @@ at the noise floor means a model as good as the data can tell, not one that matc
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
-
-import math
 
 import numpy as np
 

@@ -5,7 +5,8 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    pre-/post-processing scales (ANN inputs roughly standard normal, outputs at the channel's
    magnitude) and the start of every batch element: the measured data hold no controller states, so
    each element starts from the FMU state saved by the reference (fmi2GetFMUstate, serialized; it
-   carries the discrete states), with the measured states set to their measured values.
+   carries the discrete states), with the measured states set to their measured values (the run's
+   own value where the data's first second agrees with it, see measured_initial_states).
    Unmeasured states of the plain FMU can be far from the truth (a controller integral that
    compensates an unmodelled load), and their transient at each element start would dominate the
    loss. So after pre-training the starts are captured again from a simulation of the hybrid, and
@@ -266,8 +267,8 @@ def data_errors(data: MeasuredData, result, sensor_lag: float = 0.0) -> dict:
 def simulate_over(model: NeuralFMU, data: MeasuredData, step: float, solver: str = "euler",
                   start_values: dict | None = None, plain: bool = False):
     """Engine result (with its statistics) of the hybrid, or with plain of the FMU alone, over the
-    data's span, recording the measured signals; measured states start at their first measured
-    value, the data's inputs drive the FMU."""
+    data's span, recording the measured signals; measured states start where the data's first
+    second puts them (measured_initial_states), the data's inputs drive the FMU."""
     original = dict(model.start_values)
     model.start_values.update(measured_initial_states(model, data))
     model.start_values.update(start_values or {})
