@@ -1,9 +1,10 @@
 """Which variables the ANN reads: those that predict the missing term on data it was not fitted to.
 
-A fit on the training data alone rewards any variable that tells the samples apart, a cumulative one
+A fit on the samples alone rewards any variable that tells the samples apart, a cumulative one
 (an energy, a position, an angle: a proxy for time) best of all; an ANN reading it extrapolates
-on every other run. So the inputs are chosen by held-out error, cheaply, without training a
-NeuralFMU per choice:
+on every other run. A flexible smoother also finds something in pure noise. So the inputs are
+chosen by cross-validated error with a test against noise, cheaply, without training a NeuralFMU
+per choice:
 
 1. The missing derivative term along the measured trajectory (collocation): the FMU is run with its
    measured states forced to the data, and at each data stamp
@@ -12,13 +13,21 @@ NeuralFMU per choice:
 
    both by the same local linear fit (on the measured state and on the integral of the model's
    derivative), so that the sensor noise and the events' steps are smoothed the same way.
-2. Candidates: the FMU's variables along that run; dropped are constant ones, the channel's own
-   derivative and variables equal to it, variables whose held-out values leave the range seen in
+2. Samples: those of the training and validation windows where the model's derivative is settled
+   (its swing within the slope window at most the SETTLED_QUANTILE of all swings): at steps and
+   events the local fits straddle two regimes, and the estimate there follows the step, not the
+   effect.
+3. Candidates: the FMU's variables along that run; dropped are constant ones, the channel's own
+   derivative and variables equal to it, variables whose validation values leave the range seen in
    training (decided from the data, not the names), and copies of a variable kept before (a
    torque proportional to a current).
-3. Greedy forward selection: add the variable that lowers the held-out error of a k-nearest-
-   neighbour smoother of the missing term the most; stop when the next one lowers it by less than
-   MIN_GAIN. A product of two variables needs both: the smoother sees the pair.
+4. Forward selection scored by a k-nearest-neighbour smoother of the missing term under FOLDS-fold
+   cross-validation with contiguous folds (blocks of time, the validation window the last one): a
+   cumulative variable's held-out values lie beyond those it was fitted on, so it extrapolates as
+   it would on new data. A variable is admitted only if it lowers the cross-validated error by
+   MIN_GAIN and a paired test over time blocks of BLOCK_SECONDS (the log-ratio of each block's
+   error with and without it; t >= MIN_T) says the gain is no chance. A product of two variables
+   needs both: the smoother sees the pair. At most MAX_INPUTS.
 """
 from __future__ import annotations
 
@@ -32,12 +41,23 @@ OUT_OF_RANGE_SHARE = 0.1
 RANGE_MARGIN = 0.05
 # Two variables whose training values correlate beyond this are one input.
 DUPLICATE_CORRELATION = 0.999
-# A further input must lower the held-out error by this share of the error so far.
+# A further input must lower the cross-validated error by this share of the error so far ...
 MIN_GAIN = 0.1
-# Held-out errors within this share of the best are a tie: the preferred variable wins (measured
-# signals first, then by kind), since such a difference is no evidence.
+# ... and the paired test over time blocks must give at least this t (log-ratio of block errors).
+MIN_T = 3.0
+# Seconds per block of the paired test: longer than the slope window and the sensors' noise
+# correlation, so that the blocks' errors are about independent.
+BLOCK_SECONDS = 1.2
+# Contiguous cross-validation folds; neighbours of the smoother (standardised inputs).
+FOLDS = 5
+NEIGHBOURS = 20
+# The ANN reads at most this many inputs.
+MAX_INPUTS = 3
+# Samples kept: those whose model-derivative swing is at most this quantile of all swings.
+SETTLED_QUANTILE = 0.7
+# Cross-validated errors within this share of the best are a tie: the preferred variable wins
+# (measured signals first, then by kind), since such a difference is no evidence.
 TIE = 0.05
-NEIGHBOURS = 10
 # Seconds of data per local fit of the measured state's slope.
 SLOPE_WINDOW = 0.6
 # Preference among copies of one variable: states, then outputs, inputs, locals, derivatives last.
@@ -48,21 +68,22 @@ KIND_ORDER = {"state": 0, "output": 1, "input": 2, "local": 3, "derivative": 4}
 class InputChoice:
     channel: str
     inputs: list[str]
-    validation_error: float             # held-out MSE of the smoother with the chosen inputs
-    baseline_error: float               # held-out MSE of the training mean (no input)
-    steps: list[dict] = field(default_factory=list)   # per greedy step: variable, error
+    validation_error: float             # cross-validated MSE of the smoother with the chosen inputs
+    baseline_error: float               # cross-validated MSE of the mean (no input)
+    steps: list[dict] = field(default_factory=list)   # per admitted input: variable, error, t
+    rejected: dict = field(default_factory=dict)      # best variable not admitted: error, t
     out_of_range: dict = field(default_factory=dict)  # variable -> held-out share outside
     duplicates: dict = field(default_factory=dict)    # dropped variable -> the one kept
 
     @property
     def explained(self) -> float:
-        """Share of the held-out variance of the missing term the inputs predict."""
+        """Share of the cross-validated variance of the missing term the inputs predict."""
         return 1.0 - self.validation_error / self.baseline_error if self.baseline_error > 0 else 0.0
 
     def to_dict(self) -> dict:
         return {"channel": self.channel, "inputs": self.inputs, "validation_error": self.validation_error,
                 "baseline_error": self.baseline_error, "explained": self.explained, "steps": self.steps,
-                "out_of_range": self.out_of_range, "duplicates": self.duplicates}
+                "rejected": self.rejected, "out_of_range": self.out_of_range, "duplicates": self.duplicates}
 
 
 @dataclass
@@ -166,11 +187,12 @@ def _integral(grid: np.ndarray, values: np.ndarray) -> np.ndarray:
     return np.concatenate(([0.0], np.cumsum(0.5 * (values[1:] + values[:-1]) * np.diff(grid))))
 
 
-# -- steps 2 and 3: candidates and the greedy choice ----------------------------------------------
+# -- steps 2 to 4: samples, candidates and the forward selection -----------------------------------
 
 def choose_inputs(term: MissingTerm, channel: str, train: np.ndarray, validation: np.ndarray,
                   exclude: set[str] = frozenset()) -> InputChoice:
-    """Inputs for the ANN at `channel`; train and validation: boolean masks over term.time."""
+    """Inputs for the ANN at `channel`; train and validation: boolean masks over term.time.
+    The cross-validation runs over the settled samples of both, in time order."""
     target = term.missing[channel]
     usable = np.isfinite(target)
     train, validation = train & usable, validation & usable
@@ -181,22 +203,112 @@ def choose_inputs(term: MissingTerm, channel: str, train: np.ndarray, validation
                   and np.ptp(term.variables[n][train]) > 0]
     candidates.sort(key=lambda n: (n not in term.measured, KIND_ORDER.get(term.kinds.get(n), 5)))
     kept, duplicates = distinct_variables(term.variables, candidates, train)
-    y_train, y_validation = target[train], target[validation]
-    baseline = float(np.mean((y_validation - np.mean(y_train)) ** 2))
-    chosen, error, steps = [], baseline, []
-    while True:
-        trials = {n: smoother_error(term.variables, [*chosen, n], train, validation, target)
-                  for n in kept if n not in chosen}
-        if not trials:
+    samples = (train | validation) & settled_samples(term.time, term.variables.get(channel), train | validation)
+    selection = forward_selection({n: term.variables[n][samples] for n in kept}, target[samples], term.time[samples])
+    return InputChoice(channel, selection.inputs, selection.error, selection.baseline, selection.steps,
+                       selection.rejected, out_of_range, duplicates)
+
+
+def settled_samples(time: np.ndarray, derivative: np.ndarray | None, among: np.ndarray) -> np.ndarray:
+    """Mask of the samples whose model derivative swings (max - min within the slope window) by at
+    most the SETTLED_QUANTILE of the swings among `among`; all when the derivative is not known."""
+    if derivative is None:
+        return np.ones(time.size, dtype=bool)
+    lo = np.searchsorted(time, time - 0.5 * SLOPE_WINDOW, side="left")
+    hi = np.searchsorted(time, time + 0.5 * SLOPE_WINDOW, side="right")
+    swing = np.array([np.ptp(derivative[i:j]) for i, j in zip(lo, hi)])
+    return swing <= np.quantile(swing[among], SETTLED_QUANTILE) if among.any() else np.zeros(time.size, dtype=bool)
+
+
+@dataclass
+class Selection:
+    inputs: list[str]
+    error: float                # cross-validated MSE with the inputs
+    baseline: float             # cross-validated MSE of the mean
+    steps: list[dict]
+    rejected: dict
+
+
+def forward_selection(variables: dict[str, np.ndarray], target: np.ndarray, time: np.ndarray) -> Selection:
+    """Admit, one at a time, the variable whose addition lowers the cross-validated error most
+    among those that pass both tests (MIN_GAIN and the paired test); samples in time order, the
+    variables in order of preference (ties go to the earlier one)."""
+    names = list(variables)
+    standardised = {n: (v - np.mean(v)) / (np.std(v) or 1.0) for n, v in variables.items()}
+    blocks = time_blocks(time)
+    current = cross_validated_squared_errors(None, target)
+    baseline = error = float(np.mean(current)) if target.size else 0.0
+    chosen, steps, rejected = [], [], {}
+    while len(chosen) < MAX_INPUTS and target.size >= 2 * FOLDS:
+        trials = {}
+        for name in names:
+            if name not in chosen:
+                squared = cross_validated_squared_errors(np.column_stack([standardised[n] for n in [*chosen, name]]),
+                                                         target)
+                trials[name] = (float(np.mean(squared)), paired_t(squared, current, blocks), squared)
+        passing = {n: t for n, t in trials.items() if t[0] <= (1.0 - MIN_GAIN) * error and t[1] >= MIN_T}
+        if not passing:
+            if trials:
+                best = min(trials, key=lambda n: trials[n][0])
+                rejected = {"variable": best, "cv_error": trials[best][0], "t": trials[best][1]}
             break
-        lowest = min(trials.values())
-        best = next(n for n in trials if trials[n] <= (1.0 + TIE) * lowest)   # trials keep the preference order
-        if not trials[best] < (1.0 - MIN_GAIN) * error:
-            break
+        lowest = min(t[0] for t in passing.values())
+        best = next(n for n in passing if passing[n][0] <= (1.0 + TIE) * lowest)   # dicts keep the preference order
+        error, t, current = passing[best]
         chosen.append(best)
-        error = trials[best]
-        steps.append({"variable": best, "validation_error": error})
-    return InputChoice(channel, chosen, error, baseline, steps, out_of_range, duplicates)
+        steps.append({"variable": best, "cv_error": error, "t": t})
+    return Selection(chosen, error, baseline, steps, rejected)
+
+
+def cross_validated_squared_errors(x: np.ndarray | None, target: np.ndarray) -> np.ndarray:
+    """Squared error at each sample of a NEIGHBOURS-nearest-neighbour mean of the target fitted on
+    the other folds (FOLDS contiguous folds); x None: the other folds' mean."""
+    from scipy.spatial import cKDTree
+    fold = contiguous_folds(target.size)
+    predicted = np.empty(target.size)
+    for f in range(FOLDS):
+        held_out, fitted = fold == f, fold != f
+        if not held_out.any():
+            continue
+        if x is None:
+            predicted[held_out] = np.mean(target[fitted])
+            continue
+        k = min(NEIGHBOURS, int(fitted.sum()))
+        _, index = cKDTree(x[fitted]).query(x[held_out], k=k)
+        predicted[held_out] = target[fitted][np.asarray(index).reshape(-1, k)].mean(axis=1)
+    return (target - predicted) ** 2
+
+
+def contiguous_folds(count: int) -> np.ndarray:
+    """Fold index of each of `count` samples in time order: FOLDS runs of consecutive samples."""
+    return (np.arange(count) * FOLDS) // max(count, 1)
+
+
+def time_blocks(time: np.ndarray) -> np.ndarray:
+    """Block index of each sample: a new block every BLOCK_SECONDS and where time runs backwards
+    (the next of several runs joined)."""
+    blocks = np.zeros(time.size, dtype=int)
+    block, start = 0, time[0] if time.size else 0.0
+    for i in range(1, time.size):
+        if time[i] < time[i - 1] or time[i] - start >= BLOCK_SECONDS:
+            block, start = block + 1, time[i]
+        blocks[i] = block
+    return blocks
+
+
+def paired_t(new: np.ndarray, old: np.ndarray, blocks: np.ndarray) -> float:
+    """t of the mean log-ratio old/new of the blocks' mean squared errors (positive: new is lower)."""
+    counts = np.bincount(blocks)
+    used = counts > 0
+    tiny = 1e-300
+    ratio = (np.log(np.bincount(blocks, old)[used] / counts[used] + tiny)
+             - np.log(np.bincount(blocks, new)[used] / counts[used] + tiny))
+    if ratio.size < 3:
+        return 0.0
+    spread = float(np.std(ratio, ddof=1))
+    if spread == 0.0:
+        return float("inf") if np.mean(ratio) > 0 else 0.0
+    return float(np.mean(ratio) / (spread / np.sqrt(ratio.size)))
 
 
 def equal_to(variables: dict, channel: str) -> list[str]:
@@ -229,23 +341,10 @@ def distinct_variables(variables: dict, ordered: list[str], mask: np.ndarray) ->
     return kept, duplicates
 
 
-def smoother_error(variables: dict, names: list[str], train: np.ndarray, validation: np.ndarray,
-                   target: np.ndarray) -> float:
-    """Held-out MSE of a k-nearest-neighbour mean of the target, inputs scaled by their training spread."""
-    from scipy.spatial import cKDTree
-    x = np.column_stack([variables[n] for n in names])
-    scale = np.std(x[train], axis=0)
-    x = x / np.where(scale > 0, scale, 1.0)
-    k = min(NEIGHBOURS, int(train.sum()))
-    _, index = cKDTree(x[train]).query(x[validation], k=k)
-    predicted = target[train][np.asarray(index).reshape(len(x[validation]), k)].mean(axis=1)
-    return float(np.mean((target[validation] - predicted) ** 2))
-
-
 # -- the workflow's choice: channels and inputs -----------------------------------------------------
 
 # A channel the diagnosis found about as good as its best one is corrected too when the inputs
-# predict this share of its estimated missing term on held-out data.
+# predict this share of its estimated missing term under cross-validation.
 EXTRA_CHANNEL_EXPLAINED = 0.5
 
 
@@ -256,8 +355,9 @@ class AnnChoice:
     per_channel: list[InputChoice]
 
     def to_dict(self) -> dict:
-        return {"channels": self.channels, "inputs": self.inputs, "rule": "greedy forward selection by the "
-                "held-out error of a nearest-neighbour smoother of the estimated missing term",
+        return {"channels": self.channels, "inputs": self.inputs, "rule": "forward selection by the "
+                "cross-validated error (contiguous folds) of a nearest-neighbour smoother of the estimated missing "
+                f"term; an input must lower it by {MIN_GAIN:.0%} with t >= {MIN_T:g} over {BLOCK_SECONDS:g} s blocks",
                 "per_channel": [c.to_dict() for c in self.per_channel]}
 
 
