@@ -72,7 +72,7 @@ import numpy as np
 import torch
 
 from ..errors import FmuBuilderError
-from ..simulation.events import any_crossed, locate
+from ..simulation.events import any_crossed, event_mode, locate
 from ..simulation.inputs import InputSignals
 from ..simulation.solvers import hermite, rk4_step
 from .layer import EventSensitivity, FmuEvaluator, fd_steps, fmu_call
@@ -353,11 +353,10 @@ class _Run:
         inst.set(overrides)
         inst.enter_initialization_mode()
         inst.exit_initialization_mode()
-        info = inst.update_discrete_states()
-        inst.enter_continuous_time_mode()
-        if info.terminate_simulation:
+        result = event_mode(inst, entered=True)
+        if result.terminate:
             raise FmuBuilderError(f"{self.info.model_name} asked to terminate during initialization")
-        return inst.get_continuous_states(), info.next_event_time_or_inf
+        return inst.get_continuous_states(), result.next_time_event
 
     def _init_sensitivity(self, b: int, overrides: dict, x_init: np.ndarray):
         """Linearisation of the initialization of element b, one re-initialization per known."""
@@ -379,11 +378,7 @@ class _Run:
                     delta = value - params[i - self.n]
                 self._fresh_init(b, perturbed)
                 if i >= self.n:  # back to the nominal parameter: shadows must differ in discrete states only
-                    inst = self.instances[b]
-                    inst.enter_event_mode()
-                    inst.set_real([self.ev.param_vrs[i - self.n]], [params[i - self.n]])
-                    inst.update_discrete_states()
-                    inst.enter_continuous_time_mode()
+                    self._set_parameters(b, [self.ev.param_vrs[i - self.n]], [params[i - self.n]])
                 return delta
             return run
         outcome = self.ev.init_sensitivity(b, x_init, [restart(i) for i in range(self.n + self.ev.P)])
@@ -406,10 +401,7 @@ class _Run:
         parameters and the state overrides applied."""
         inst = self.instances[b]
         if self.ev.P:
-            inst.enter_event_mode()
-            inst.set_real(self.ev.param_vrs, self.p.detach().tolist())
-            inst.update_discrete_states()
-            inst.enter_continuous_time_mode()
+            self._set_parameters(b, self.ev.param_vrs, self.p.detach().tolist())
         self.next_event[b] = start.next_event_time
         x = inst.get_continuous_states()
         if overrides:
@@ -420,6 +412,11 @@ class _Run:
                 x[names.index(name)] = float(value)
             inst.set_continuous_states(x)
         return x
+
+    def _set_parameters(self, b: int, vrs, values) -> None:
+        """Tunable parameters of element b, set in event mode (FMI 2.0 ME allows no other)."""
+        inst = self.instances[b]
+        event_mode(inst, before_iteration=lambda: inst.set_real(vrs, values), resume_on_terminate=True)
 
     def _known_deviation(self, x: torch.Tensor) -> torch.Tensor:
         """[R, n+P]: the zero-valued carriers of the gradient, (x - x.detach(), p - p.detach())."""
