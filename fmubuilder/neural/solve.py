@@ -13,9 +13,9 @@ FmuInstance.update_discrete_states, per event), per element:
   within a step (the engine's convention, simulation/events.py: reaching zero fires, leaving it does not).
 * State events are located without gradients on the step's dense output (Euler: linear; RK4:
   cubic Hermite) by the engine's root finder (simulation/events.locate), to the side beyond the crossing.
-  Unlike the engine, which ends the step there and starts the next one from the event, an element
-  takes the rest of its grid step at once (other elements wait on the grid), and
-  fmi2CompletedIntegratorStep is called at the grid point only.
+  As in the engine, the step cut there is a completed step (fmi2CompletedIntegratorStep, a step event
+  it requests is handled with the state event); unlike the engine, which then steps on towards its
+  next limit, an element takes the rest of its grid step at once (other elements wait on the grid).
 
 Gradients across events:
 1. Event time. With t* the located time and z the crossing indicator,
@@ -292,6 +292,7 @@ class _Run:
         self.z = None
         self.counts = {"steps": 0, "time_events": 0, "state_events": 0, "step_events": 0}
         self.step_events = not self.info.capabilities.completed_integrator_step_not_needed
+        self.completed_at_end = np.zeros(self.B, dtype=bool)   # the step's last event was at its end
         if forcing is not None and self.grad:
             raise FmuBuilderError("forced states are for simulations without gradients; use torch.no_grad()")
         self.forcing = forcing
@@ -554,6 +555,7 @@ class _Run:
         events = at_event.copy()
         x_np = x_new.detach().numpy()
         replaced = {}
+        self.completed_at_end[:] = False
         if self.z is not None:
             for b in range(B):
                 if self.done[b]:
@@ -571,17 +573,21 @@ class _Run:
             x_new, dd, c = self._replace_rows(replaced, x_new, dd, c)
         if self.step_events:
             for b in range(B):
-                if not self.done[b]:
-                    enter, terminate = self.instances[b].completed_integrator_step()
-                    if enter:
-                        self.counts["step_events"] += 1
-                    events[b] |= enter
-                    self.done[b] |= terminate
+                if not (self.done[b] or self.completed_at_end[b]):
+                    events[b] |= self._completed_step(b)
         events &= ~self.done
         if events.any():
             self.counts["time_events"] += int(at_event.sum())
             x_new, dd, c = self._handle_events(np.flatnonzero(events), t_new, x_new, dd, c)
         return x_new, dd, c
+
+    def _completed_step(self, b) -> bool:
+        """fmi2CompletedIntegratorStep of element b, whose instance stands at the end of its step:
+        whether it requests a step event (counted); a request to terminate ends the element."""
+        enter, terminate = self.instances[b].completed_integrator_step()
+        self.counts["step_events"] += int(enter)
+        self.done[b] |= terminate
+        return enter
 
     def _event_mode(self, b, t, x_minus: np.ndarray, grad: bool, signs=None):
         """Event mode of element b at (t, x_minus) (with its linearisation if `grad`): its next time
@@ -688,13 +694,21 @@ class _Run:
             theta, z_hi, which = self._locate(b, t_k, t_new, dense, z_k, z_new)
             t_star = t_k + theta * (t_new - t_k)
             x_minus, t_e, signs = self._pre_event_state(b, dense, theta, t_k, t_new, t_star, z_k, z_hi, which)
+            x_minus_np = x_minus.detach().numpy()
+            if self.step_events:   # the step cut at the event is a completed step; a step event joins the event
+                self.ev.set_point(b, t_star, x_minus_np, self._u(b, t_star))
+                self._completed_step(b)
+                if self.done[b]:
+                    return x_minus, dd_row, c_row
             grad = self.event_grad and self.ev.can_snapshot and x_minus.requires_grad
-            outcome = self._event_mode(b, t_star, x_minus.detach().numpy(), grad, signs)
+            outcome = self._event_mode(b, t_star, x_minus_np, grad, signs)
             x_plus, dd_row, c_row = self._apply_event(outcome, x_minus, dd_row, c_row, grad)
             z_k = self.z[b]
             if self.done[b]:
                 return x_plus, dd_row, c_row
-            # the rest of the step, back to the grid
+            # the rest of the step, back to the grid; none when the event ends the step (the step of
+            # length zero carries the event time's gradient only, so it is no completed step)
+            self.completed_at_end[b] = t_star == t_new
             h_rest = (t_new - t_e).reshape(1, 1) if isinstance(t_e, torch.Tensor) else np.array([t_new - t_e])
             t_k, x_k = t_star, x_plus
             x_new_row, dx1_row, _ = self.step([b], np.array([t_star]), x_plus[None], h_rest, c_row)
