@@ -372,6 +372,8 @@ class FmuInstance:
         while True:
             info = self.new_discrete_states()
             iterations += 1
+            if iterations == 1 and (info.terminate_simulation or not info.new_discrete_states_needed):
+                return info     # one pass, the usual case: nothing to merge
             values_changed |= info.values_of_continuous_states_changed
             nominals_changed |= info.nominals_of_continuous_states_changed
             if info.terminate_simulation or not info.new_discrete_states_needed:

@@ -28,14 +28,12 @@ update sees the condition that fired, and all indicators crossed by then are one
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
 
-@dataclass(frozen=True)
-class EventModeResult:
+class EventModeResult(NamedTuple):
     """What the event mode of one instance left (see `event_mode`)."""
     states_changed: bool     # valuesOfContinuousStatesChanged in some pass: re-read the states
     nominals_changed: bool   # nominalsOfContinuousStatesChanged in some pass

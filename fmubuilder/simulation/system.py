@@ -107,7 +107,7 @@ class FmuSystem:
             except FmuCallError as exc:
                 raise FmuBuilderError(f"the FMU rejected the start value {name}={value!r} ({exc})") from None
         inst.enter_initialization_mode()
-        self._apply_inputs(start_time, discrete=True)
+        self._apply_inputs(start_time)
         inst.exit_initialization_mode()
         self._columns.discrete_changed()
         return self._after_event(start_time, event_mode(inst, entered=True))
@@ -167,7 +167,11 @@ class FmuSystem:
         self._at(t, x)
         self._continuous_mode = False
         self._columns.discrete_changed()
-        return self._after_event(t, event_mode(self.instance, before_iteration=lambda: self._apply_inputs(t, True)))
+        inputs = self.inputs     # _at has set the continuous ones; discrete ones change in event mode
+        discrete = inputs is not None and inputs.discrete
+        result = event_mode(self.instance, before_iteration=(lambda: self.instance.set(inputs.discrete_at(t)))
+                            if discrete else None)
+        return self._after_event(t, result)
 
     def _after_event(self, t: float, result: EventModeResult) -> tuple[np.ndarray, float, bool]:
         self.event_iterations += result.iterations
@@ -183,12 +187,12 @@ class FmuSystem:
         i = bisect.bisect_right(self._input_events, t)
         return min(fmu_next, self._input_events[i]) if i < len(self._input_events) else fmu_next
 
-    def _apply_inputs(self, t: float, discrete: bool) -> None:
+    def _apply_inputs(self, t: float) -> None:
         if self.inputs is None:
             return
         if self._set_inputs is not None:
             self._set_inputs(self.inputs.at(t))
-        if discrete and self.inputs.discrete:
+        if self.inputs.discrete:
             self.instance.set(self.inputs.discrete_at(t))
 
 
