@@ -505,17 +505,22 @@ class FmuEvaluator:
             x_perturbed = self._redo_event(b, x_minus, params, perturbation)
             delta = x_perturbed[i] - x_minus[i] if i < n else (params[i - n] + amounts[i]) - params[i - n]
             dd, df, dx = self._measure(b, x_plus, base, d0, changed)
-            if R is not None:
-                R[:, i] = dx / delta
-            B[:, i] = (dd if self.q else df) / delta
-            if self.q and _nonzero(dd, d0):
-                handle = self._snapshot(b, pool, len(candidates.handles)) if shadows else None
-                candidates.add(dd, df, dx, handle)
+            self._column(b, i, delta, (dd, df, dx), R, B, d0, candidates, pool if shadows else None)
             nonzero[c] = df.any() or (self.q and dd.any()) or not (R is None or _identity_column(R, i, n))
         sensitivity.observe(columns, nonzero, probes=int(unchecked.size > 0))
         outcome.R, outcome.B = R, B
         if self.q:
             self._propagate_shadows(b, t, x_minus, u, outcome, base, d0, candidates, pool, sensitivity, shadows)
+
+    def _column(self, b, i, delta, measured, R, B, d0, candidates: _Candidates, pool) -> None:
+        """Column i of R and B from the deviations `measured` after perturbing known i by delta;
+        a discrete deviation is a candidate shadow (with a snapshot from `pool`, if one is given)."""
+        dd, df, dx = measured
+        if R is not None:
+            R[:, i] = dx / delta
+        B[:, i] = (dd if self.q else df) / delta
+        if self.q and _nonzero(dd, d0):
+            candidates.add(dd, df, dx, None if pool is None else self._snapshot(b, pool, len(candidates.handles)))
 
     def _redo_event(self, b, x_minus, params, perturbation) -> np.ndarray:
         """The event iteration of instance b again, from the snapshot before the event, with the
@@ -584,11 +589,7 @@ class FmuEvaluator:
         pool, candidates = self._next_pool(b), _Candidates()
         for i, restart in enumerate(restarts):
             delta = restart()
-            dd, df, dx = self._measure(b, x_init, base, d0, True)
-            R[:, i] = dx / delta
-            B[:, i] = (dd if self.q else df) / delta
-            if self.q and _nonzero(dd, d0):
-                candidates.add(dd, df, dx, self._snapshot(b, pool, len(candidates.handles)))
+            self._column(b, i, delta, self._measure(b, x_init, base, d0, True), R, B, d0, candidates, pool)
         outcome = EventOutcome(x_init, True, np.inf, False, R=R, B=B)
         if self.q:
             outcome.G = _regression(candidates, self.width, self.q)

@@ -36,7 +36,6 @@ import numpy as np
 class EventModeResult(NamedTuple):
     """What the event mode of one instance left (see `event_mode`)."""
     states_changed: bool     # valuesOfContinuousStatesChanged in some pass: re-read the states
-    nominals_changed: bool   # nominalsOfContinuousStatesChanged in some pass
     next_time_event: float   # the FMU's next time event; inf when none is scheduled or it terminates
     terminate: bool          # the FMU asked to end the simulation
     iterations: int          # fmi2NewDiscreteStates calls
@@ -64,7 +63,7 @@ def event_mode(instance, *, entered: bool = False, before_iteration: Callable[[]
         if after_iteration is not None:
             after_iteration()
         instance.enter_continuous_time_mode()
-    return EventModeResult(info.values_of_continuous_states_changed, info.nominals_of_continuous_states_changed,
+    return EventModeResult(info.values_of_continuous_states_changed,
                            math.inf if terminate else info.next_event_time_or_inf, terminate, info.iterations)
 
 
