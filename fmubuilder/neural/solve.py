@@ -339,8 +339,6 @@ class _Run:
             mask[rows] = True
             x_init, dd, c = self._linearised_event(x_t, dev, {b: init_outcomes[b] for b in rows}, None, None, mask)
             x_t = x_init
-        if self.info.n_event_indicators:
-            self.z = np.stack([self.ev.indicators(b, self.t0[b], x[b], self._u(b, self.t0[b])) for b in range(B)])
         return x_t, dd, c
 
     def _fresh_init(self, b: int, overrides: dict) -> tuple[np.ndarray, float]:
@@ -465,8 +463,9 @@ class _Run:
         t = self.t0.copy()
         if self.forcing is not None:
             x = self._forced(t, x)
-            if self.z is not None:
-                self.z = np.stack([self.ev.indicators(b, t[b], x[b].numpy(), self._u(b, t[b])) for b in range(self.B)])
+        if self.info.n_event_indicators:   # the reference of the first step's sign changes
+            x_np = x.detach().numpy()
+            self.z = np.stack([self.ev.indicators(b, t[b], x_np[b], self._u(b, t[b])) for b in range(self.B)])
         tau, k = 0.0, 0
         records, captured = [], {}
         while k < self.K:
