@@ -54,6 +54,7 @@ class EventInfo:
     values_of_continuous_states_changed: bool
     next_event_time_defined: bool
     next_event_time: float
+    iterations: int = 1         # fmi2NewDiscreteStates calls (update_discrete_states merges several)
 
     @property
     def next_event_time_or_inf(self) -> float:
@@ -367,13 +368,17 @@ class FmuInstance:
         needed, merging what each pass reports (a state change or a terminate request in any
         pass counts)."""
         values_changed = nominals_changed = False
+        iterations = 0
         while True:
             info = self.new_discrete_states()
+            iterations += 1
+            if iterations == 1 and (info.terminate_simulation or not info.new_discrete_states_needed):
+                return info     # one pass, the usual case: nothing to merge
             values_changed |= info.values_of_continuous_states_changed
             nominals_changed |= info.nominals_of_continuous_states_changed
             if info.terminate_simulation or not info.new_discrete_states_needed:
                 return EventInfo(False, info.terminate_simulation, nominals_changed, values_changed,
-                                 info.next_event_time_defined, info.next_event_time)
+                                 info.next_event_time_defined, info.next_event_time, iterations)
 
     # -- FMU state -------------------------------------------------------------------------
     def _require(self, capability: str, what: str) -> None:

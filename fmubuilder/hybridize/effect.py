@@ -104,6 +104,7 @@ def _derivative_difference(truth_fmu: Path, declared_fmu: Path, channel: str, ti
 def _derivatives(fmu_path: Path, channel: str, time: np.ndarray, states: np.ndarray, data,
                  start_values: dict) -> np.ndarray:
     from ..fmi import Fmu
+    from ..simulation.events import event_mode
     with Fmu(fmu_path) as fmu:
         index = fmu.info.state_index(channel)
         instance = fmu.instantiate("effect")
@@ -112,8 +113,7 @@ def _derivatives(fmu_path: Path, channel: str, time: np.ndarray, states: np.ndar
             instance.set(start_values)
             instance.enter_initialization_mode()
             instance.exit_initialization_mode()
-            instance.update_discrete_states()
-            instance.enter_continuous_time_mode()
+            event_mode(instance, entered=True, resume_on_terminate=True)
             inputs = {name: np.interp(time, data.time, values) for name, values in (data.inputs or {}).items()}
             out = np.empty(time.size)
             for k, t in enumerate(time):

@@ -34,6 +34,7 @@ import torch
 
 from ..errors import FmuBuilderError
 from ..fmi import FmuCallError, FmuInstance, ModelInfo
+from ..simulation.events import event_mode
 
 # Relative step of the one-sided finite differences (about sqrt of the float64 resolution).
 FD_RELATIVE_STEP = 1e-7
@@ -418,6 +419,7 @@ class FmuEvaluator:
             inst.set_continuous_states(x)
             return
         self._pre[b] = inst.get_fmu_state(self._pre[b])
+        # No event iteration: the column is the change at fixed discrete states.
         inst.enter_event_mode()
         inst.set_real([vr], [value])
         inst.enter_continuous_time_mode()
@@ -461,13 +463,11 @@ class FmuEvaluator:
         want = sensitivity is not None and self.can_snapshot
         if want:
             self._pre[b] = inst.get_fmu_state(self._pre[b])
-        inst.enter_event_mode()
-        info = inst.update_discrete_states()
-        inst.enter_continuous_time_mode()
-        changed = info.values_of_continuous_states_changed
+        result = event_mode(inst, resume_on_terminate=True)
+        changed = result.states_changed
         x_plus = inst.get_continuous_states() if changed else np.array(x_minus, dtype=float)
-        outcome = EventOutcome(x_plus, changed, info.next_event_time_or_inf, info.terminate_simulation)
-        if want and not info.terminate_simulation:
+        outcome = EventOutcome(x_plus, changed, result.next_time_event, result.terminate)
+        if want and not result.terminate:
             started = time.perf_counter()
             self._post[b] = inst.get_fmu_state(self._post[b])
             self._event_sensitivity(b, t, x_minus, u, outcome, sensitivity, signs)
@@ -505,17 +505,22 @@ class FmuEvaluator:
             x_perturbed = self._redo_event(b, x_minus, params, perturbation)
             delta = x_perturbed[i] - x_minus[i] if i < n else (params[i - n] + amounts[i]) - params[i - n]
             dd, df, dx = self._measure(b, x_plus, base, d0, changed)
-            if R is not None:
-                R[:, i] = dx / delta
-            B[:, i] = (dd if self.q else df) / delta
-            if self.q and _nonzero(dd, d0):
-                handle = self._snapshot(b, pool, len(candidates.handles)) if shadows else None
-                candidates.add(dd, df, dx, handle)
+            self._column(b, i, delta, (dd, df, dx), R, B, d0, candidates, pool if shadows else None)
             nonzero[c] = df.any() or (self.q and dd.any()) or not (R is None or _identity_column(R, i, n))
         sensitivity.observe(columns, nonzero, probes=int(unchecked.size > 0))
         outcome.R, outcome.B = R, B
         if self.q:
             self._propagate_shadows(b, t, x_minus, u, outcome, base, d0, candidates, pool, sensitivity, shadows)
+
+    def _column(self, b, i, delta, measured, R, B, d0, candidates: _Candidates, pool) -> None:
+        """Column i of R and B from the deviations `measured` after perturbing known i by delta;
+        a discrete deviation is a candidate shadow (with a snapshot from `pool`, if one is given)."""
+        dd, df, dx = measured
+        if R is not None:
+            R[:, i] = dx / delta
+        B[:, i] = (dd if self.q else df) / delta
+        if self.q and _nonzero(dd, d0):
+            candidates.add(dd, df, dx, None if pool is None else self._snapshot(b, pool, len(candidates.handles)))
 
     def _redo_event(self, b, x_minus, params, perturbation) -> np.ndarray:
         """The event iteration of instance b again, from the snapshot before the event, with the
@@ -526,14 +531,11 @@ class FmuEvaluator:
         x_perturbed = x_minus + perturbation[:n]
         if perturbation[:n].any():
             inst.set_continuous_states(x_perturbed)
-        changed_params = perturbation[n:].any()
-        inst.enter_event_mode()
-        if changed_params:
-            inst.set_real(self.param_vrs, params + perturbation[n:])
-        inst.update_discrete_states()
-        if changed_params:
-            inst.set_real(self.param_vrs, params)
-        inst.enter_continuous_time_mode()
+        if perturbation[n:].any():
+            event_mode(inst, before_iteration=lambda: inst.set_real(self.param_vrs, params + perturbation[n:]),
+                       after_iteration=lambda: inst.set_real(self.param_vrs, params), resume_on_terminate=True)
+        else:
+            event_mode(inst, resume_on_terminate=True)
         return x_perturbed
 
     def _measure(self, b, x_plus, base, d0, changed):
@@ -556,9 +558,7 @@ class FmuEvaluator:
         for handle, deviation in self._shadows[b]:
             inst.set_fmu_state(handle)
             self.set_point(b, t, x_minus, u)
-            inst.enter_event_mode()
-            inst.update_discrete_states()
-            inst.enter_continuous_time_mode()
+            event_mode(inst, resume_on_terminate=True)
             dd, df, dx = self._measure(b, outcome.x_plus, base, d0, outcome.values_changed)
             d_in.append(deviation)
             d_out.append(dd)
@@ -589,11 +589,7 @@ class FmuEvaluator:
         pool, candidates = self._next_pool(b), _Candidates()
         for i, restart in enumerate(restarts):
             delta = restart()
-            dd, df, dx = self._measure(b, x_init, base, d0, True)
-            R[:, i] = dx / delta
-            B[:, i] = (dd if self.q else df) / delta
-            if self.q and _nonzero(dd, d0):
-                candidates.add(dd, df, dx, self._snapshot(b, pool, len(candidates.handles)))
+            self._column(b, i, delta, self._measure(b, x_init, base, d0, True), R, B, d0, candidates, pool)
         outcome = EventOutcome(x_init, True, np.inf, False, R=R, B=B)
         if self.q:
             outcome.G = _regression(candidates, self.width, self.q)

@@ -13,9 +13,9 @@ FmuInstance.update_discrete_states, per event), per element:
   within a step (the engine's convention, simulation/events.py: reaching zero fires, leaving it does not).
 * State events are located without gradients on the step's dense output (Euler: linear; RK4:
   cubic Hermite) by the engine's root finder (simulation/events.locate), to the side beyond the crossing.
-  Unlike the engine, which ends the step there and starts the next one from the event, an element
-  takes the rest of its grid step at once (other elements wait on the grid), and
-  fmi2CompletedIntegratorStep is called at the grid point only.
+  As in the engine, the step cut there is a completed step (fmi2CompletedIntegratorStep, a step event
+  it requests is handled with the state event); unlike the engine, which then steps on towards its
+  next limit, an element takes the rest of its grid step at once (other elements wait on the grid).
 
 Gradients across events:
 1. Event time. With t* the located time and z the crossing indicator,
@@ -72,7 +72,7 @@ import numpy as np
 import torch
 
 from ..errors import FmuBuilderError
-from ..simulation.events import any_crossed, locate
+from ..simulation.events import any_crossed, event_mode, locate
 from ..simulation.inputs import InputSignals
 from ..simulation.solvers import hermite, rk4_step
 from .layer import EventSensitivity, FmuEvaluator, fd_steps, fmu_call
@@ -292,6 +292,7 @@ class _Run:
         self.z = None
         self.counts = {"steps": 0, "time_events": 0, "state_events": 0, "step_events": 0}
         self.step_events = not self.info.capabilities.completed_integrator_step_not_needed
+        self.completed_at_end = np.zeros(self.B, dtype=bool)   # the step's last event was at its end
         if forcing is not None and self.grad:
             raise FmuBuilderError("forced states are for simulations without gradients; use torch.no_grad()")
         self.forcing = forcing
@@ -338,8 +339,6 @@ class _Run:
             mask[rows] = True
             x_init, dd, c = self._linearised_event(x_t, dev, {b: init_outcomes[b] for b in rows}, None, None, mask)
             x_t = x_init
-        if self.info.n_event_indicators:
-            self.z = np.stack([self.ev.indicators(b, self.t0[b], x[b], self._u(b, self.t0[b])) for b in range(B)])
         return x_t, dd, c
 
     def _fresh_init(self, b: int, overrides: dict) -> tuple[np.ndarray, float]:
@@ -353,11 +352,10 @@ class _Run:
         inst.set(overrides)
         inst.enter_initialization_mode()
         inst.exit_initialization_mode()
-        info = inst.update_discrete_states()
-        inst.enter_continuous_time_mode()
-        if info.terminate_simulation:
+        result = event_mode(inst, entered=True)
+        if result.terminate:
             raise FmuBuilderError(f"{self.info.model_name} asked to terminate during initialization")
-        return inst.get_continuous_states(), info.next_event_time_or_inf
+        return inst.get_continuous_states(), result.next_time_event
 
     def _init_sensitivity(self, b: int, overrides: dict, x_init: np.ndarray):
         """Linearisation of the initialization of element b, one re-initialization per known."""
@@ -379,11 +377,7 @@ class _Run:
                     delta = value - params[i - self.n]
                 self._fresh_init(b, perturbed)
                 if i >= self.n:  # back to the nominal parameter: shadows must differ in discrete states only
-                    inst = self.instances[b]
-                    inst.enter_event_mode()
-                    inst.set_real([self.ev.param_vrs[i - self.n]], [params[i - self.n]])
-                    inst.update_discrete_states()
-                    inst.enter_continuous_time_mode()
+                    self._set_parameters(b, [self.ev.param_vrs[i - self.n]], [params[i - self.n]])
                 return delta
             return run
         outcome = self.ev.init_sensitivity(b, x_init, [restart(i) for i in range(self.n + self.ev.P)])
@@ -406,10 +400,7 @@ class _Run:
         parameters and the state overrides applied."""
         inst = self.instances[b]
         if self.ev.P:
-            inst.enter_event_mode()
-            inst.set_real(self.ev.param_vrs, self.p.detach().tolist())
-            inst.update_discrete_states()
-            inst.enter_continuous_time_mode()
+            self._set_parameters(b, self.ev.param_vrs, self.p.detach().tolist())
         self.next_event[b] = start.next_event_time
         x = inst.get_continuous_states()
         if overrides:
@@ -420,6 +411,11 @@ class _Run:
                 x[names.index(name)] = float(value)
             inst.set_continuous_states(x)
         return x
+
+    def _set_parameters(self, b: int, vrs, values) -> None:
+        """Tunable parameters of element b, set in event mode (FMI 2.0 ME allows no other)."""
+        inst = self.instances[b]
+        event_mode(inst, before_iteration=lambda: inst.set_real(vrs, values), resume_on_terminate=True)
 
     def _known_deviation(self, x: torch.Tensor) -> torch.Tensor:
         """[R, n+P]: the zero-valued carriers of the gradient, (x - x.detach(), p - p.detach())."""
@@ -467,8 +463,9 @@ class _Run:
         t = self.t0.copy()
         if self.forcing is not None:
             x = self._forced(t, x)
-            if self.z is not None:
-                self.z = np.stack([self.ev.indicators(b, t[b], x[b].numpy(), self._u(b, t[b])) for b in range(self.B)])
+        if self.info.n_event_indicators:   # the reference of the first step's sign changes
+            x_np = x.detach().numpy()
+            self.z = np.stack([self.ev.indicators(b, t[b], x_np[b], self._u(b, t[b])) for b in range(self.B)])
         tau, k = 0.0, 0
         records, captured = [], {}
         while k < self.K:
@@ -557,6 +554,7 @@ class _Run:
         events = at_event.copy()
         x_np = x_new.detach().numpy()
         replaced = {}
+        self.completed_at_end[:] = False
         if self.z is not None:
             for b in range(B):
                 if self.done[b]:
@@ -574,17 +572,21 @@ class _Run:
             x_new, dd, c = self._replace_rows(replaced, x_new, dd, c)
         if self.step_events:
             for b in range(B):
-                if not self.done[b]:
-                    enter, terminate = self.instances[b].completed_integrator_step()
-                    if enter:
-                        self.counts["step_events"] += 1
-                    events[b] |= enter
-                    self.done[b] |= terminate
+                if not (self.done[b] or self.completed_at_end[b]):
+                    events[b] |= self._completed_step(b)
         events &= ~self.done
         if events.any():
             self.counts["time_events"] += int(at_event.sum())
             x_new, dd, c = self._handle_events(np.flatnonzero(events), t_new, x_new, dd, c)
         return x_new, dd, c
+
+    def _completed_step(self, b) -> bool:
+        """fmi2CompletedIntegratorStep of element b, whose instance stands at the end of its step:
+        whether it requests a step event (counted); a request to terminate ends the element."""
+        enter, terminate = self.instances[b].completed_integrator_step()
+        self.counts["step_events"] += int(enter)
+        self.done[b] |= terminate
+        return enter
 
     def _event_mode(self, b, t, x_minus: np.ndarray, grad: bool, signs=None):
         """Event mode of element b at (t, x_minus) (with its linearisation if `grad`): its next time
@@ -691,13 +693,21 @@ class _Run:
             theta, z_hi, which = self._locate(b, t_k, t_new, dense, z_k, z_new)
             t_star = t_k + theta * (t_new - t_k)
             x_minus, t_e, signs = self._pre_event_state(b, dense, theta, t_k, t_new, t_star, z_k, z_hi, which)
+            x_minus_np = x_minus.detach().numpy()
+            if self.step_events:   # the step cut at the event is a completed step; a step event joins the event
+                self.ev.set_point(b, t_star, x_minus_np, self._u(b, t_star))
+                self._completed_step(b)
+                if self.done[b]:
+                    return x_minus, dd_row, c_row
             grad = self.event_grad and self.ev.can_snapshot and x_minus.requires_grad
-            outcome = self._event_mode(b, t_star, x_minus.detach().numpy(), grad, signs)
+            outcome = self._event_mode(b, t_star, x_minus_np, grad, signs)
             x_plus, dd_row, c_row = self._apply_event(outcome, x_minus, dd_row, c_row, grad)
             z_k = self.z[b]
             if self.done[b]:
                 return x_plus, dd_row, c_row
-            # the rest of the step, back to the grid
+            # the rest of the step, back to the grid; none when the event ends the step (the step of
+            # length zero carries the event time's gradient only, so it is no completed step)
+            self.completed_at_end[b] = t_star == t_new
             h_rest = (t_new - t_e).reshape(1, 1) if isinstance(t_e, torch.Tensor) else np.array([t_new - t_e])
             t_k, x_k = t_star, x_plus
             x_new_row, dx1_row, _ = self.step([b], np.array([t_star]), x_plus[None], h_rest, c_row)

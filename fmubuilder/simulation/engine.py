@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import time as wallclock
+from bisect import bisect_left, bisect_right
 
 import numpy as np
 
@@ -108,13 +109,11 @@ class _Loop:
                 solver.restart(t, x, keep_step=True)
                 z = self._indicators(t, x)
                 continue
-            if i_out < n_out and outputs[i_out] <= t + eps:
-                i_first = i_out
-                while i_out < n_out and outputs[i_out] <= t + eps:
-                    i_out += 1
-                count = i_out - i_first
+            i_next = bisect_right(outputs, t + eps, i_out)     # the output times reached
+            if i_next > i_out:
                 table = outputs_at((t,), x[None, :])
-                record(outputs[i_first:i_out], table if count == 1 else np.repeat(table, count, axis=0))
+                count, i_out = i_next - i_out, i_next
+                record(outputs[i_out - count:i_out], table if count == 1 else np.repeat(table, count, axis=0))
             if t >= stop - eps:
                 return self._finish(t, x, terminated=False)
 
@@ -140,11 +139,9 @@ class _Loop:
                     state_event = True
                     if t != t_end:
                         x = solver.interpolate(t)
-            if i_out < n_out and outputs[i_out] < t - eps:
-                i_first = i_out
-                while i_out < n_out and outputs[i_out] < t - eps:
-                    i_out += 1
-                times = outputs[i_first:i_out]
+            i_next = bisect_left(outputs, t - eps, i_out)      # the output times inside the step
+            if i_next > i_out:
+                times, i_out = outputs[i_out:i_next], i_next
                 record(times, outputs_at(np.array(times), solver.interpolate_many(times)))
             events_here = 0
 

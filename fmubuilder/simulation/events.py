@@ -6,9 +6,10 @@ instances on a fixed step grid). Each drives it with its own state representatio
     2. a time event due at the step's end (within the time tolerance) is that instant exactly
     3. event indicators at the step's end; a sign change (`crossed`) is located on the step's
        dense output (`cut_at_state_event`) and the step ends there
-    4. fmi2CompletedIntegratorStep may request a step event or termination
-    5. time, state or step event: event mode, fmi2NewDiscreteStates until the discrete states
-       settle, the continuous states re-read if the FMU reset them, the indicators re-read as the
+    4. fmi2CompletedIntegratorStep after every accepted step (the step cut at a state event is
+       one) may request a step event or termination
+    5. time, state or step event: `event_mode` (fmi2NewDiscreteStates until the discrete states
+       settle), the continuous states re-read if the FMU reset them, the indicators re-read as the
        reference of the next step's sign changes; the solver restarts from there
 
 Crossing convention (the one of fmpy and FMUSDK-style importers): indicator i fires
@@ -26,9 +27,44 @@ update sees the condition that fired, and all indicators crossed by then are one
 """
 from __future__ import annotations
 
-from typing import Callable
+import math
+from typing import Callable, NamedTuple
 
 import numpy as np
+
+
+class EventModeResult(NamedTuple):
+    """What the event mode of one instance left (see `event_mode`)."""
+    states_changed: bool     # valuesOfContinuousStatesChanged in some pass: re-read the states
+    next_time_event: float   # the FMU's next time event; inf when none is scheduled or it terminates
+    terminate: bool          # the FMU asked to end the simulation
+    iterations: int          # fmi2NewDiscreteStates calls
+
+
+def event_mode(instance, *, entered: bool = False, before_iteration: Callable[[], None] | None = None,
+               after_iteration: Callable[[], None] | None = None,
+               resume_on_terminate: bool = False) -> EventModeResult:
+    """Step 5 for one FMI 2.0 Model-Exchange instance standing at the event's (t, x):
+    fmi2EnterEventMode (not when `entered`: fmi2ExitInitializationMode leaves the instance in event
+    mode), `before_iteration()` (what may change in event mode only: discrete inputs, tunable
+    parameters), the event iteration (fmi2NewDiscreteStates until no new discrete states are
+    needed), `after_iteration()`, fmi2EnterContinuousTimeMode.
+
+    When the FMU asks to terminate, the instance stays in event mode for fmi2Terminate; with
+    `resume_on_terminate` it goes back to continuous-time mode all the same (a batch keeps a
+    terminated element, frozen, whose instance is still evaluated)."""
+    if not entered:
+        instance.enter_event_mode()
+    if before_iteration is not None:
+        before_iteration()
+    info = instance.update_discrete_states()
+    terminate = info.terminate_simulation
+    if not terminate or resume_on_terminate:
+        if after_iteration is not None:
+            after_iteration()
+        instance.enter_continuous_time_mode()
+    return EventModeResult(info.values_of_continuous_states_changed,
+                           math.inf if terminate else info.next_event_time_or_inf, terminate, info.iterations)
 
 
 def crossed(z0: np.ndarray, z1: np.ndarray) -> np.ndarray:

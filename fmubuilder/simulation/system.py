@@ -19,6 +19,7 @@ import numpy as np
 from ..errors import FmuBuilderError
 from ..fmi.instance import Fmu, FmuCallError, convert_value
 from ..fmi.model import Variable
+from .events import EventModeResult, event_mode
 from .inputs import InputSignals
 
 
@@ -106,15 +107,10 @@ class FmuSystem:
             except FmuCallError as exc:
                 raise FmuBuilderError(f"the FMU rejected the start value {name}={value!r} ({exc})") from None
         inst.enter_initialization_mode()
-        self._apply_inputs(start_time, discrete=True)
+        self._apply_inputs(start_time)
         inst.exit_initialization_mode()
         self._columns.discrete_changed()
-        next_time, terminate = self._event_iteration()
-        if terminate:
-            return inst.get_continuous_states(), math.inf, True
-        inst.enter_continuous_time_mode()
-        self._continuous_mode = True
-        return inst.get_continuous_states(), self._next_time_event(next_time, start_time), False
+        return self._after_event(start_time, event_mode(inst, entered=True))
 
     def terminate(self) -> None:
         if not self._terminated:
@@ -168,41 +164,35 @@ class FmuSystem:
 
     # -- events ------------------------------------------------------------------------------
     def handle_event(self, t: float, x: np.ndarray) -> tuple[np.ndarray, float, bool]:
-        inst = self.instance
         self._at(t, x)
-        inst.enter_event_mode()
         self._continuous_mode = False
         self._columns.discrete_changed()
-        self._apply_inputs(t, discrete=True)
-        next_time, terminate = self._event_iteration()
-        if terminate:
-            return inst.get_continuous_states(), math.inf, True
-        inst.enter_continuous_time_mode()
-        self._continuous_mode = True
-        # Re-read the states: the event may have reset them (valuesOfContinuousStatesChanged).
-        return inst.get_continuous_states(), self._next_time_event(next_time, t), False
+        inputs = self.inputs     # _at has set the continuous ones; discrete ones change in event mode
+        discrete = inputs is not None and inputs.discrete
+        result = event_mode(self.instance, before_iteration=(lambda: self.instance.set(inputs.discrete_at(t)))
+                            if discrete else None)
+        return self._after_event(t, result)
 
-    def _event_iteration(self) -> tuple[float, bool]:
-        """fmi2NewDiscreteStates until the discrete states settle."""
-        while True:
-            info = self.instance.new_discrete_states()
-            self.event_iterations += 1
-            if info.terminate_simulation:
-                return math.inf, True
-            if not info.new_discrete_states_needed:
-                return info.next_event_time_or_inf, False
+    def _after_event(self, t: float, result: EventModeResult) -> tuple[np.ndarray, float, bool]:
+        self.event_iterations += result.iterations
+        # Re-read the states: the event may have reset them (valuesOfContinuousStatesChanged).
+        states = self.instance.get_continuous_states()
+        if result.terminate:
+            return states, math.inf, True
+        self._continuous_mode = True
+        return states, self._next_time_event(result.next_time_event, t), False
 
     def _next_time_event(self, fmu_next: float, t: float) -> float:
         """The FMU's next time event or the next change of a discrete input, if earlier."""
         i = bisect.bisect_right(self._input_events, t)
         return min(fmu_next, self._input_events[i]) if i < len(self._input_events) else fmu_next
 
-    def _apply_inputs(self, t: float, discrete: bool) -> None:
+    def _apply_inputs(self, t: float) -> None:
         if self.inputs is None:
             return
         if self._set_inputs is not None:
             self._set_inputs(self.inputs.at(t))
-        if discrete and self.inputs.discrete:
+        if self.inputs.discrete:
             self.instance.set(self.inputs.discrete_at(t))
 
 
