@@ -42,8 +42,9 @@ MIN_PERTURBATION = 1e-3
 # Levenberg-Marquardt damping (Marquardt's: relative to the diagonal of J^T J), and its factor.
 DAMPING = 1e-3
 DAMPING_FACTOR = 10.0
-# Converged when a step changes every scale by less than this (relative).
-STEP_TOLERANCE = 1e-5
+# Converged when a step changes every scale by less than this (relative): the next would change it
+# far less (the finite difference then spans the last step, so the steps shrink faster than linearly).
+STEP_TOLERANCE = 1e-3
 
 Runs = list[tuple[MeasuredData, dict]]      # training samples and the start values of their run
 
