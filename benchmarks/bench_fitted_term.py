@@ -85,7 +85,9 @@ def _case(variant: str, folder: Path):
     refined_term = scaled_term(fitted, refinement.scales[0])
     refined, _ = _hybrid(refined_term, fmu, info, folder / "refined")
     truth = dc_drive_truth_term(variant)
-    form = fitted["expression"].split("+=")[0] + "+= c * " + " + ".join(t["form"] for t in fitted["terms"])
+    forms = [f"c{k + 1} * {t['form']}" if len(fitted["terms"]) > 1 else f"c * {t['form']}"
+             for k, t in enumerate(fitted["terms"])]
+    form = f"{fitted['channel']} += {' + '.join(forms)}".replace("|", "\\|")     # a markdown table cell
     coefficients = [variant, f"`{form}`", f"{truth['coefficient']:.7g}" if truth else "-",
                     coefficients_text(fitted), coefficients_text(refined_term) if refinement.kept else "kept",
                     str(refinement.simulations), f"{refinement.objective_before:.4g}",
