@@ -61,8 +61,13 @@ class Refinement:
     history: list = field(default_factory=list)     # (scales, objective) of every accepted point
 
     def to_dict(self) -> dict:
-        return {"gates": self.gates, "scales": self.scales, "objective_before": self.objective_before,
-                "objective_after": self.objective_after, "simulations": self.simulations, "kept": self.kept}
+        return {"gates": self.gates, "scales": self.scales, "objective_before": _finite(self.objective_before),
+                "objective_after": _finite(self.objective_after), "simulations": self.simulations, "kept": self.kept}
+
+
+def _finite(value: float) -> float | None:
+    """A number for the JSON report, which has no infinity (a term that does not simulate)."""
+    return value if math.isfinite(value) else None
 
 
 def refine_scales(hybrid_fmu, gates: list[str], runs: Runs, noise: dict[str, float], output_step: float, *,
@@ -71,15 +76,15 @@ def refine_scales(hybrid_fmu, gates: list[str], runs: Runs, noise: dict[str, flo
     noise: the noise level of each measured signal (per sample); output_step: the grid on which the
     sensor lag is applied (the scoring's step)."""
     objective = _Objective(hybrid_fmu, gates, runs, noise, Scoring.accurate(output_step, ACCURATE_RTOL))
+    start = np.ones(len(gates))
     with progress(budget, "refining the fitted term through the simulation", "simulation", show=show) as bar:
         objective.bar = bar
-        start = np.ones(len(gates))
         residual = objective.residuals(start)
-        if residual is None:
-            raise FmuBuilderError(f"{hybrid_fmu}: the hybrid with the fitted term does not simulate over the "
-                                  "training data")
-        scales, residual, history = _levenberg_marquardt(objective, start, residual, budget)
-        bar.stop("converged")
+        if residual is None:       # the term as exported does not simulate: nothing to refine from
+            bar.stop("the hybrid does not simulate over the training data")
+            return Refinement(gates, start.tolist(), math.inf, math.inf, objective.simulations, False)
+        scales, history, ended = _levenberg_marquardt(objective, start, residual, budget)
+        bar.stop(ended)
     before, after = history[0][1], history[-1][1]
     kept = after < before
     return Refinement(gates, [float(s) for s in (scales if kept else start)], before, after if kept else before,
@@ -87,6 +92,7 @@ def refine_scales(hybrid_fmu, gates: list[str], runs: Runs, noise: dict[str, flo
 
 
 def _levenberg_marquardt(objective: "_Objective", scales: np.ndarray, residual: np.ndarray, budget: int):
+    """(scales, [(scales, objective) of every accepted point], why it ended before the budget)."""
     cost = _cost(residual)
     history = [(scales.tolist(), cost)]
     damping, relative_delta = DAMPING, PERTURBATION
@@ -94,10 +100,10 @@ def _levenberg_marquardt(objective: "_Objective", scales: np.ndarray, residual: 
     while objective.simulations + n + 1 <= budget:
         jacobian = _jacobian(objective, scales, residual, relative_delta)
         if jacobian is None:
-            break
+            return scales, history, "a perturbed run failed"
         gradient, curvature = jacobian.T @ residual, jacobian.T @ jacobian
         if not np.any(np.diag(curvature) > 0):
-            break
+            return scales, history, "the term does not move the signals"
         accepted = False
         while objective.simulations < budget:
             step = np.linalg.solve(curvature + damping * np.diag(np.diag(curvature)) + 1e-300 * np.eye(n), -gradient)
@@ -108,11 +114,13 @@ def _levenberg_marquardt(objective: "_Objective", scales: np.ndarray, residual: 
                 damping /= DAMPING_FACTOR
                 break
             damping *= DAMPING_FACTOR
+        if not accepted:
+            return scales, history, "no lower training error found"
         relative = float(np.max(np.abs(step) / np.maximum(np.abs(scales), 1e-12)))
-        if not accepted or relative < STEP_TOLERANCE:
-            break
+        if relative < STEP_TOLERANCE:
+            return scales, history, "converged"
         relative_delta = min(PERTURBATION, max(MIN_PERTURBATION, relative))
-    return scales, residual, history
+    return scales, history, "the budget is spent"
 
 
 def _jacobian(objective: "_Objective", scales: np.ndarray, residual: np.ndarray, relative_delta: float):
