@@ -10,7 +10,8 @@ The data play three roles, and each number in the report comes from one of them:
 
     diagnosis  -> is there an effect beyond noise? which derivative, which variables?
     candidates -> a NeuralFMU with the ANN at the traced channel and inputs, the fitted
-                  symbolic term when the diagnosis offers one, the FMU with a parameter calibrated
+                  symbolic term when the diagnosis offers one (its coefficient refined through the
+                  simulation, hybridize/refine_term.py), the FMU with a parameter calibrated
                   (hybridize/calibrate.py), and an ANN added to the fitted term (term_started.py);
                   each exported as an FMU. The ANN on the term ends with its best epoch on the
                   validation data, the start included
