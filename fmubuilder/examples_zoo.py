@@ -153,6 +153,35 @@ def dc_drive_data_sets() -> list[DataSet]:
     return [DataSet(variant, run, run.duration, bench) for variant in DC_DRIVE_VARIANTS for run in DC_DRIVE_RUNS]
 
 
+# The DC drive truths that are a term of the diagnosis' forms: the missing term's derivative,
+# variable, form, and its coefficient as (C constant of examples/dc_drive/model.c, sign, parameter
+# dividing it in the derivative).
+_DC_DRIVE_TRUTH_TERMS = {
+    "windage": ("der(speed)", "speed", "w*|w|", ("WINDAGE", -1.0, "inertia")),
+    "extra_heating": ("der(temperature)", "current", "w^2", ("EXTRA_HEATING_RESISTANCE", 1.0, "heat_capacity")),
+}
+
+
+def dc_drive_truth_term(variant: str) -> dict | None:
+    """The missing term of a DC drive truth variant as the diagnosis writes a fitted term
+    ({"channel", "variable", "basis", "coefficient"}), read from its C definition and the declared
+    parameters; None for a variant whose effect is no such term."""
+    import re
+
+    from .build import data_path, example_fmu
+    from .fmi import read_model_info
+    if variant not in _DC_DRIVE_TRUTH_TERMS:
+        return None
+    channel, variable, basis, (constant, sign, divisor) = _DC_DRIVE_TRUTH_TERMS[variant]
+    source = data_path("examples", "dc_drive", "model.c").read_text()
+    found = re.search(rf"static const double {constant} = ([-+0-9.eE]+);", source)
+    if found is None:
+        raise FmuBuilderError(f"examples/dc_drive/model.c defines no {constant}")
+    parameter = float(read_model_info(example_fmu("dc_drive")).variables[divisor].start)
+    return {"channel": channel, "variable": variable, "basis": basis,
+            "coefficient": sign * float(found.group(1)) / parameter}
+
+
 def example_data_sets(name: str) -> list[DataSet]:
     """The data sets of the example `name` (see EXAMPLES)."""
     return {"vldm": vldm_data_sets, "dc_drive": dc_drive_data_sets}[name]()

@@ -36,7 +36,8 @@ Steps (each trial is one simulation):
    REFINED_VARIABLES leading ones. Forms identical up to a factor on the nominal run are one
    trial. Trials whose responses cannot be told apart (squared cosine > EQUIVALENT) form one
    candidate, and scores within SCORE_TIE of the unexplained variance are a tie; both times
-   a state is preferred to an output, an input, a local, a derivative.
+   a state is preferred to an output, an input, a local, a derivative. Within a candidate an
+   odd form of the channel's own state (w, w*|w|) leads its even twin (|w|, w^2).
 3. term: for the leading variables of the best channel, one form or a pair of forms of one
    variable (the pair when it explains PAIR_GAIN more variance), and a check simulation with
    the fitted term: the variance it really explains.
@@ -341,9 +342,17 @@ def group_equivalent(info, trials: list[Trial]) -> list[list[Trial]]:
             groups.append([trial])
     result = []
     for group in groups:
-        group.sort(key=lambda t: (_KIND_ORDER[variable_kind(info, t.variable)], -t.shape_score))
+        group.sort(key=lambda t: (_KIND_ORDER[variable_kind(info, t.variable)], _even_in_own_state(info, t),
+                                  -t.shape_score))
         result.append(group)
     return result
+
+
+def _even_in_own_state(info, trial: Trial) -> bool:
+    """An even form (|w|, w^2) of the channel's own state. Where the state keeps its sign, the even
+    and the odd form (w, w*|w|) give the same response; the odd one leads, since a term of a state
+    in its own derivative (a friction, a windage) opposes the motion and changes sign with it."""
+    return trial.basis in ("|w|", "w^2") and trial.variable == info.states[trial.channel].name
 
 
 def prefer_simple(info, trials: list[Trial], score=lambda t: t.shape_score) -> list[Trial]:

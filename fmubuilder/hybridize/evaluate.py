@@ -30,11 +30,13 @@ MAX_HALVINGS = 4
 class Scoring:
     """How every model is simulated for its errors: a fixed-step solver at `step` seconds.
     `check`: largest mean square difference between h and h/2 over a signal's noise variance, from
-    `checked` (None: the step was not checked)."""
+    `checked` (None: the step was not checked). With `rtol`, an adaptive solver recorded every `step`
+    seconds (the sensor lag is applied on that grid)."""
     solver: str
     step: float
     check: float | None = None
     halvings: int = 0
+    rtol: float | None = None
 
     @classmethod
     def like_training(cls, info, data: MeasuredData) -> "Scoring":
@@ -42,6 +44,11 @@ class Scoring:
         the FMU's DefaultExperiment step size."""
         step = info.default_experiment.step_size or (data.stop - data.start) / max(10 * data.time.size, 1000)
         return cls("euler", float(step))
+
+    @classmethod
+    def accurate(cls, step: float, rtol: float = 1e-7) -> "Scoring":
+        """DOPRI5 at a tight tolerance: the model's own error, not the solver's."""
+        return cls("dopri5", float(step), rtol=rtol)
 
     @classmethod
     def checked(cls, fmu_path: Path, data: MeasuredData, start_values: dict) -> "Scoring":
@@ -65,6 +72,8 @@ class Scoring:
         raise AssertionError("unreachable")
 
     def describe(self) -> str:
+        if self.rtol is not None:
+            return f"engine {self.solver.upper()}, rtol {self.rtol:g}, recorded every {self.step:g} s"
         text = f"engine {self.solver.upper() if self.solver == 'rk4' else self.solver.capitalize()}, h = {self.step:g} s"
         if self.check is None:
             return text
@@ -116,10 +125,11 @@ def evaluate(fmu_path: Path, data: MeasuredData, start_values: dict, scoring: Sc
     from ..simulation import simulate
     started = wallclock.perf_counter()
     inputs = {"time": data.time, **data.inputs} if data.inputs else None
+    steps = {"step_size": scoring.step} if scoring.rtol is None else {"rtol": scoring.rtol}
     with np.errstate(all="ignore"):     # a poor candidate may run off; its errors say so
         result = simulate(fmu_path, start_time=data.start, stop_time=data.stop, start_values=start_values,
-                          inputs=inputs, variables=data.names, solver=scoring.solver, step_size=scoring.step,
-                          output_interval=scoring.step, record_events=True)
+                          inputs=inputs, variables=data.names, solver=scoring.solver, output_interval=scoring.step,
+                          record_events=True, **steps)
     predicted = {}
     for name in data.names:
         seen = first_order_lag(result.time, np.asarray(result[name], dtype=float), data.sensor_lag)

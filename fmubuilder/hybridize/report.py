@@ -226,6 +226,13 @@ def _candidate_note(model: dict, training: dict | None) -> str:
                      f"{model.get('simulations', '?')} simulations, no training")
     else:
         notes.append(f"fitted by the diagnosis on `{model.get('fitted_on', 'the training data')}`, no training")
+        refinement = model.get("refinement")
+        if refinement and refinement["kept"]:
+            notes.append(f"coefficient refined through the simulation: {refinement['coefficients_before']} -> "
+                         f"{refinement['coefficients_after']} ({refinement['simulations']} sims)")
+        elif refinement:
+            notes.append(f"coefficient kept: refining it through the simulation did not lower the training "
+                         f"error ({refinement['simulations']} sims)")
     if all(model[f"{role}_relative_mse"] == 1.0 for role in ROLES):
         notes.append("it adds nothing yet: the same errors as the declared FMU")
     return "; ".join(notes)

@@ -10,7 +10,8 @@ The data play three roles, and each number in the report comes from one of them:
 
     diagnosis  -> is there an effect beyond noise? which derivative, which variables?
     candidates -> a NeuralFMU with the ANN at the traced channel and inputs, the fitted
-                  symbolic term when the diagnosis offers one, the FMU with a parameter calibrated
+                  symbolic term when the diagnosis offers one (its coefficient refined through the
+                  simulation, hybridize/refine_term.py), the FMU with a parameter calibrated
                   (hybridize/calibrate.py), and an ANN added to the fitted term (term_started.py);
                   each exported as an FMU. The ANN on the term ends with its best epoch on the
                   validation data, the start included
@@ -301,9 +302,11 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
     fitted = diagnosis.fitted_term
     if fitted and fitted.get("offered"):
         ctx.say(f"[2/5] exporting the fitted term: {fitted['expression']}")
-        term = _fitted_term_candidate(ctx, fitted, _aliases_of(ctx, fitted["channel"]))
+        noise = {e.signal: e.noise for e in diagnosis.errors}
+        term = _fitted_term_candidate(ctx, fitted, _aliases_of(ctx, fitted["channel"]), noise)
         if term is not None:
             candidates.append(term)
+            fitted = term.details["fitted_term"]      # refined: the ANN on the term starts from it
     candidates += _calibrated_candidates(ctx)
     channels, inputs = _ann_channels_and_inputs(ctx, diagnosis)
     aliases = {name: c for channel in channels for name, c in _aliases_of(ctx, channel).items()}
@@ -388,18 +391,45 @@ def _ann_inputs(diagnosis, info) -> list[str]:
     return usable[:MAX_ANN_INPUTS]
 
 
-def _fitted_term_candidate(ctx: _Context, fitted: dict, aliases: dict[str, str]) -> Candidate | None:
+def _fitted_term_candidate(ctx: _Context, fitted: dict, aliases: dict[str, str],
+                           noise: dict[str, float]) -> Candidate | None:
+    """The diagnosis' term exported as a hybrid, its coefficient refined through the simulation on
+    the training data (hybridize/refine_term.py) when that lowers the training error."""
+    from .refine_term import coefficients_text, refine_scales, scaled_term, term_gates
+    diagnosed = _export_fitted_term(ctx, fitted, aliases, "fitted_term_diagnosed")
+    if diagnosed is None:
+        return None
+    spec, fmu = diagnosed
+    runs = [(p.samples(), p.start_values) for p in ctx.roles.train]
+    refinement = refine_scales(fmu, term_gates(spec), runs, noise, ctx.scoring.step,
+                               show=None if ctx.progress else False)
+    term = fitted
+    if refinement.kept:
+        term = scaled_term(fitted, refinement.scales[0])
+        spec, fmu = _export_fitted_term(ctx, term, aliases, "fitted_term")
+        ctx.say(f"      coefficient refined through the simulation: {coefficients_text(fitted)} -> "
+                f"{coefficients_text(term)} ({refinement.simulations} simulations)")
+    else:
+        ctx.say(f"      coefficient kept: the refinement through the simulation did not lower the training "
+                f"error ({refinement.simulations} simulations)")
+    return _candidate(ctx, "fitted term", term["expression"], fmu, spec.onnx.parent,
+                      {"expression": term["expression"], "aliases": aliases, "fitted_on": ctx.roles.train[0].label,
+                       "fitted_term": term, "refinement": {
+                           **refinement.to_dict(), "coefficients_before": coefficients_text(fitted),
+                           "coefficients_after": coefficients_text(term),
+                           "refined_on": [p.label for p in ctx.roles.train]}})
+
+
+def _export_fitted_term(ctx: _Context, fitted: dict, aliases: dict[str, str], name: str):
+    """(spec, hybrid FMU) of a fitted term, or None when an FMU cannot read its variable (time)."""
     from ..export import export_hybrid
     from .terms import spec_from_fitted_term
-    folder = ctx.work / "fitted_term"
+    folder = ctx.work / name
     folder.mkdir()
     spec = spec_from_fitted_term(fitted, ctx.model_fmu, ctx.info.guid, folder, aliases)
     if spec is None:
         return None
-    fmu = export_hybrid(spec, folder / "hybrid.fmu")
-    return _candidate(ctx, "fitted term", fitted["expression"], fmu, folder,
-                      {"expression": fitted["expression"], "aliases": aliases,
-                       "fitted_on": ctx.roles.train[0].label})
+    return spec, export_hybrid(spec, folder / "hybrid.fmu")
 
 
 def _calibrated_candidates(ctx: _Context) -> list[Candidate]:

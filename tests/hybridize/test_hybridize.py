@@ -23,6 +23,7 @@ from fmpy.validation import validate_fmu
 
 from fmubuilder import synth
 from fmubuilder.build import example_fmu
+from fmubuilder.examples_zoo import dc_drive_truth_term
 from fmubuilder.hybridize import hybridize
 from fmubuilder.cli.hybridize import summary
 
@@ -134,6 +135,25 @@ def test_the_test_error_of_the_affected_signals_drops_tenfold(runs, data, truth)
     for signal in affected:
         assert before[signal] >= 10 * after[signal], (signal, before[signal], after[signal])
         assert after[signal] == pytest.approx(errors["after"][signal]["mse"], rel=0.5), signal
+
+
+@pytest.mark.parametrize("truth", list(EFFECTS))
+def test_the_fitted_term_is_refined_to_the_truth(runs, truth):
+    """The term's form is the truth's, and its coefficient, refined through the simulation on the
+    training data, is within 2 % of the one in the variant's C definition. (Over the training window
+    the current hardly changes sign, so current*|current| is the truth's current^2 there.)"""
+    report = runs(truth).report
+    model = next(m for m in report["models"] if m["name"] == "fitted term")
+    expected = dc_drive_truth_term(truth.removeprefix("dc_drive_truth_"))
+    term, = model["fitted_term"]["terms"]
+    twins = {"w^2": {"w^2", "w*|w|"}, "w*|w|": {"w*|w|"}}      # the odd form of an own state is exact
+    assert term["variable"] == expected["variable"] and term["basis"] in twins[expected["basis"]]
+    assert term["coefficient"] == pytest.approx(expected["coefficient"], rel=0.02)
+    refinement = model["refinement"]
+    assert refinement["objective_after"] <= refinement["objective_before"]
+    assert model["description"] == model["fitted_term"]["expression"]
+    assert "coefficient refined through the simulation" in (runs(truth).report_dir / "report.md").read_text() \
+        or not refinement["kept"]
 
 
 @pytest.mark.parametrize("truth", list(EFFECTS))

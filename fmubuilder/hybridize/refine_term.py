@@ -1,0 +1,203 @@
+"""The fitted term's coefficient refined through the simulation.
+
+The diagnosis fits the term's coefficient by a regression on closed-loop responses linearised
+around the plain model (diagnose/trace.py): for a strong effect the loop's response is not linear
+in the term, and a small bias of the coefficient grows in the signals that integrate it (an
+energy, a temperature). Here the term's scale is fitted on the training data by the simulation
+itself, as a nonlinear least-squares problem:
+
+    parameters -> one scale per derivative the term corrects: the exported hybrid FMU's gate
+                  (`hybrid.<x>.p_term`, a tunable parameter) set as a start value, so the model
+                  simulated is the FMU that would be published, with no second implementation
+    residuals  -> (the model's signals seen through the sensor lag - measured) / the signal's
+                  noise level, every measured signal on every training run
+    simulation -> accurate (DOPRI5, rtol ACCURATE_RTOL): the coefficient then describes the
+                  model, not the scoring's Euler error, and a tool's own solver sees it so
+    search     -> Levenberg-Marquardt, its Jacobian by a finite difference of each scale (one
+                  simulation per scale per iteration), at most MAX_SIMULATIONS simulations in all
+    kept       -> only if it lowers the training objective below the unrefined term's
+
+The refined scales are then folded into the term's coefficients, and the validation data judge
+the term as any other candidate.
+"""
+from __future__ import annotations
+
+import math
+import zipfile
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..data import MeasuredData
+from ..errors import FmuBuilderError
+from ..progress import progress
+from .evaluate import Scoring, evaluate
+
+# Simulations in all: the unrefined term's, then per iteration one per scale and one or more trials.
+MAX_SIMULATIONS = 10
+ACCURATE_RTOL = 1e-7
+# Finite-difference step of a scale, relative; later the size of the last step, down to the minimum.
+PERTURBATION = 0.1
+MIN_PERTURBATION = 1e-3
+# Levenberg-Marquardt damping (Marquardt's: relative to the diagonal of J^T J), and its factor.
+DAMPING = 1e-3
+DAMPING_FACTOR = 10.0
+# Converged when a step changes every scale by less than this (relative): the next would change it
+# far less (the finite difference then spans the last step, so the steps shrink faster than linearly).
+STEP_TOLERANCE = 1e-3
+
+Runs = list[tuple[MeasuredData, dict]]      # training samples and the start values of their run
+
+
+@dataclass
+class Refinement:
+    """The term's scales after the refinement (all 1 when it was not kept)."""
+    gates: list[str]
+    scales: list[float]
+    objective_before: float     # mean squared residual in noise units, unrefined term
+    objective_after: float      # the same with the scales (equal when not kept)
+    simulations: int
+    kept: bool
+    history: list = field(default_factory=list)     # (scales, objective) of every accepted point
+
+    def to_dict(self) -> dict:
+        return {"gates": self.gates, "scales": self.scales, "objective_before": _finite(self.objective_before),
+                "objective_after": _finite(self.objective_after), "simulations": self.simulations, "kept": self.kept}
+
+
+def _finite(value: float) -> float | None:
+    """A number for the JSON report, which has no infinity (a term that does not simulate)."""
+    return value if math.isfinite(value) else None
+
+
+def refine_scales(hybrid_fmu, gates: list[str], runs: Runs, noise: dict[str, float], output_step: float, *,
+                  budget: int = MAX_SIMULATIONS, show: bool | None = None) -> Refinement:
+    """Levenberg-Marquardt on the scales of a hybrid FMU's gates (start 1: the term as exported).
+    noise: the noise level of each measured signal (per sample); output_step: the grid on which the
+    sensor lag is applied (the scoring's step)."""
+    objective = _Objective(hybrid_fmu, gates, runs, noise, Scoring.accurate(output_step, ACCURATE_RTOL))
+    start = np.ones(len(gates))
+    with progress(budget, "refining the fitted term through the simulation", "simulation", show=show) as bar:
+        objective.bar = bar
+        residual = objective.residuals(start)
+        if residual is None:       # the term as exported does not simulate: nothing to refine from
+            bar.stop("the hybrid does not simulate over the training data")
+            return Refinement(gates, start.tolist(), math.inf, math.inf, objective.simulations, False)
+        scales, history, ended = _levenberg_marquardt(objective, start, residual, budget)
+        bar.stop(ended)
+    before, after = history[0][1], history[-1][1]
+    kept = after < before
+    return Refinement(gates, [float(s) for s in (scales if kept else start)], before, after if kept else before,
+                      objective.simulations, kept, history)
+
+
+def _levenberg_marquardt(objective: "_Objective", scales: np.ndarray, residual: np.ndarray, budget: int):
+    """(scales, [(scales, objective) of every accepted point], why it ended before the budget)."""
+    cost = _cost(residual)
+    history = [(scales.tolist(), cost)]
+    damping, relative_delta = DAMPING, PERTURBATION
+    n = scales.size
+    while objective.simulations + n + 1 <= budget:
+        jacobian = _jacobian(objective, scales, residual, relative_delta)
+        if jacobian is None:
+            return scales, history, "a perturbed run failed"
+        gradient, curvature = jacobian.T @ residual, jacobian.T @ jacobian
+        if not np.any(np.diag(curvature) > 0):
+            return scales, history, "the term does not move the signals"
+        accepted = False
+        while objective.simulations < budget:
+            step = np.linalg.solve(curvature + damping * np.diag(np.diag(curvature)) + 1e-300 * np.eye(n), -gradient)
+            trial = objective.residuals(scales + step)
+            if trial is not None and _cost(trial) < cost:
+                scales, residual, cost, accepted = scales + step, trial, _cost(trial), True
+                history.append((scales.tolist(), cost))
+                damping /= DAMPING_FACTOR
+                break
+            damping *= DAMPING_FACTOR
+        if not accepted:
+            return scales, history, "no lower training error found"
+        relative = float(np.max(np.abs(step) / np.maximum(np.abs(scales), 1e-12)))
+        if relative < STEP_TOLERANCE:
+            return scales, history, "converged"
+        relative_delta = min(PERTURBATION, max(MIN_PERTURBATION, relative))
+    return scales, history, "the budget is spent"
+
+
+def _jacobian(objective: "_Objective", scales: np.ndarray, residual: np.ndarray, relative_delta: float):
+    """Forward differences, one simulation per scale; None when a perturbed run fails."""
+    columns = []
+    for k in range(scales.size):
+        delta = relative_delta * max(abs(scales[k]), 1e-3)
+        perturbed = scales.copy()
+        perturbed[k] += delta
+        moved = objective.residuals(perturbed)
+        if moved is None:
+            return None
+        columns.append((moved - residual) / delta)
+    return np.column_stack(columns)
+
+
+def _cost(residual: np.ndarray) -> float:
+    return float(residual @ residual) / residual.size
+
+
+class _Objective:
+    """The stacked residuals in noise units of the hybrid with given gate values, over all runs."""
+
+    def __init__(self, hybrid_fmu, gates: list[str], runs: Runs, noise: dict[str, float], scoring: Scoring):
+        self.hybrid_fmu, self.gates, self.runs, self.scoring = hybrid_fmu, gates, runs, scoring
+        self.noise = noise
+        self.simulations = 0
+        self.bar = None
+
+    def residuals(self, scales: np.ndarray) -> np.ndarray | None:
+        pieces = []
+        for data, start_values in self.runs:
+            self.simulations += 1
+            try:
+                run = evaluate(self.hybrid_fmu, data, {**start_values, **dict(zip(self.gates, map(float, scales)))},
+                               self.scoring)
+            except FmuBuilderError:
+                return None
+            finally:
+                if self.bar is not None:
+                    self.bar.advance()
+            for name in data.names:
+                pieces.append((run.predicted[name] - data.signals[name]) / _noise_level(self.noise, name, data))
+        residual = np.concatenate(pieces)
+        return residual if np.all(np.isfinite(residual)) else None
+
+
+def _noise_level(noise: dict[str, float], name: str, data: MeasuredData) -> float:
+    """The signal's noise level; a zero or missing one falls back to a tiny share of its range, so
+    that a noise-free signal weighs much but finitely."""
+    level = noise.get(name, 0.0)
+    if level > 0 and math.isfinite(level):
+        return float(level)
+    return max(1e-9 * float(np.ptp(data.signals[name])), 1e-300)
+
+
+# -- the term and its gates ---------------------------------------------------------------------
+
+def term_gates(spec) -> list[str]:
+    """The gate parameter of each channel of a fitted term's hybrid spec, as the export names them."""
+    from ..export.hybrid_description import derive_model_description
+    from ..fmi import read_model_info
+    info = read_model_info(spec.original_fmu)
+    with zipfile.ZipFile(spec.original_fmu) as archive:
+        description = derive_model_description(archive.read("modelDescription.xml"), spec, info)
+    return [layout.p_ann for layout in description.channels]
+
+
+def scaled_term(fitted: dict, scale: float) -> dict:
+    """The diagnosis' fitted term (one channel) with every coefficient times `scale`, its expression
+    rewritten."""
+    from ..diagnose.runs import AddedTerm
+    terms = [{**t, "coefficient": float(t["coefficient"]) * scale} for t in fitted["terms"]]
+    text = " + ".join(AddedTerm(0, t["variable"], t["basis"], float(t["center"]), t["coefficient"]).expression()
+                      for t in terms).replace("+ -", "- ")
+    return {**fitted, "terms": terms, "expression": f"{fitted['channel']} += {text}"}
+
+
+def coefficients_text(fitted: dict) -> str:
+    return ", ".join(f"{float(t['coefficient']):.7g}" for t in fitted["terms"])
