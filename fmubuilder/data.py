@@ -29,11 +29,12 @@ from .errors import FmuBuilderError
 
 UNCERTAINTY_SUFFIX = "_std"
 DEFAULT_RUNS = 2
-# A simulation started at a measured time (MeasuredData.start_estimate): the line through the
-# samples of the first START_SECONDS (at least START_MIN_SAMPLES), and the model's own value kept
-# while it lies within START_AGREEMENT standard errors of that line's value.
+# A simulation started at a measured time (MeasuredData.start_estimate): the line through the first
+# START_SAMPLES samples (as many as the diagnosis' start estimate), at most START_SECONDS of them
+# (few: a state soon changes its course, and a line through a curve misses its start), and the
+# model's own value kept while it lies within START_AGREEMENT standard errors of that line's value.
+START_SAMPLES = 5
 START_SECONDS = 1.0
-START_MIN_SAMPLES = 5
 START_AGREEMENT = 3.0
 
 
@@ -93,11 +94,11 @@ class MeasuredData:
         return float(np.mean(np.asarray(self.std[name], dtype=float) ** 2)) / self.runs
 
     def start_estimate(self, name: str, t0: float, model_value: float | None = None) -> float:
-        """The value of signal `name` to start a simulation with at t0: `model_value` if the samples
-        of the first seconds from t0 agree with it (within START_AGREEMENT standard errors of a line
-        fitted through them), else that line's value at t0: a single sample carries its full noise."""
+        """The value of signal `name` to start a simulation with at t0: `model_value` if the first
+        samples from t0 agree with it (within START_AGREEMENT standard errors of a line fitted
+        through them), else that line's value at t0: a single sample carries its full noise."""
         first = int(np.searchsorted(self.time, t0 - 1e-9 * max(1.0, abs(t0))))
-        last = max(int(np.searchsorted(self.time, t0 + START_SECONDS, side="right")), first + START_MIN_SAMPLES)
+        last = min(first + START_SAMPLES, int(np.searchsorted(self.time, t0 + START_SECONDS, side="right")))
         t, y = self.time[first:last] - t0, np.asarray(self.signals[name][first:last], dtype=float)
         if t.size < 3:
             fitted, error = float(np.interp(t0, self.time, self.signals[name])), math.inf

@@ -6,7 +6,7 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    magnitude) and the start of every batch element: the measured data hold no controller states, so
    each element starts from the FMU state saved by the reference (fmi2GetFMUstate, serialized; it
    carries the discrete states), with the measured states set to their measured values (the run's
-   own value where the data's first second agrees with it, see measured_initial_states).
+   own value where the data's first samples agree with it, see measured_initial_states).
    Unmeasured states of the plain FMU can be far from the truth (a controller integral that
    compensates an unmodelled load), and their transient at each element start would dominate the
    loss. So after pre-training the starts are captured again from a simulation of the hybrid, and
@@ -268,7 +268,7 @@ def simulate_over(model: NeuralFMU, data: MeasuredData, step: float, solver: str
                   start_values: dict | None = None, plain: bool = False):
     """Engine result (with its statistics) of the hybrid, or with plain of the FMU alone, over the
     data's span, recording the measured signals; measured states start where the data's first
-    second puts them (measured_initial_states), the data's inputs drive the FMU."""
+    samples put them (measured_initial_states), the data's inputs drive the FMU."""
     original = dict(model.start_values)
     model.start_values.update(measured_initial_states(model, data))
     model.start_values.update(start_values or {})
@@ -284,7 +284,7 @@ def simulate_over(model: NeuralFMU, data: MeasuredData, step: float, solver: str
 def measured_initial_states(model: NeuralFMU, data: MeasuredData, t0: float | None = None,
                             model_values: dict | None = None) -> dict:
     """Values of the measured continuous states to start at t0 (default: the data's start) with: the
-    model's own value (its start value, or `model_values` along a run) where the first seconds of
+    model's own value (its start value, or `model_values` along a run) where the first samples of
     data agree with it, else a line fitted through them (see MeasuredData.start_estimate)."""
     t0 = data.start if t0 is None else t0
     own = model_values if model_values is not None else {
