@@ -197,5 +197,11 @@ def test_candidate_notes_say_how_each_kind_was_made():
                                   "fitted_on": "a.csv", **scores}, None)
     on_term = _candidate_note({"name": "neural on the fitted term", "epochs": 4, **scores}, {"epochs": 10})
     assert term.startswith("fitted by the diagnosis on `a.csv`")
+    refinement = {"kept": True, "coefficients_before": "-0.000298", "coefficients_after": "-0.0003", "simulations": 5}
+    refined = _candidate_note({"name": "fitted term", "fitted_on": "a.csv", "refinement": refinement, **scores}, None)
+    assert "coefficient refined through the simulation: -0.000298 -> -0.0003 (5 sims)" in refined
+    unrefined = _candidate_note({"name": "fitted term", "fitted_on": "a.csv", **scores,
+                                 "refinement": {**refinement, "kept": False}}, None)
+    assert "coefficient kept" in unrefined and "->" not in unrefined
     assert calibrated.startswith("calibrated by Gauss-Newton on `a.csv` in 7 simulations")
     assert on_term.startswith("trained 4 of 10 epochs")
