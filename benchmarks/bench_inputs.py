@@ -58,7 +58,8 @@ def main() -> None:
         print(f"done: {variant}", flush=True)
     print(f"\nDC drive, noise seed {args.noise_seed}, channels from "
           f"{'the truth' if args.truth_channels else 'the diagnosis'}:\n")
-    print("| variant | truth | channel: inputs (explained; t per input) | best not admitted (error / error of the inputs chosen, t) |")
+    print("| variant | truth | channel: inputs (explained; t per input) "
+          "| best not admitted (error / error of the inputs chosen, t) |")
     print("|---|---|---|---|")
     for row in rows:
         print("| " + " | ".join(row) + " |")
