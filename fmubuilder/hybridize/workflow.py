@@ -367,18 +367,21 @@ def channel_aliases(model_fmu, info, channel: str, start_values: dict, data_time
 
 
 def _ann_channels_and_inputs(ctx: _Context, diagnosis) -> tuple[list[str], list[str]]:
-    """The derivatives the ANN corrects and the variables it reads, chosen by held-out error
-    (hybridize.inputs); the diagnosis' leading variable when that choice has nothing to go on
-    (the channel's state is not measured, or the driver of a closed loop hides the term in it)."""
+    """The derivatives the ANN corrects and the variables it reads, chosen by cross-validated error
+    with a test against noise (hybridize.inputs); the diagnosis' leading variable when that choice
+    has nothing to go on (the channel's state is not measured, or the driver of a closed loop hides
+    the term in it)."""
     from .inputs import choose_ann
     choice = choose_ann(ctx.model_fmu, ctx.info, ctx.roles.train, ctx.roles.validation, diagnosis.channel,
                         list(diagnosis.ambiguous_channels), ctx.scoring.step, ctx.scoring.solver)
     if choice is None:
         ctx.input_choice = {"rule": "the diagnosis' leading variable (the channel's state is not measured, or no "
-                                    "variable predicted its estimated missing term on the validation data)"}
+                                    "variable predicted its estimated missing term under cross-validation beyond "
+                                    "the noise)"}
         return [diagnosis.channel], _ann_inputs(diagnosis, ctx.info)
     ctx.input_choice = choice.to_dict()
-    ctx.say(f"      ANN inputs chosen on the validation data: {', '.join(choice.inputs)}")
+    ctx.say(f"      ANN inputs chosen by cross-validation on the training and validation data: "
+            f"{', '.join(choice.inputs)}")
     return choice.channels, choice.inputs
 
 

@@ -26,7 +26,8 @@ from fmubuilder.diagnose.trace import candidate_variables
 from fmubuilder.examples_zoo import cached_data, dc_drive_data_sets
 from fmubuilder.fmi import read_model_info
 from fmubuilder.hybridize.inputs import (choose_inputs, contiguous_folds, cross_validated_squared_errors,
-                                         distinct_variables, estimate_missing_terms, forward_selection, outside_share, paired_t, time_blocks)
+                                         distinct_variables, estimate_missing_terms, forward_selection, outside_share,
+                                         paired_t, time_blocks)
 
 SPLIT = 48.0        # the workflow's split of the 60 s training run: 80 % to fit, the rest held out
 
