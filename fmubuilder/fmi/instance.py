@@ -9,9 +9,8 @@ from __future__ import annotations
 import collections
 import re
 import itertools
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Iterable, NamedTuple, Sequence
 
 import numpy as np
 
@@ -46,8 +45,7 @@ class FmuCallError(FmuBuilderError):
         super().__init__(f"{function} returned {STATUS_NAMES[status]}{detail}")
 
 
-@dataclass(frozen=True)
-class EventInfo:
+class EventInfo(NamedTuple):     # a tuple: made at every event, cheaper than a frozen dataclass
     new_discrete_states_needed: bool
     terminate_simulation: bool
     nominals_of_continuous_states_changed: bool

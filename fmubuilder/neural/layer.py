@@ -463,11 +463,11 @@ class FmuEvaluator:
         want = sensitivity is not None and self.can_snapshot
         if want:
             self._pre[b] = inst.get_fmu_state(self._pre[b])
-        result = event_mode(inst, resume_on_terminate=True)
-        changed = result.states_changed
+        info = event_mode(inst, resume_on_terminate=True)
+        changed = info.values_of_continuous_states_changed
         x_plus = inst.get_continuous_states() if changed else np.array(x_minus, dtype=float)
-        outcome = EventOutcome(x_plus, changed, result.next_time_event, result.terminate)
-        if want and not result.terminate:
+        outcome = EventOutcome(x_plus, changed, info.next_event_time_or_inf, info.terminate_simulation)
+        if want and not info.terminate_simulation:
             started = time.perf_counter()
             self._post[b] = inst.get_fmu_state(self._post[b])
             self._event_sensitivity(b, t, x_minus, u, outcome, sensitivity, signs)

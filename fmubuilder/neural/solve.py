@@ -352,10 +352,10 @@ class _Run:
         inst.set(overrides)
         inst.enter_initialization_mode()
         inst.exit_initialization_mode()
-        result = event_mode(inst, entered=True)
-        if result.terminate:
+        info = event_mode(inst, entered=True)
+        if info.terminate_simulation:
             raise FmuBuilderError(f"{self.info.model_name} asked to terminate during initialization")
-        return inst.get_continuous_states(), result.next_time_event
+        return inst.get_continuous_states(), info.next_event_time_or_inf
 
     def _init_sensitivity(self, b: int, overrides: dict, x_init: np.ndarray):
         """Linearisation of the initialization of element b, one re-initialization per known."""

@@ -27,44 +27,37 @@ update sees the condition that fired, and all indicators crossed by then are one
 """
 from __future__ import annotations
 
-import math
-from typing import Callable, NamedTuple
+from typing import Callable
 
 import numpy as np
 
-
-class EventModeResult(NamedTuple):
-    """What the event mode of one instance left (see `event_mode`)."""
-    states_changed: bool     # valuesOfContinuousStatesChanged in some pass: re-read the states
-    next_time_event: float   # the FMU's next time event; inf when none is scheduled or it terminates
-    terminate: bool          # the FMU asked to end the simulation
-    iterations: int          # fmi2NewDiscreteStates calls
+from ..fmi.instance import EventInfo
 
 
 def event_mode(instance, *, entered: bool = False, before_iteration: Callable[[], None] | None = None,
                after_iteration: Callable[[], None] | None = None,
-               resume_on_terminate: bool = False) -> EventModeResult:
+               resume_on_terminate: bool = False) -> EventInfo:
     """Step 5 for one FMI 2.0 Model-Exchange instance standing at the event's (t, x):
     fmi2EnterEventMode (not when `entered`: fmi2ExitInitializationMode leaves the instance in event
     mode), `before_iteration()` (what may change in event mode only: discrete inputs, tunable
     parameters), the event iteration (fmi2NewDiscreteStates until no new discrete states are
     needed), `after_iteration()`, fmi2EnterContinuousTimeMode.
 
-    When the FMU asks to terminate, the instance stays in event mode for fmi2Terminate; with
-    `resume_on_terminate` it goes back to continuous-time mode all the same (a batch keeps a
-    terminated element, frozen, whose instance is still evaluated)."""
+    Returns what the event left (the EventInfo of FmuInstance.update_discrete_states, merged over
+    the iteration's passes): whether the states changed (re-read them), the next time event,
+    whether the FMU asks to terminate. When it does, the instance stays in event mode for
+    fmi2Terminate; with `resume_on_terminate` it goes back to continuous-time mode all the same
+    (a batch keeps a terminated element, frozen, whose instance is still evaluated)."""
     if not entered:
         instance.enter_event_mode()
     if before_iteration is not None:
         before_iteration()
     info = instance.update_discrete_states()
-    terminate = info.terminate_simulation
-    if not terminate or resume_on_terminate:
+    if not info.terminate_simulation or resume_on_terminate:
         if after_iteration is not None:
             after_iteration()
         instance.enter_continuous_time_mode()
-    return EventModeResult(info.values_of_continuous_states_changed,
-                           math.inf if terminate else info.next_event_time_or_inf, terminate, info.iterations)
+    return info
 
 
 def crossed(z0: np.ndarray, z1: np.ndarray) -> np.ndarray:

@@ -17,9 +17,9 @@ from typing import Protocol, Sequence
 import numpy as np
 
 from ..errors import FmuBuilderError
-from ..fmi.instance import Fmu, FmuCallError, convert_value
+from ..fmi.instance import EventInfo, Fmu, FmuCallError, convert_value
 from ..fmi.model import Variable
-from .events import EventModeResult, event_mode
+from .events import event_mode
 from .inputs import InputSignals
 
 
@@ -169,18 +169,18 @@ class FmuSystem:
         self._columns.discrete_changed()
         inputs = self.inputs     # _at has set the continuous ones; discrete ones change in event mode
         discrete = inputs is not None and inputs.discrete
-        result = event_mode(self.instance, before_iteration=(lambda: self.instance.set(inputs.discrete_at(t)))
-                            if discrete else None)
-        return self._after_event(t, result)
+        info = event_mode(self.instance, before_iteration=(lambda: self.instance.set(inputs.discrete_at(t)))
+                          if discrete else None)
+        return self._after_event(t, info)
 
-    def _after_event(self, t: float, result: EventModeResult) -> tuple[np.ndarray, float, bool]:
-        self.event_iterations += result.iterations
+    def _after_event(self, t: float, info: EventInfo) -> tuple[np.ndarray, float, bool]:
+        self.event_iterations += info.iterations
         # Re-read the states: the event may have reset them (valuesOfContinuousStatesChanged).
         states = self.instance.get_continuous_states()
-        if result.terminate:
+        if info.terminate_simulation:
             return states, math.inf, True
         self._continuous_mode = True
-        return states, self._next_time_event(result.next_time_event, t), False
+        return states, self._next_time_event(info.next_event_time_or_inf, t), False
 
     def _next_time_event(self, fmu_next: float, t: float) -> float:
         """The FMU's next time event or the next change of a discrete input, if earlier."""
