@@ -33,7 +33,8 @@ from ..errors import FmuBuilderError
 from ..progress import progress
 from .evaluate import Scoring, evaluate
 
-# Simulations in all: the unrefined term's, then per iteration one per scale and one or more trials.
+# Simulations of the training data (each of its runs once) in all: the unrefined term's, then per
+# iteration one per scale and one or more trials.
 MAX_SIMULATIONS = 10
 ACCURATE_RTOL = 1e-7
 # Finite-difference step of a scale, relative; later the size of the last step, down to the minimum.
@@ -151,17 +152,22 @@ class _Objective:
         self.bar = None
 
     def residuals(self, scales: np.ndarray) -> np.ndarray | None:
+        """One simulation of the training data (of each of its runs); None where it fails."""
+        self.simulations += 1
+        try:
+            return self._residuals(scales)
+        finally:
+            if self.bar is not None:
+                self.bar.advance()
+
+    def _residuals(self, scales: np.ndarray) -> np.ndarray | None:
+        gates = dict(zip(self.gates, map(float, scales)))
         pieces = []
         for data, start_values in self.runs:
-            self.simulations += 1
             try:
-                run = evaluate(self.hybrid_fmu, data, {**start_values, **dict(zip(self.gates, map(float, scales)))},
-                               self.scoring)
+                run = evaluate(self.hybrid_fmu, data, {**start_values, **gates}, self.scoring)
             except FmuBuilderError:
                 return None
-            finally:
-                if self.bar is not None:
-                    self.bar.advance()
             for name in data.names:
                 pieces.append((run.predicted[name] - data.signals[name]) / _noise_level(self.noise, name, data))
         residual = np.concatenate(pieces)
