@@ -12,7 +12,7 @@ Printed:
 2. per variant and signal: the test run's MSE (held out of everything) divided by the noise
    floor (the generator's noise variance of the logged mean), for the plain FMU, the diagnosed
    term and the refined term, simulated accurately (DOPRI5, rtol 1e-7), and the refined term once
-   more with the scoring's Euler at the FMU's step, as `hybridize` compares candidates.
+   more with the scoring's checked RK4, as `hybridize` compares candidates.
 
     python benchmarks/bench_fitted_term.py [--variants windage,extra_heating,...]
 """
@@ -57,7 +57,7 @@ def main() -> None:
     for row in coefficients:
         print("| " + " | ".join(row) + " |")
     print(f"\nTest MSE / noise floor (1 = the floor); DOPRI5 rtol {ACCURATE_RTOL:g} unless said:\n")
-    print("| variant | signal | plain FMU | diagnosed term | refined term | refined term, scoring's Euler |")
+    print("| variant | signal | plain FMU | diagnosed term | refined term | refined term, the scoring's checked RK4 |")
     print("|---|---|---|---|---|---|")
     for row in errors:
         print("| " + " | ".join(row) + " |")
@@ -79,7 +79,7 @@ def _case(variant: str, folder: Path):
     folder.mkdir(parents=True)
     start_values = {**run.start_values, **diagnosis.start_values}
     diagnosed, gates = _hybrid(fitted, fmu, info, folder / "diagnosed")
-    scoring = Scoring.like_training(info, run)
+    scoring = Scoring.checked(fmu, train, start_values)
     noise = {e.signal: e.noise for e in diagnosis.errors}
     refinement = refine_scales(diagnosed, gates, [(train, start_values)], noise, scoring.step, show=False)
     refined_term = scaled_term(fitted, refinement.scales[0])

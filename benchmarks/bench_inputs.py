@@ -52,7 +52,7 @@ def main() -> None:
         train_csv, test_csv = _data(variant, args.noise_seed)
         roles = _assign_roles(info, train_csv, None, None, None, test_csv, None)
         channel, further = _channels(fmu, roles, variant, args.truth_channels)
-        scoring = Scoring.like_training(info, roles.train[0].data)
+        scoring = Scoring.checked(fmu, roles.train[0].samples(), roles.train[0].start_values)
         choice = choose_ann(fmu, info, roles.train, roles.validation, channel, further, scoring.step, scoring.solver)
         rows.append(_row(variant, channel, choice))
         print(f"done: {variant}", flush=True)

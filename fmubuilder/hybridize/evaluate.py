@@ -39,9 +39,9 @@ class Scoring:
     rtol: float | None = None
 
     @classmethod
-    def like_training(cls, info, data: MeasuredData) -> "Scoring":
-        """The NeuralFMU's training solver and step (see neural.train.Trainer): explicit Euler at
-        the FMU's DefaultExperiment step size."""
+    def fmu_step(cls, info, data: MeasuredData) -> "Scoring":
+        """Explicit Euler at the FMU's DefaultExperiment step size: cheap, unchecked (its error can
+        exceed the noise; `checked` is what the workflow uses)."""
         step = info.default_experiment.step_size or (data.stop - data.start) / max(10 * data.time.size, 1000)
         return cls("euler", float(step))
 

@@ -12,7 +12,7 @@ itself, as a nonlinear least-squares problem:
     residuals  -> (the model's signals seen through the sensor lag - measured) / the signal's
                   noise level, every measured signal on every training run
     simulation -> accurate (DOPRI5, rtol ACCURATE_RTOL): the coefficient then describes the
-                  model, not the scoring's Euler error, and a tool's own solver sees it so
+                  model, not a fixed step's discretisation error, and a tool's own solver sees it so
     search     -> Levenberg-Marquardt, its Jacobian by a finite difference of each scale (one
                   simulation per scale per iteration), at most MAX_SIMULATIONS simulations in all
     kept       -> only if it lowers the training objective below the unrefined term's

@@ -50,7 +50,7 @@ def plant_files(tmp_path_factory):
 def runs_of(fmu, csv, window=None):
     info = read_model_info(fmu)
     data = read_data(csv, info)
-    return info, Scoring.like_training(info, data), [(data.window(*window) if window else data, data.start_values)]
+    return info, Scoring.fmu_step(info, data), [(data.window(*window) if window else data, data.start_values)]
 
 
 # ---------------------------------------------------------------------------------------

@@ -82,7 +82,7 @@ def test_the_truth_scores_at_the_noise_floor_with_the_checked_step_and_not_with_
         assert 0.7 <= truth[name]["mse"] / noise_floor(name) <= 1.4, (name, truth[name]["mse"] / noise_floor(name))
     # Explicit Euler at the FMU's DefaultExperiment step: the temperature, slow and integrating,
     # carries an integrator error above the noise.
-    euler = evaluate(example_fmu(TRUTH), data, {}, Scoring.like_training(info, data)).errors
+    euler = evaluate(example_fmu(TRUTH), data, {}, Scoring.fmu_step(info, data)).errors
     assert euler["temperature"]["mse"] / noise_floor("temperature") > 2.0
 
 
