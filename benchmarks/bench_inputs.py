@@ -76,8 +76,11 @@ def _data(variant: str, noise_seed: int) -> tuple[Path, Path]:
 
 
 def _measured_anew(data_set, noise_seed: int) -> Path:
-    from fmubuilder.synth import BenchSettings, measure, write_measurement
-    settings = BenchSettings(seed=noise_seed * 1000 + data_set.seed % 1000, **dict(data_set.bench))
+    from dataclasses import replace
+
+    from fmubuilder.examples_zoo import bench_settings
+    from fmubuilder.synth import measure, write_measurement
+    settings = replace(bench_settings(data_set), seed=noise_seed * 1000 + data_set.seed % 1000)
     measurement = measure(example_fmu(data_set.variant.fmu), stop_time=data_set.stop_time,
                           start_values=data_set.start_values, settings=settings,
                           truth_parameters=data_set.variant.truth_parameters)
