@@ -54,9 +54,9 @@ def add_hybridize_parser(subparsers, common=None) -> None:
     p.add_argument("--allow-insignificant", action="store_true",
                    help="build and publish a hybrid even when the diagnosis finds no significant effect "
                         "(it may then fit noise; the validation data still decide whether one is published)")
-    p.add_argument("--ann-on-term", action="store_true",
-                   help="also train an ANN added to the fitted term, as a further candidate (it stops at its best "
-                        "validation epoch, so its validation score is optimistic next to the others')")
+    p.add_argument("--ann-on-term", action=argparse.BooleanOptionalAction, default=True,
+                   help="also train an ANN that starts from the fitted term and learns what it leaves, whenever a "
+                        "term is offered (default: on; --no-ann-on-term leaves it out and saves its training)")
     p.add_argument("--force", action="store_true",
                    help="overwrite the outputs; the old ones stay in place until the new ones are complete")
     p.set_defaults(func=cmd_hybridize, outputs=lambda args: [args.output, args.report])
@@ -83,7 +83,10 @@ def summary(result) -> str:
             lines.append(f"  {part:10s} {signal:12s} MSE x{factor:.3g} better")
     if report.get("selection", {}).get("scores"):
         scores = ", ".join(f"{name} {score:.3g}" for name, score in report["selection"]["scores"].items())
-        lines.append(f"  validation MSE relative to the plain FMU (chooses): {scores}")
+        selection = report["selection"]
+        lines.append(f"  validation MSE / noise variance, geometric mean over the signals (chooses; plain FMU "
+                     f"{selection.get('plain_score', float('nan')):.3g}, an ANN must beat the simpler by "
+                     f"x{selection.get('margin', 1.0):.3g}): {scores}")
     if report["models"]:
         lines.append("  test MSE relative to the plain FMU (touched once, after the choice): " +
                      ", ".join(f"{m['name']} {m['test_relative_mse']:.3g}" for m in report["models"]))

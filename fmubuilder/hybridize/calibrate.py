@@ -8,8 +8,10 @@ simulations, not seconds:
                  by the data's start values) is perturbed once by PERTURBATION of its value: one
                  simulation each over the first SCREEN_SAMPLES samples of the first training run.
                  The change of the signals, regressed on their residual, says how much of the
-                 residual that parameter can remove (its `explained` share, 0..1); rank by it
-    fit       -> the best MAX_CALIBRATED parameters (see RUNNER_UP_SHARE), each on the training
+                 residual that parameter can remove (its `explained` share, 0..1); rank by it.
+                 Parameters whose changes move the signals alike (a product c * A, a rolling
+                 coefficient times gravity) are one candidate: only the first of them is fitted
+    fit       -> the best MAX_CALIBRATED parameters (see RUNNER_UP_SHARE) less such twins, each on the training
                  role (all training runs) by Gauss-Newton with step halving, in at most
                  FIT_SIMULATIONS simulations each, within [start / RANGE, start * RANGE]
 
@@ -46,6 +48,12 @@ FIT_SIMULATIONS = 8
 # least RUNNER_UP_SHARE of what the leading one explains (a distant runner-up rarely wins).
 MIN_EXPLAINED = 0.05
 RUNNER_UP_SHARE = 0.5
+# Two parameters are equivalent when their sensitivities (the signals' change per unit of each,
+# over the screened samples) are parallel within this: 1 - cos^2 of the angle between them. A
+# product c * A gives ~1e-12 (the same simulation); the DC drive's R0 and T_ref in
+# R0 (1 + alpha (T - T_ref)), alike near T_ref but not as the winding warms, give 7e-3
+# over the 6 s of tests/hybridize/test_calibrate.py.
+EQUIVALENT_SINE2 = 1e-6
 # The fit stays within a factor RANGE of the declared value (same sign).
 RANGE = 10.0
 # Screened parameters listed in the report.
@@ -63,6 +71,16 @@ class Sensitivity:
     declared: float
     explained: float          # share of the score the best linear step along this parameter removes
     linear_estimate: float    # the value that step reaches
+    direction: np.ndarray | None = field(default=None, repr=False)   # the scaled sensitivity
+    equivalent: list = field(default_factory=list)   # names of later-ranked parameters that act alike
+
+    def acts_like(self, other: "Sensitivity") -> bool:
+        """The two change the signals alike: their sensitivities are parallel (EQUIVALENT_SINE2)."""
+        if self.direction is None or other.direction is None:
+            return False
+        a, b = self.direction, other.direction
+        cos2 = float(a @ b) ** 2 / (float(a @ a) * float(b @ b))
+        return 1.0 - cos2 <= EQUIVALENT_SINE2
 
 
 @dataclass
@@ -81,8 +99,9 @@ class Calibration:
 
     def details(self, ranked: list[Sensitivity], fitted_on: str, original_fmu, step: float) -> dict:
         """What the report says about this candidate (and what its round trip needs)."""
+        same = next((s.equivalent for s in ranked if s.name == self.name), [])
         return {"calibrated": {self.name: self.value}, "declared": {self.name: self.declared},
-                "train_score": self.train_score, "simulations": self.simulations, "fitted_on": fitted_on,
+                "equivalent_parameters": list(same), "train_score": self.train_score, "simulations": self.simulations, "fitted_on": fitted_on,
                 "screening": [{"parameter": s.name, "explained": s.explained} for s in ranked[:SCREEN_REPORTED]],
                 "original_fmu": str(original_fmu), "step": step}
 
@@ -178,8 +197,22 @@ def screen_parameters(model_fmu, info, runs: Runs, scoring: Scoring) -> list[Sen
         if gg == 0.0:
             continue
         step = -float(gradient @ residual) / gg
-        ranked.append(Sensitivity(var.name, declared, float(gradient @ residual) ** 2 / (gg * total), declared + step))
+        ranked.append(Sensitivity(var.name, declared, float(gradient @ residual) ** 2 / (gg * total), declared + step,
+                                  gradient))
     return sorted(ranked, key=lambda s: s.explained, reverse=True)
+
+
+def distinct(ranked: list[Sensitivity]) -> list[Sensitivity]:
+    """The ranked parameters less those that act like a higher-ranked one (recorded in its
+    `equivalent`): fitting both would give the same model twice."""
+    kept = []
+    for sensitivity in ranked:
+        twin = next((k for k in kept if k.acts_like(sensitivity)), None)
+        if twin is None:
+            kept.append(sensitivity)
+        else:
+            twin.equivalent.append(sensitivity.name)
+    return kept
 
 
 def fit_parameter(model_fmu, runs: Runs, scoring: Scoring, name: str, declared: float,
@@ -226,16 +259,19 @@ def fit_parameter(model_fmu, runs: Runs, scoring: Scoring, name: str, declared: 
 
 def calibrate(model_fmu, info, runs: Runs, scoring: Scoring, *,
               say=None) -> tuple[list[Sensitivity], list[Calibration]]:
-    """Screen the parameters on the first run, fit the best MAX_CALIBRATED on all `runs`.
-    Returns the screening (all parameters, ranked) and the fits that lowered the training score."""
+    """Screen the parameters on the first run, fit the best MAX_CALIBRATED on all `runs`, less
+    those that act like a higher-ranked one (the same model again: not fitted, none in their place). Returns the screening (all
+    parameters, ranked) and the fits that lowered the training score."""
     say = say or (lambda *a, **k: None)
     ranked = screen_parameters(model_fmu, info, runs, scoring)
     fits = []
     leading = ranked[0].explained if ranked else 0.0
     chosen = [s for s in ranked if s.explained >= max(MIN_EXPLAINED, RUNNER_UP_SHARE * leading)]
-    for sensitivity in chosen[:MAX_CALIBRATED]:
+    for sensitivity in distinct(chosen[:MAX_CALIBRATED]):
+        same = (f"; {', '.join(sensitivity.equivalent)} acts alike and is not fitted apart"
+                if sensitivity.equivalent else "")
         say(f"      calibrating {sensitivity.name} (explains {sensitivity.explained:.0%} of the residual "
-            f"on the first {SCREEN_SAMPLES} samples) ...")
+            f"on the first {SCREEN_SAMPLES} samples{same}) ...")
         fit = fit_parameter(model_fmu, runs, scoring, sensitivity.name, sensitivity.declared)
         if fit is not None and fit.value != fit.declared:
             fits.append(fit)

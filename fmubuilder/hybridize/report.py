@@ -191,13 +191,17 @@ def _candidates_section(report: dict) -> list[str]:
     if not report["models"]:
         return []
     selection = report["selection"]
+    scores = selection.get("scores", {})
     lines = ["## Candidates", "",
-             "MSE after / MSE before, mean over the signals (below 1: better than the declared FMU).", "",
-             "| candidate | what it adds | train | validation (chooses) | test (touched once) | chosen | note |",
-             "|:---|:---|---:|---:|---:|:---|:---|"]
+             "Train, validation, test: MSE after / MSE before, mean over the signals (below 1: better than the "
+             "declared FMU). Score (chooses): validation MSE / noise variance, geometric mean over the signals "
+             f"(the declared FMU: {selection.get('plain_score', float('nan')):.3g}).", "",
+             "| candidate | what it adds | train | validation | score (chooses) | test (touched once) | chosen | note |",
+             "|:---|:---|---:|---:|---:|---:|:---|:---|"]
     for m in report["models"]:
         lines.append(f"| {m['name']} | {_cell(m['description'])} | {m['train_relative_mse']:.3g} | "
-                     f"{m['validation_relative_mse']:.3g} | {m['test_relative_mse']:.3g} | "
+                     f"{m['validation_relative_mse']:.3g} | {scores.get(m['name'], float('nan')):.3g} | "
+                     f"{m['test_relative_mse']:.3g} | "
                      f"{'**yes**' if m['chosen'] else 'no'} | {_candidate_note(m, report.get('training'))} |")
     lines.append(f"\nChosen on the validation data: **{selection['chosen'] or 'none (no candidate improved it)'}** "
                  f"({selection['rule']}). {report['test_note']}")
@@ -224,6 +228,9 @@ def _candidate_note(model: dict, training: dict | None) -> str:
     elif model.get("calibrated"):
         notes.append(f"calibrated by Gauss-Newton on `{model.get('fitted_on', 'the training data')}` in "
                      f"{model.get('simulations', '?')} simulations, no training")
+        if model.get("equivalent_parameters"):
+            notes.append(f"{', '.join(model['equivalent_parameters'])} moved the signals alike in the screening: "
+                         "the same candidate, not fitted apart")
     else:
         notes.append(f"fitted by the diagnosis on `{model.get('fitted_on', 'the training data')}`, no training")
         refinement = model.get("refinement")

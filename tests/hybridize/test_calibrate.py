@@ -18,7 +18,7 @@ from fmubuilder.errors import FmuBuilderError
 from fmubuilder.export.calibrated import export_calibrated
 from fmubuilder.fmi import read_model_info
 from fmubuilder.hybridize import hybridize
-from fmubuilder.hybridize.calibrate import calibrate, calibratable_parameters
+from fmubuilder.hybridize.calibrate import calibrate, calibratable_parameters, fit_parameter
 from fmubuilder.hybridize.evaluate import Scoring, read_data
 from fmubuilder.simulation import simulate
 
@@ -84,6 +84,34 @@ def test_the_dc_drive_winding_resistance_is_recovered(tmp_path):
     resistance = next(f for f in fits if f.name == "nominal_resistance")
     assert resistance.value == pytest.approx(1.32, rel=0.02)
     assert {f.name for f in fits} <= {"nominal_resistance", "reference_temperature"}
+    # alike, not the same: the warming winding tells them apart, so neither hides the other
+    assert not any(s.equivalent for s in ranked[:2])
+
+
+def test_parameters_that_act_alike_are_fitted_once(tmp_path):
+    """The VLDM's air drag is 0.5 * air_density * drag_coefficient * frontal_area * v^2, its rolling
+    resistance mass * gravity * rolling_coefficient (on a flat road gravity enters nowhere else):
+    the factors of one product are one candidate, fitted once."""
+    settings = synth.BenchSettings(seed=0, signals=("speed", "power", "energy"))
+    measurement = synth.measure(example_fmu("vldm_truth_extra_resistance"), stop_time=30.0,
+                                start_values={"cycle": 1}, settings=settings)
+    csv = tmp_path / "vldm.csv"
+    synth.write_measurement(measurement, csv)
+    fmu = example_fmu("vldm")
+    info = read_model_info(fmu)
+    data = read_data(csv, info)
+    runs, scoring = [(data, {**data.start_values, "cycle": 1})], Scoring("rk4", 0.01)
+    ranked, fits = calibrate(fmu, info, runs, scoring)
+    leading = [s.name for s in ranked[:2]]
+    products = ({"drag_coefficient", "frontal_area", "air_density"}, {"rolling_coefficient", "gravity"})
+    assert any(set(leading) <= factors for factors in products)
+    first = ranked[0]
+    assert first.equivalent == [leading[1]]
+    assert [f.name for f in fits] == [first.name]          # the twin is neither fitted nor scored
+    assert fits[0].details(ranked, "vldm.csv", fmu, 0.01)["equivalent_parameters"] == [leading[1]]
+    # the reference: fitted on its own the twin reaches the same training score
+    twin = fit_parameter(fmu, runs, scoring, leading[1], ranked[1].declared)
+    assert twin.train_score == pytest.approx(fits[0].train_score, rel=1e-3)
 
 
 def test_only_free_real_parameters_are_calibrated():

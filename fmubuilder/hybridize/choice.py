@@ -1,0 +1,82 @@
+"""The choice among the candidates, on the validation data.
+
+    score   -> each signal's validation MSE over its noise floor (the measured value's noise
+               variance, `MeasuredData.noise_variance`; the plain FMU's MSE where the data carry no
+               spread), combined over the signals as a geometric mean: a factor gained on any signal
+               counts alike, whether that signal sits at the floor or far above it. (The arithmetic
+               mean of MSE / MSE plain, the rule before, is decided by the signals the plain FMU
+               already fits: an energy 6 times worse moved it by 0.001, a speed 3 % better by 0.03.)
+    margin  -> a candidate with an ANN must beat the best candidate that fits one number (the
+               term's coefficient, a parameter) by more than the noise allows, else the simpler one
+               wins. So the ANN that starts from the fitted term is never chosen when it is worse
+               than the term on the validation data, by construction
+    publish -> the chosen candidate must score below the plain FMU
+
+The margin is what the noise alone can do to the ratio of two scores: at the floor a signal's MSE
+over its noise variance, estimated from n independent pieces, has a relative spread of sqrt(2 / n);
+the pieces are blocks of BLOCK_SECONDS (longer than the sensors' noise correlation, as the ANN's
+input choice takes them). Two candidates' log-scores then differ by noise with a spread of at most
+sqrt(2 * 2 / n) per signal (their errors share the noise, so less), over S signals averaged
+sqrt(4 / (n S)); the margin is MARGIN_SIGMAS of that. Conservative where the signals lie far above
+the floor, where the noise hardly moves an MSE.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .inputs import BLOCK_SECONDS, time_blocks
+
+# The ANN candidates and their start: they must beat the one-number candidates by the margin.
+ANN_CANDIDATES = ("neural", "neural on the fitted term")
+# Standard deviations of the noise's spread that the margin spans.
+MARGIN_SIGMAS = 2.0
+
+
+def noise_margin(validation_times: list[np.ndarray], signals: int) -> float:
+    """Factor by which an ANN candidate's score must undercut a simpler one's (> 1)."""
+    blocks = sum(int(time_blocks(np.asarray(t))[-1]) + 1 for t in validation_times if np.size(t))
+    return math.exp(MARGIN_SIGMAS * math.sqrt(4.0 / (max(blocks, 1) * max(signals, 1))))
+
+
+def validation_score(errors: dict, floors: dict) -> float:
+    """Geometric mean over the signals of MSE / floor (inf when a candidate ran off)."""
+    logs = []
+    for signal, floor in floors.items():
+        mse = errors[signal]["mse"]
+        if not np.isfinite(mse):
+            return float("inf")
+        logs.append(math.log(max(mse, 1e-300) / floor))
+    return math.exp(float(np.mean(logs))) if logs else 1.0
+
+
+def floors_of(plain_errors: dict, noise: dict) -> dict:
+    """Each signal's floor: its noise variance, else the plain FMU's MSE; signals with neither
+    (a plain FMU exact on noise-free data) are left out."""
+    floors = {}
+    for signal, errors in plain_errors.items():
+        floor = noise.get(signal)
+        floor = floor if floor is not None and floor > 0 else errors["mse"]
+        if floor > 0 and np.isfinite(floor):
+            floors[signal] = floor
+    return floors
+
+
+def choose(scores: dict, plain_score: float, margin: float) -> str | None:
+    """The chosen candidate's name (see the module docstring), or None when none beats the plain FMU."""
+    simple = {name: s for name, s in scores.items() if name not in ANN_CANDIDATES}
+    ann = {name: s for name, s in scores.items() if name in ANN_CANDIDATES}
+    chosen = min(simple, key=simple.get) if simple else None
+    if ann:
+        best_ann = min(ann, key=ann.get)
+        if chosen is None or ann[best_ann] * margin < simple[chosen]:
+            chosen = best_ann
+    if chosen is None or not scores[chosen] < plain_score:
+        return None
+    return chosen
+
+
+RULE = ("lowest validation score (geometric mean over the signals of MSE / noise variance); a candidate with an "
+        "ANN must beat the best one-number candidate by the noise margin x{margin:.3g}, else the simpler one wins; "
+        "published if below the plain FMU's {plain:.3g}")
