@@ -5,7 +5,7 @@ fmubuilder/examples_zoo.py) `hybridize` runs as a user would run it: diagnosis, 
 the NeuralFMU as candidates, the choice on the held-out late share of the training run. Printed per
 case and measured signal: the test MSE (the separate test run, held out of everything) divided by
 the noise variance of the measured value, for the truth FMU (the model that made the data), the
-plain FMU, the fitted term and the NeuralFMU. 1 is the noise floor: the truth column shows that
+plain FMU, the fitted term, the NeuralFMU and the ANN on the fitted term. 1 is the noise floor: the truth column shows that
 the scoring (`Scoring.checked`, the same for every column) reaches it, so the other columns measure
 the models, not the integrator. The noise variance is the generator's (the sidecar's bench: the
 sensor's standard deviation squared over the number of runs averaged); a cell is "-" when the
@@ -64,9 +64,9 @@ def main() -> None:
         rows += _rows(f"{example} {variant}", truth, report, read_sidecar(test), seconds)
         print(f"done: {example} {variant} ({seconds:.0f} s), {scoring.describe()}", flush=True)
     print(f"\nTest MSE / noise variance of the measured value (1 = noise floor), {args.budget} epochs:\n")
-    print("| case | signal | truth FMU | plain FMU | fitted term | NeuralFMU | chosen | NeuralFMU channels and inputs "
-          "| seconds |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| case | signal | truth FMU | plain FMU | fitted term | NeuralFMU | ANN on the term | chosen "
+          "| NeuralFMU channels and inputs | seconds |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for row in rows:
         print("| " + " | ".join(row) + " |")
 
@@ -119,11 +119,11 @@ def _rows(case: str, truth: dict, report: dict | None, sidecar: dict, seconds: f
         if report:
             plain = report["errors"]["test"]["before"][signal]["mse"]
             cells.append(_ratio(plain, floor))
-            for name in ("fitted term", "neural"):
+            for name in ("fitted term", "neural", "neural on the fitted term"):
                 model = models.get(name)
                 cells.append(_ratio(plain / model["test_mse_factor"][signal], floor) if model else "-")
         else:
-            cells += ["-"] * 3
+            cells += ["-"] * 4
         chosen = (report["chosen"] or "none") if report else "-"
         rows.append([case, signal, *cells, chosen, described, f"{seconds:.0f}"])
     return rows
