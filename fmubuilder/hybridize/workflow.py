@@ -15,7 +15,9 @@ The data play three roles, and each number in the report comes from one of them:
                   (hybridize/calibrate.py), and an ANN added to the fitted term (term_started.py);
                   each exported as an FMU. The ANN on the term ends with its best epoch on the
                   validation data, the start included
-    selection  -> the candidate with the lower validation error, if it beats the plain FMU there
+    selection  -> the candidate with the lowest validation score (MSE over the noise floor, geometric
+                  mean over the signals), an ANN only by a noise margin over the simpler ones, if it
+                  beats the plain FMU there (hybridize/choice.py)
     round trip -> of the chosen hybrid FMU (fmpy vs the Python reference)
     report     -> DIR/report.json, DIR/report.md, DIR/report.html (plots inline) and the plots
 
