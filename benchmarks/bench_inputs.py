@@ -108,6 +108,10 @@ def _row(variant: str, channel: str, choice) -> list[str]:
         return [variant, truth, f"{channel}: none (the workflow falls back to the diagnosis' leading variable)", "-"]
     chosen = "; ".join(f"{c.channel}: {', '.join(c.inputs)} ({c.explained:.2f}; t {_t_values(c)})"
                        for c in choice.per_channel)
+    if choice.through is not None:
+        through = choice.through
+        chosen = (f"{channel}: {', '.join(choice.inputs)} (through {through.channel}: {', '.join(through.inputs)}, "
+                  f"{through.explained:.2f}; t {_t_values(through)})")
     first = choice.per_channel[0]
     rejected = first.rejected
     best = (f"{rejected['variable']} ({rejected['cv_error'] / first.validation_error:.2f}, {rejected['t']:.1f})"

@@ -28,6 +28,10 @@ per choice:
    MIN_GAIN and a paired test over time blocks of BLOCK_SECONDS (the log-ratio of each block's
    error with and without it; t >= MIN_T) says the gain is no chance. A product of two variables
    needs both: the smoother sees the pair. At most MAX_INPUTS.
+5. A closed loop: a controller that holds the channel's state compensates the missing term, so the
+   channel's own estimate shows nothing (its integrator, unmeasured, holds the difference). The
+   compensation shows in the measured derivatives the controller drives (an energy): the inputs
+   are then those that predict the missing term there (`inputs_through_loop`).
 """
 from __future__ import annotations
 
@@ -353,12 +357,21 @@ class AnnChoice:
     channels: list[str]
     inputs: list[str]
     per_channel: list[InputChoice]
+    # The measured channel whose estimate chose the inputs when the loop hides the channel's own
+    # (see inputs_through_loop); None: each channel's own estimate chose them.
+    through: InputChoice | None = None
 
     def to_dict(self) -> dict:
-        return {"channels": self.channels, "inputs": self.inputs, "rule": "forward selection by the "
-                "cross-validated error (contiguous folds) of a nearest-neighbour smoother of the estimated missing "
-                f"term; an input must lower it by {MIN_GAIN:.0%} with t >= {MIN_T:g} over {BLOCK_SECONDS:g} s blocks",
-                "per_channel": [c.to_dict() for c in self.per_channel]}
+        chosen = {"channels": self.channels, "inputs": self.inputs, "rule": "forward selection by the "
+                  "cross-validated error (contiguous folds) of a nearest-neighbour smoother of the estimated missing "
+                  f"term; an input must lower it by {MIN_GAIN:.0%} with t >= {MIN_T:g} over {BLOCK_SECONDS:g} s blocks",
+                  "per_channel": [c.to_dict() for c in self.per_channel]}
+        if self.through is not None:
+            chosen["through"] = {"rule": "the channel's own estimate admitted nothing (a controller compensates the "
+                                 "term along the measured run); the inputs are those that predict the missing term "
+                                 f"of the measured derivative {self.through.channel}, where the compensation shows, "
+                                 "without the channel itself", **self.through.to_dict()}
+        return chosen
 
 
 def choose_ann(model_fmu, info, train_parts, validation_parts, channel: str, further: list[str],
@@ -368,21 +381,34 @@ def choose_ann(model_fmu, info, train_parts, validation_parts, channel: str, fur
     `start_values` and `window` (the workflow's roles). None when the channel's state is not
     measured or no variable predicts its missing term: the caller falls back to the diagnosis."""
     from ..diagnose.trace import candidate_variables
-    channels = [channel, *further]
-    runs, terms = [], []
-    for part in [*train_parts[:1], *validation_parts]:     # each run once
-        if all(part.data is not run.data for run in runs):
-            runs.append(part)
-            terms.append(estimate_missing_terms(model_fmu, info, part.data, part.start_values, channels,
-                                                candidate_variables(info), step, solver))
-    if any(t is None or channel not in t.missing for t in terms):
+    def estimated(channels):
+        runs, terms = [], []
+        for part in [*train_parts[:1], *validation_parts]:     # each run once
+            if all(part.data is not run.data for run in runs):
+                runs.append(part)
+                terms.append(estimate_missing_terms(model_fmu, info, part.data, part.start_values, channels,
+                                                    candidate_variables(info), step, solver))
+        if any(t is None or channel not in t.missing for t in terms):
+            return None, None, None
+        train = np.concatenate([_in_windows(t, r.data, train_parts[:1]) for t, r in zip(terms, runs)])
+        validation = np.concatenate([_in_windows(t, r.data, validation_parts) for t, r in zip(terms, runs)])
+        return _joined(terms), train, validation
+
+    term, train, validation = estimated([channel, *further])
+    if term is None:
         return None
-    term = _joined(terms)
-    train = np.concatenate([_in_windows(t, r.data, train_parts[:1]) for t, r in zip(terms, runs)])
-    validation = np.concatenate([_in_windows(t, r.data, validation_parts) for t, r in zip(terms, runs)])
     first = choose_inputs(term, channel, train, validation)
     if not first.inputs:
-        return None
+        others = [c for c in _measured_channels(info, train_parts[0].data) if c != channel]
+        if not others:
+            return None
+        term, train, validation = estimated(list(dict.fromkeys([channel, *further, *others])))
+        through = inputs_through_loop(term, channel, [c for c in dict.fromkeys([*further, *others]) if c != channel],
+                                      train, validation)
+        if through is None:
+            return None
+        inputs = [n for n in through.inputs if n not in {channel, *term.aliases.get(channel, ())}]
+        return AnnChoice([channel], inputs, [first], through)
     chosen = [first]
     for extra in further:
         if extra in term.missing:
@@ -391,6 +417,32 @@ def choose_ann(model_fmu, info, train_parts, validation_parts, channel: str, fur
                 chosen.append(choice)
     inputs = list(dict.fromkeys(n for c in chosen for n in c.inputs))
     return AnnChoice([c.channel for c in chosen], inputs, chosen)
+
+
+def inputs_through_loop(term: MissingTerm, channel: str, others: list[str], train: np.ndarray,
+                        validation: np.ndarray) -> InputChoice | None:
+    """The choice on another measured derivative for a channel whose own estimate admitted nothing.
+
+    A controller that holds the channel's state compensates its missing term: along the measured
+    run the model, its own controller holding the same state, shows no missing term there, and the
+    controller's integrator, which would tell, is not measured. The compensation moves into the
+    derivatives the controller drives (an energy, a current), where the plain model falls short of
+    the data. The variables that predict that shortfall on held-out data are those the missing
+    term is a function of. Of `others` (in order) the first whose inputs, the channel itself and
+    its aliases left out, predict at least EXTRA_CHANNEL_EXPLAINED of its estimate; None if none does."""
+    own = {channel, *term.aliases.get(channel, ())}
+    for other in others:
+        if other not in term.missing:
+            continue
+        choice = choose_inputs(term, other, train, validation)
+        if choice.explained >= EXTRA_CHANNEL_EXPLAINED and any(n not in own for n in choice.inputs):
+            return choice
+    return None
+
+
+def _measured_channels(info, data) -> list[str]:
+    """The FMU's derivatives whose states the data measure."""
+    return [d.name for s, d in zip(info.states, info.derivatives) if s.name in data.signals]
 
 
 def _in_windows(term: MissingTerm, data, parts) -> np.ndarray:

@@ -380,9 +380,9 @@ def channel_aliases(model_fmu, info, channel: str, start_values: dict, data_time
 
 def _ann_channels_and_inputs(ctx: _Context, diagnosis) -> tuple[list[str], list[str]]:
     """The derivatives the ANN corrects and the variables it reads, chosen by cross-validated error
-    with a test against noise (hybridize.inputs); the diagnosis' leading variable when that choice
-    has nothing to go on (the channel's state is not measured, or the driver of a closed loop hides
-    the term in it)."""
+    with a test against noise (hybridize.inputs; where a closed loop hides the term in the channel,
+    on the measured derivative where its compensation shows); the diagnosis' leading variable when
+    that choice has nothing to go on."""
     from .inputs import choose_ann
     choice = choose_ann(ctx.model_fmu, ctx.info, ctx.roles.train, ctx.roles.validation, diagnosis.channel,
                         list(diagnosis.ambiguous_channels), ctx.scoring.step, ctx.scoring.solver)
@@ -392,7 +392,9 @@ def _ann_channels_and_inputs(ctx: _Context, diagnosis) -> tuple[list[str], list[
                                     "the noise)"}
         return [diagnosis.channel], _ann_inputs(diagnosis, ctx.info)
     ctx.input_choice = choice.to_dict()
-    ctx.say(f"      ANN inputs chosen by cross-validation on the training and validation data: "
+    seen_in = f" (on the missing term of {choice.through.channel}, where the loop's compensation shows)" \
+        if choice.through is not None else ""
+    ctx.say(f"      ANN inputs chosen by cross-validation on the training and validation data{seen_in}: "
             f"{', '.join(choice.inputs)}")
     return choice.channels, choice.inputs
 
