@@ -194,9 +194,9 @@ def _candidates_section(report: dict) -> list[str]:
     scores = selection.get("scores", {})
     lines = ["## Candidates", "",
              "Train, validation, test: MSE after / MSE before, mean over the signals (below 1: better than the "
-             "declared FMU). Score (chooses): validation MSE / noise variance, geometric mean over the signals "
+             "declared FMU). Validation score (chooses): validation MSE / noise variance, geometric mean over the signals "
              f"(the declared FMU: {selection.get('plain_score', float('nan')):.3g}).", "",
-             "| candidate | what it adds | train | validation | score (chooses) | test (touched once) | chosen | note |",
+             "| candidate | what it adds | train | validation | validation score (chooses) | test (touched once) | chosen | note |",
              "|:---|:---|---:|---:|---:|---:|:---|:---|"]
     for m in report["models"]:
         lines.append(f"| {m['name']} | {_cell(m['description'])} | {m['train_relative_mse']:.3g} | "

@@ -273,7 +273,7 @@ def test_vldm_extra_resistance_on_short_windows(tmp_path):
     assert diagnosis["inputs"][0] == "speed"
     assert diagnosis["fitted_term"]["terms"][0]["coefficient"] < 0      # a resistance slows the car
     names = {m["name"] for m in report["models"]}
-    plain = {"fitted term", "neural"}
+    plain = {"fitted term", "neural", "neural on the fitted term"}
     assert plain <= names and all(n.startswith("calibrated ") for n in names - plain)
     assert report["data"]["validation"] == [validation.name] and report["data"]["train"] == [train.name]
     assert validate_fmu(str(result.hybrid_fmu)) == [] and report["roundtrip"]["passed"]

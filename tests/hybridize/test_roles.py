@@ -129,7 +129,7 @@ def test_the_same_command_gives_the_same_numbers_on_a_busy_machine(files, tmp_pa
     assert set(selection["scores"]) == {m["name"] for m in busy["models"]}
     assert all(np.isfinite(m["test_relative_mse"]) for m in busy["models"])   # chosen or not
     markdown = (tmp_path / "busy" / "report" / "report.md").read_text()
-    assert "touched once" in markdown and "validation (chooses)" in markdown
+    assert "touched once" in markdown and "validation score (chooses)" in markdown
 
 
 def test_a_time_cap_that_cuts_the_training_short_is_reported(files, tmp_path):
