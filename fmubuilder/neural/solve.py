@@ -503,8 +503,8 @@ class _Run:
             self.counts["steps"] += 1
             x, dd, c = self._end_of_step(rows, x, dx1, end, x_new, dd, c, state_events)
             x, dd, c = self._time_events(x, dd, c)
-            rows = [b for b in self.rows if not self.done[b] and (
-                self.t[b] < grid_end[b] - time_tolerance(grid_end[b]) or b in self.t_grad)]
+            moving = (self.t < grid_end - time_tolerance(grid_end)) | np.isin(self.rows, list(self.t_grad))
+            rows = np.flatnonzero(moving & ~self.done).tolist()
         return x, dd, c, record
 
     def _next_limit(self, rows, grid_end: np.ndarray) -> np.ndarray:
@@ -604,26 +604,28 @@ class _Run:
                     self.ev.set_point(b, t_end, (cuts[i] if crossing else x_new[i]).detach().numpy(),
                                       self._u(b, t_end))
                 step_event = self._completed_step(b)
-            if (crossing or step_event) and not self.done[b] and not self._time_event_due(b):
+            if crossing or step_event:
                 events.append(b)
         if cuts:
             index = torch.tensor(list(cuts))
             x_new = x_new.index_put((index,), torch.stack(list(cuts.values())))
         x = x_new if len(rows) == self.B else x.index_put((torch.tensor(rows),), x_new)
+        waiting = self.done | self._time_events_due()
+        events = [b for b in events if not waiting[b]]
         return self._events(events, x, dd, c, signs) if events else (x, dd, c)
 
-    def _time_event_due(self, b) -> bool:
-        return self.next_event[b] <= self.t[b] + time_tolerance(self.t[b])
+    def _time_events_due(self) -> np.ndarray:
+        return ~self.done & (self.next_event <= self.t + time_tolerance(self.t))
 
     def _time_events(self, x, dd, c):
         """Event mode for the elements whose time event is due at their current point (within the
         time tolerance), until no element has one due there."""
         for _ in range(MAX_EVENTS_AT_ONE_TIME):
-            due = [b for b in self.rows if not self.done[b] and self._time_event_due(b)]
-            if not due:
+            due = np.flatnonzero(self._time_events_due())
+            if not due.size:
                 return x, dd, c
             self.t[due] = np.maximum(self.t[due], self.next_event[due])
-            self.counts["time_events"] += len(due)
+            self.counts["time_events"] += due.size
             x, dd, c = self._events(due, x, dd, c)
         raise FmuBuilderError(f"more than {MAX_EVENTS_AT_ONE_TIME} events at one time: the model keeps "
                               "scheduling events without letting time advance; check its time events")
