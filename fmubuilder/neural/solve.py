@@ -12,6 +12,7 @@ and the engine's convention: reaching zero fires, leaving it does not) and the s
 fmi2CompletedIntegratorStep after every step (the cut one included), state and step events; then on
 towards the same limit. The elements that reach their grid point first wait there, so grid times
 never depend on event times, and an element's steps never depend on the other elements' events.
+(The engine also ends a step at each sample of a continuous input; this solver steps over them.)
 The first step from a grid point starts every element there: its first stage is the record. Under
 torch.no_grad() nothing below the "gradients" items is done (the forward-only path).
 
@@ -576,8 +577,7 @@ class _Run:
         for i, b in enumerate(rows):
             if self.done[b]:
                 continue
-            t_start, t_end = self.t[b], end[i]
-            at_point, crossing = self.z is not None, False
+            t_start, t_end, crossing = self.t[b], end[i], False
             if self.z is not None:
                 z_new = self.ev.indicators(b, t_end, x_np[i], self._u(b, t_end))
                 crossing = any_crossed(self.z[b], z_new)
@@ -587,21 +587,18 @@ class _Run:
             if crossing:
                 state_events[b] += 1
                 if state_events[b] > MAX_EVENTS_PER_STEP:
-                    raise FmuBuilderError(f"more than {MAX_EVENTS_PER_STEP} state events in one step at "
-                                          f"t={t_end:.6g} (chattering or Zeno behaviour); reduce the step size "
-                                          "or fix the model")
+                    raise FmuBuilderError(f"more than {MAX_EVENTS_PER_STEP} state events in one step at t={t_end:.6g} "
+                                          "(chattering or Zeno behaviour); reduce the step size or fix the model")
                 self.counts["state_events"] += 1
-                c_row = None if c is None else c[b:b + 1]
                 cuts[i], t_end, t_event, signs[b] = self._cut_at_state_event(
-                    b, x[b], dx1[i], end[i], x_new[i], z_new, c_row)
+                    b, x[b], dx1[i], end[i], x_new[i], z_new, None if c is None else c[b:b + 1])
                 if isinstance(t_event, torch.Tensor):
                     self.t_grad[b] = t_event
-                at_point = False
             self.t[b] = t_end
             step_event = False
             if self.step_events and t_end != t_start:
-                if not at_point:
-                    self.ev.set_point(b, t_end, (cuts[i] if crossing else x_new[i]).detach().numpy(),
+                if self.z is None or crossing:   # else the indicators left the instance there
+                    self.ev.set_point(b, t_end, x_np[i] if not crossing else cuts[i].detach().numpy(),
                                       self._u(b, t_end))
                 step_event = self._completed_step(b)
             if crossing or step_event:
@@ -721,38 +718,28 @@ class _Run:
         return x, dd, c
 
     def _cut_at_state_event(self, b, x_k, dx1, t_new, x_new, z_new, c_row):
-        """The step of element b from its point to (t_new, x_new) cut at its earliest state event:
-        (the state there [n], the located time, the event time with its gradient, perturbation signs)."""
-        t_k, z_k = self.t[b], self.z[b]
-        dense = self._dense_output(b, t_k, x_k, dx1, t_new, x_new, c_row)
-        theta, z_hi, which = self._locate(b, t_k, t_new, dense, z_k, z_new)
-        t_star = t_k + theta * (t_new - t_k)
-        x_minus, t_e, signs = self._pre_event_state(b, dense, theta, t_k, t_new, t_star, z_k, z_hi, which)
-        return x_minus, t_star, t_e, signs
+        """The step of element b from its point (t_k, x_k) to (t_new, x_new) cut at its earliest state
+        event, located by the engine's root finder on the step's dense output (Euler: linear; RK4:
+        cubic Hermite), beyond the crossing: (the state there [n], the located time, the event time
+        with its gradient, perturbation signs)."""
+        t_k, z_k, h = self.t[b], self.z[b], t_new - self.t[b]
+        if self.rk4:
+            f_new = self.rhs([b], np.array([t_new]), x_new[None], c_row)[0][0]
 
-    def _dense_output(self, b, t_k, x_k, dx1, t_new, x_new, c_row):
-        """theta -> state at t_k + theta (t_new - t_k), usable with numpy floats and tensors."""
-        if not self.rk4:
-            return lambda theta: x_k + theta * (x_new - x_k)
-        h = t_new - t_k
-        f_new, _ = self.rhs([b], np.array([t_new]), x_new[None], c_row)
-        f_new = f_new[0]
-        return lambda theta: hermite(theta, h, x_k, dx1, x_new, f_new)
-
-    def _locate(self, b, t_k, t_new, dense, z_lo, z_hi):
-        """The engine's root finder on the step's dense output; returns (theta beyond the crossing,
-        indicators there, index of the crossing indicator)."""
-        h = t_new - t_k
+        def dense(theta):
+            return hermite(theta, h, x_k, dx1, x_new, f_new) if self.rk4 else x_k + theta * (x_new - x_k)
 
         def indicators_at(t):
             return self.ev.indicators(b, t, dense((t - t_k) / h).detach().numpy(), self._u(b, t))
 
         with torch.no_grad():
-            t_hi, z_hi, fired, _ = locate(indicators_at, t_k, z_lo, t_new, z_hi,
-                                          max(time_tolerance(t_new), 1e-12 * h))
+            t_hi, z_hi, fired, _ = locate(indicators_at, t_k, z_k, t_new, z_new, max(time_tolerance(t_new), 1e-12 * h))
         # of several indicators firing at once, the steepest over the step carries the event time
-        which = int(np.flatnonzero(fired)[np.argmax(np.abs(z_hi[fired] - z_lo[fired]))])
-        return (t_hi - t_k) / h, z_hi, which
+        which = int(np.flatnonzero(fired)[np.argmax(np.abs(z_hi[fired] - z_k[fired]))])
+        theta = (t_hi - t_k) / h
+        t_star = t_k + theta * h
+        x_minus, t_e, signs = self._pre_event_state(b, dense, theta, t_k, t_new, t_star, z_k, z_hi, which)
+        return x_minus, t_star, t_e, signs
 
     def _pre_event_state(self, b, dense, theta, t_k, t_new, t_star, z_k, z_hi, j):
         """x(t_e) with t_e differentiable through the implicit-function correction (see module doc)."""
