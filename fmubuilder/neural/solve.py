@@ -504,8 +504,9 @@ class _Run:
             self.counts["steps"] += 1
             x, dd, c = self._end_of_step(rows, x, dx1, end, x_new, dd, c, state_events)
             x, dd, c = self._time_events(x, dd, c)
-            moving = (self.t < grid_end - time_tolerance(grid_end)) | np.isin(self.rows, list(self.t_grad))
-            rows = np.flatnonzero(moving & ~self.done).tolist()
+            moving = (self.t < grid_end - time_tolerance(grid_end)) & ~self.done
+            moving[[b for b in self.t_grad if not self.done[b]]] = True   # a zero step carries the gradient
+            rows = np.flatnonzero(moving).tolist()
         return x, dd, c, record
 
     def _next_limit(self, rows, grid_end: np.ndarray) -> np.ndarray:
@@ -607,9 +608,10 @@ class _Run:
             index = torch.tensor(list(cuts))
             x_new = x_new.index_put((index,), torch.stack(list(cuts.values())))
         x = x_new if len(rows) == self.B else x.index_put((torch.tensor(rows),), x_new)
+        if not events:
+            return x, dd, c
         waiting = self.done | self._time_events_due()
-        events = [b for b in events if not waiting[b]]
-        return self._events(events, x, dd, c, signs) if events else (x, dd, c)
+        return self._events([b for b in events if not waiting[b]], x, dd, c, signs)
 
     def _time_events_due(self) -> np.ndarray:
         return ~self.done & (self.next_event <= self.t + time_tolerance(self.t))
