@@ -465,13 +465,12 @@ class _Run:
             x_np = x.detach().numpy()
             self.z = np.stack([self.ev.indicators(b, self.t[b], x_np[b], self._u(b, self.t[b])) for b in self.rows])
         records, captured = [], {}
+        x, dd, c = self._time_events(x, dd, c)   # later ones are handled where a step ends
         for k in range(self.K):
-            x, dd, c = self._time_events(x, dd, c)
             if k in self.capture:
                 captured[k] = self._save_states(self.t, x, self.grid[k])
             x, dd, c, record = self._grid_step(self.t0 + self.grid[k + 1], x, dd, c)
             records.append(record)
-        x, dd, c = self._time_events(x, dd, c)
         tau = self.grid[self.K]
         if self.K in self.capture:
             captured[self.K] = self._save_states(self.t, x, tau)
@@ -491,12 +490,13 @@ class _Run:
         event, events, on again; the elements that arrive first wait there. The first step starts
         every element at its grid point (a finished one stands still): its first stage is the record.
         Returns (x, dd, c, record)."""
-        rows, record = self.rows, None
+        rows, record, tolerance = self.rows, None, time_tolerance(grid_end)
         state_events = np.zeros(self.B, dtype=int)
         while rows:
-            end = self._next_limit(rows, grid_end)
-            x_new, dx1, out1 = self.step(rows, self.t[rows], x if record is None else x[rows],
-                                         self._step_lengths(rows, end), None if c is None else c[rows])
+            end = self._next_limit(rows, grid_end, tolerance)
+            x_new, dx1, out1 = (self.step(rows, self.t.copy(), x, self._step_lengths(rows, end), c) if record is None
+                                else self.step(rows, self.t[rows], x[rows], self._step_lengths(rows, end),
+                                               None if c is None else c[rows]))
             if self.forcing is not None:
                 x_new = self._forced(end, x_new)
             if record is None:
@@ -504,16 +504,15 @@ class _Run:
             self.counts["steps"] += 1
             x, dd, c = self._end_of_step(rows, x, dx1, end, x_new, dd, c, state_events)
             x, dd, c = self._time_events(x, dd, c)
-            moving = (self.t < grid_end - time_tolerance(grid_end)) & ~self.done
+            moving = (self.t < grid_end - tolerance) & ~self.done
             moving[[b for b in self.t_grad if not self.done[b]]] = True   # a zero step carries the gradient
             rows = np.flatnonzero(moving).tolist()
         return x, dd, c, record
 
-    def _next_limit(self, rows, grid_end: np.ndarray) -> np.ndarray:
+    def _next_limit(self, rows, grid_end: np.ndarray, tolerance: np.ndarray) -> np.ndarray:
         """Where the step of each element in `rows` ends: the grid point or its next time event if
         earlier (a time event a rounding error from the grid point is there, at its own time)."""
-        limit, event = grid_end[rows], self.next_event[rows]
-        tolerance = time_tolerance(limit)
+        limit, event, tolerance = grid_end[rows], self.next_event[rows], tolerance[rows]
         end = np.where(event >= limit - tolerance, limit, event)
         end = np.where(np.abs(event - end) <= tolerance, event, end)
         return np.where(self.done[rows], self.t[rows], end)
