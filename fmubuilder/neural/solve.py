@@ -1,21 +1,20 @@
 """Differentiable simulation of a NeuralFMU with the FMI 2.0 event semantics.
 
 Batch elements run side by side: B FMU instances, states as a [B, n] tensor, the ANN evaluated once
-per solver stage for all elements. Fixed-step explicit Euler or classical RK4 on a fixed grid
-(t0_b + k h); a time event or a state event inside a step splits it, and the step after the event
-ends on the next grid point again, so grid times never depend on event times. Under
+per solver stage for the elements that step. Fixed-step explicit Euler or classical RK4 on a fixed
+grid (t0_b + k h). Each element has its own time and follows the engine's event sequence
+(simulation/engine.py, simulation/events.py; one call of the FMU's own event iteration,
+FmuInstance.update_discrete_states, per event): time events due now, a step to its next limit (the
+next grid point, or its next time event, the FMU's nextEventTime, if earlier), the indicators at the
+step's end, a sign change located without gradients on the step's dense output (Euler: linear; RK4:
+cubic Hermite) by the engine's root finder (simulation/events.locate, to the side beyond the crossing
+and the engine's convention: reaching zero fires, leaving it does not) and the step cut there,
+fmi2CompletedIntegratorStep after every step (the cut one included), state and step events; then on
+towards the same limit. The elements that reach their grid point first wait there, so grid times
+never depend on event times, and an element's steps never depend on the other elements' events.
+(The engine also ends a step at each sample of a continuous input; this solver steps over them.)
+The first step from a grid point starts every element there: its first stage is the record. Under
 torch.no_grad() nothing below the "gradients" items is done (the forward-only path).
-
-Events follow the event sequence of simulation/events.py (one call of the FMU's own event iteration,
-FmuInstance.update_discrete_states, per event), per element:
-* time events at the FMU's nextEventTime (the step ends exactly there), step events requested by
-  fmi2CompletedIntegratorStep after each step, state events where an event indicator changes sign
-  within a step (the engine's convention, simulation/events.py: reaching zero fires, leaving it does not).
-* State events are located without gradients on the step's dense output (Euler: linear; RK4:
-  cubic Hermite) by the engine's root finder (simulation/events.locate), to the side beyond the crossing.
-  As in the engine, the step cut there is a completed step (fmi2CompletedIntegratorStep, a step event
-  it requests is handled with the state event); unlike the engine, which then steps on towards its
-  next limit, an element takes the rest of its grid step at once (other elements wait on the grid).
 
 Gradients across events:
 1. Event time. With t* the located time and z the crossing indicator,
@@ -72,6 +71,7 @@ import numpy as np
 import torch
 
 from ..errors import FmuBuilderError
+from ..simulation.engine import MAX_EVENTS_AT_ONE_TIME
 from ..simulation.events import any_crossed, event_mode, locate
 from ..simulation.inputs import InputSignals
 from ..simulation.solvers import hermite, rk4_step
@@ -83,9 +83,9 @@ SOLVERS = ("euler", "rk4")
 MAX_EVENTS_PER_STEP = 100
 
 
-def time_tolerance(t) -> float:
-    """Times closer than this are the same instant (rounding of event and grid times)."""
-    return 1e-11 * max(1.0, float(np.max(np.abs(t))))
+def time_tolerance(t):
+    """Times closer than this are the same instant (rounding of event and grid times); per element."""
+    return 1e-11 * np.maximum(1.0, np.abs(t))
 
 
 @dataclass
@@ -113,9 +113,7 @@ class Replay:
     costs one simulation without gradient from the origin, recursively back to a start that still
     holds its instance or is a fresh initialization. The replay repeats the original run's steps,
     events and FMU calls, so it reaches the same FMU state (continuous and discrete), up to
-    rounding (a run with gradient evaluates the ANN in torch, a replay in numpy) and to the step
-    splits that the time events of other elements of a batch cause (none when the events lie on
-    the step grid)."""
+    rounding (a run with gradient evaluates the ANN in torch, a replay in numpy)."""
     origin: ElementStart
     duration: float
     parameters: dict
@@ -292,7 +290,7 @@ class _Run:
         self.z = None
         self.counts = {"steps": 0, "time_events": 0, "state_events": 0, "step_events": 0}
         self.step_events = not self.info.capabilities.completed_integrator_step_not_needed
-        self.completed_at_end = np.zeros(self.B, dtype=bool)   # the step's last event was at its end
+        self.t_grad = {}   # element -> its time, a located event time that carries a gradient
         if forcing is not None and self.grad:
             raise FmuBuilderError("forced states are for simulations without gradients; use torch.no_grad()")
         self.forcing = forcing
@@ -450,7 +448,7 @@ class _Run:
             return x + h_t * dx1, dx1, out1
         return rk4_step(lambda t, x: self.rhs(rows, t, x, c)[0], t, x, dx1, h_t, h_np), dx1, out1
 
-    # -- main loop ---------------------------------------------------------------------------
+    # -- main loop: the engine's event sequence, per element ----------------------------------
     def run(self) -> Trajectory:
         started = _time.perf_counter()
         # the ANN folded once per run (its gradient gathers here); none when it cannot act
@@ -460,45 +458,25 @@ class _Run:
         elif active:
             self.kernel = NumpyTopology(self.topology)
         x, dd, c = self.initialise()
-        t = self.t0.copy()
+        self.t = self.t0.copy()
         if self.forcing is not None:
-            x = self._forced(t, x)
+            x = self._forced(self.t, x)
         if self.info.n_event_indicators:   # the reference of the first step's sign changes
             x_np = x.detach().numpy()
-            self.z = np.stack([self.ev.indicators(b, t[b], x_np[b], self._u(b, t[b])) for b in range(self.B)])
-        tau, k = 0.0, 0
+            self.z = np.stack([self.ev.indicators(b, self.t[b], x_np[b], self._u(b, self.t[b])) for b in self.rows])
         records, captured = [], {}
-        while k < self.K:
-            tau_grid = self.grid[k + 1]
-            active = ~self.done
-            rel_events = np.where(active, self.next_event - self.t0, math.inf)
-            tau_end = min(tau_grid, float(rel_events.min()))
-            tol = time_tolerance(self.t0 + tau_end)
-            hit_grid = tau_end >= tau_grid - tol
-            if hit_grid:
-                tau_end = tau_grid
-            end = self.t0 + tau_end
-            at_event = active & (np.abs(self.next_event - end) <= tol)
-            end = np.where(at_event, self.next_event, end)
-            h = np.where(active, end - t, 0.0)
-            at_grid_start = tau == self.grid[k]
-            if at_grid_start and k in self.capture:
-                captured[k] = self._save_states(t, x, tau)
-            x_new, dx1, out1 = self.step(self.rows, t, x, h, c)
-            if self.forcing is not None:
-                x_new = self._forced(end, x_new)
-            if at_grid_start:
-                records.append(self._record(x, dx1, out1))
-            self.counts["steps"] += 1
-            x_new, dd, c = self._end_of_step(t, x, dx1, h, end, x_new, dd, c, at_event)
-            t, x, tau = end, x_new, tau_end
-            if hit_grid:
-                k += 1
+        x, dd, c = self._time_events(x, dd, c)   # later ones are handled where a step ends
+        for k in range(self.K):
+            if k in self.capture:
+                captured[k] = self._save_states(self.t, x, self.grid[k])
+            x, dd, c, record = self._grid_step(self.t0 + self.grid[k + 1], x, dd, c)
+            records.append(record)
+        tau = self.grid[self.K]
         if self.K in self.capture:
-            captured[self.K] = self._save_states(t, x, tau)
-        dx, out = self.rhs(self.rows, t, x, c)
+            captured[self.K] = self._save_states(self.t, x, tau)
+        dx, out = self.rhs(self.rows, self.t, x, c)
         records.append(self._record(x, dx, out))
-        final_starts = self._save_states(t, x, tau, final=True) if self.keep_final_state else None
+        final_starts = self._save_states(self.t, x, tau, final=True) if self.keep_final_state else None
         stats = dict(self.counts, seconds=_time.perf_counter() - started,
                      fmu_evaluations=self.ev.n_evaluations, jacobian_columns=self.ev.n_jacobian_columns)
         if self.event_grad:
@@ -506,10 +484,51 @@ class _Run:
         values = torch.stack(records) if records else torch.zeros(0, self.B, 0)
         return Trajectory(self.grid.copy(), self.t0, self.record_names, values, x, final_starts, captured, stats)
 
+    def _grid_step(self, grid_end: np.ndarray, x, dd, c):
+        """Every element from its grid point to the next one (grid_end [B]) by the engine's sequence:
+        a step to its next limit (that grid point or its next time event), cut at the earliest state
+        event, events, on again; the elements that arrive first wait there. The first step starts
+        every element at its grid point (a finished one stands still): its first stage is the record.
+        Returns (x, dd, c, record)."""
+        rows, record, tolerance = self.rows, None, time_tolerance(grid_end)
+        state_events = np.zeros(self.B, dtype=int)
+        while rows:
+            end = self._next_limit(rows, grid_end, tolerance)
+            x_new, dx1, out1 = (self.step(rows, self.t.copy(), x, self._step_lengths(rows, end), c) if record is None
+                                else self.step(rows, self.t[rows], x[rows], self._step_lengths(rows, end),
+                                               None if c is None else c[rows]))
+            if self.forcing is not None:
+                x_new = self._forced(end, x_new)
+            if record is None:
+                record = self._record(x, dx1, out1)
+            self.counts["steps"] += 1
+            x, dd, c = self._end_of_step(rows, x, dx1, end, x_new, dd, c, state_events)
+            x, dd, c = self._time_events(x, dd, c)
+            moving = (self.t < grid_end - tolerance) & ~self.done
+            moving[[b for b in self.t_grad if not self.done[b]]] = True   # a zero step carries the gradient
+            rows = np.flatnonzero(moving).tolist()
+        return x, dd, c, record
+
+    def _next_limit(self, rows, grid_end: np.ndarray, tolerance: np.ndarray) -> np.ndarray:
+        """Where the step of each element in `rows` ends: the grid point or its next time event if
+        earlier (a time event a rounding error from the grid point is there, at its own time)."""
+        limit, event, tolerance = grid_end[rows], self.next_event[rows], tolerance[rows]
+        end = np.where(event >= limit - tolerance, limit, event)
+        end = np.where(np.abs(event - end) <= tolerance, event, end)
+        return np.where(self.done[rows], self.t[rows], end)
+
+    def _step_lengths(self, rows, end: np.ndarray):
+        """end - t per row: numpy, or a tensor [R, 1] where a located event time carries a gradient."""
+        if not any(b in self.t_grad for b in rows):
+            return end - self.t[rows]
+        return torch.stack([end[i] - self.t_grad[b] if b in self.t_grad else
+                            torch.tensor(end[i] - self.t[b], dtype=torch.float64)
+                            for i, b in enumerate(rows)]).reshape(-1, 1)
+
     def _forced(self, t: np.ndarray, x: torch.Tensor) -> torch.Tensor:
         indices, values = self.forcing
         x = x.clone()
-        x[:, indices] = torch.from_numpy(np.asarray(values(t), dtype=float).reshape(self.B, len(indices)))
+        x[:, indices] = torch.from_numpy(np.asarray(values(t), dtype=float).reshape(len(t), len(indices)))
         return x
 
     def _record(self, x, dx, out) -> torch.Tensor:
@@ -548,37 +567,66 @@ class _Run:
         return saved
 
     # -- events ------------------------------------------------------------------------------
-    def _end_of_step(self, t, x, dx1, h, t_new, x_new, dd, c, at_event):
-        """Detect and handle the events of the step just taken; returns the post-event (x, dd, c)."""
-        B = self.B
-        events = at_event.copy()
+    def _end_of_step(self, rows, x, dx1, end, x_new, dd, c, state_events):
+        """The engine's sequence after a step of `rows` to `end`: the indicators there, the step cut
+        at the earliest state event, fmi2CompletedIntegratorStep (not after a step of length zero,
+        which carries an event time's gradient only), state and step events. A time event due at
+        the new point is left to `_time_events`, which takes any crossing there with it."""
         x_np = x_new.detach().numpy()
-        replaced = {}
-        self.completed_at_end[:] = False
-        if self.z is not None:
-            for b in range(B):
-                if self.done[b]:
-                    continue
-                z_new = self.ev.indicators(b, t_new[b], x_np[b], self._u(b, t_new[b]))
-                if any_crossed(self.z[b], z_new):
-                    rows = (None if dd is None else dd[b:b + 1], None if c is None else c[b:b + 1])
-                    replaced[b] = self._state_events(b, t[b], x[b], dx1[b], t_new[b], x_new[b], z_new, *rows)
-                else:
+        cuts, events, signs = {}, [], {}
+        for i, b in enumerate(rows):
+            if self.done[b]:
+                continue
+            t_start, t_end, crossing = self.t[b], end[i], False
+            if self.z is not None:
+                z_new = self.ev.indicators(b, t_end, x_np[i], self._u(b, t_end))
+                crossing = any_crossed(self.z[b], z_new)
+                if not crossing:
                     self.z[b] = z_new
-        elif self.step_events or events.any():
-            for b in range(B):
-                self.ev.set_point(b, t_new[b], x_np[b], self._u(b, t_new[b]))
-        if replaced:
-            x_new, dd, c = self._replace_rows(replaced, x_new, dd, c)
-        if self.step_events:
-            for b in range(B):
-                if not (self.done[b] or self.completed_at_end[b]):
-                    events[b] |= self._completed_step(b)
-        events &= ~self.done
-        if events.any():
-            self.counts["time_events"] += int(at_event.sum())
-            x_new, dd, c = self._handle_events(np.flatnonzero(events), t_new, x_new, dd, c)
-        return x_new, dd, c
+            self.t_grad.pop(b, None)
+            if crossing:
+                state_events[b] += 1
+                if state_events[b] > MAX_EVENTS_PER_STEP:
+                    raise FmuBuilderError(f"more than {MAX_EVENTS_PER_STEP} state events in one step at t={t_end:.6g} "
+                                          "(chattering or Zeno behaviour); reduce the step size or fix the model")
+                self.counts["state_events"] += 1
+                cuts[i], t_end, t_event, signs[b] = self._cut_at_state_event(
+                    b, x[b], dx1[i], end[i], x_new[i], z_new, None if c is None else c[b:b + 1])
+                if isinstance(t_event, torch.Tensor):
+                    self.t_grad[b] = t_event
+            self.t[b] = t_end
+            step_event = False
+            if self.step_events and t_end != t_start:
+                if self.z is None or crossing:   # else the indicators left the instance there
+                    self.ev.set_point(b, t_end, x_np[i] if not crossing else cuts[i].detach().numpy(),
+                                      self._u(b, t_end))
+                step_event = self._completed_step(b)
+            if crossing or step_event:
+                events.append(b)
+        if cuts:
+            index = torch.tensor(list(cuts))
+            x_new = x_new.index_put((index,), torch.stack(list(cuts.values())))
+        x = x_new if len(rows) == self.B else x.index_put((torch.tensor(rows),), x_new)
+        if not events:
+            return x, dd, c
+        waiting = self.done | self._time_events_due()
+        return self._events([b for b in events if not waiting[b]], x, dd, c, signs)
+
+    def _time_events_due(self) -> np.ndarray:
+        return ~self.done & (self.next_event <= self.t + time_tolerance(self.t))
+
+    def _time_events(self, x, dd, c):
+        """Event mode for the elements whose time event is due at their current point (within the
+        time tolerance), until no element has one due there."""
+        for _ in range(MAX_EVENTS_AT_ONE_TIME):
+            due = np.flatnonzero(self._time_events_due())
+            if not due.size:
+                return x, dd, c
+            self.t[due] = np.maximum(self.t[due], self.next_event[due])
+            self.counts["time_events"] += due.size
+            x, dd, c = self._events(due, x, dd, c)
+        raise FmuBuilderError(f"more than {MAX_EVENTS_AT_ONE_TIME} events at one time: the model keeps "
+                              "scheduling events without letting time advance; check its time events")
 
     def _completed_step(self, b) -> bool:
         """fmi2CompletedIntegratorStep of element b, whose instance stands at the end of its step:
@@ -598,26 +646,13 @@ class _Run:
             self.z[b] = self.instances[b].get_event_indicators()
         return outcome
 
-    def _replace_rows(self, replaced: dict, x, dd, c):
-        """Put the rows computed separately (state events) into the batch tensors."""
-        index = torch.tensor(list(replaced))
-        x = x.index_put((index,), torch.stack([r[0] for r in replaced.values()]))
-        for slot, width in ((1, self.ev.carrier_width), (2, self.ev.width)):
-            rows = [r[slot] for r in replaced.values()]
-            if all(row is None for row in rows):
-                continue
-            current = dd if slot == 1 else c
-            base = current if current is not None else torch.zeros(self.B, width, dtype=x.dtype)
-            rows = [row if row is not None else base[b:b + 1] for b, row in zip(replaced, rows)]
-            updated = base.index_put((index,), torch.cat(rows))
-            dd, c = (updated, c) if slot == 1 else (dd, updated)
-        return x, dd, c
-
-    def _handle_events(self, rows, t, x, dd, c):
-        """Events of several elements at the end of a step, batched."""
+    def _events(self, rows, x, dd, c, signs=None):
+        """Event mode of the elements `rows` at their current points, batched; `signs` orients the
+        perturbations of an element at a state event (see FmuEvaluator.handle_event)."""
         x_np = x.detach().numpy()
         grad = self.event_grad and self.ev.can_snapshot and x.requires_grad
-        outcomes = {b: self._event_mode(b, t[b], x_np[b], grad) for b in rows}
+        signs = signs or {}
+        outcomes = {b: self._event_mode(b, self.t[b], x_np[b], grad, signs.get(b)) for b in rows}
         if not grad:
             changed = [b for b, o in outcomes.items() if o.values_changed]
             if changed:  # a constant jump; x + 0 keeps the exact post-event values
@@ -683,65 +718,29 @@ class _Run:
             dd = dd.masked_fill(keep, 0.0)
         return x, dd, c
 
-    def _state_events(self, b, t_k, x_k, dx1, t_new, x_new, z_new, dd_row, c_row):
-        """Locate and handle the state events of element b in its step (t_k, t_new]; returns the
-        element's (state at t_new [n], dd row, c row)."""
-        z_k = self.z[b]
-        for _ in range(MAX_EVENTS_PER_STEP):
-            self.counts["state_events"] += 1
-            dense = self._dense_output(b, t_k, x_k, dx1, t_new, x_new, c_row)
-            theta, z_hi, which = self._locate(b, t_k, t_new, dense, z_k, z_new)
-            t_star = t_k + theta * (t_new - t_k)
-            x_minus, t_e, signs = self._pre_event_state(b, dense, theta, t_k, t_new, t_star, z_k, z_hi, which)
-            x_minus_np = x_minus.detach().numpy()
-            if self.step_events:   # the step cut at the event is a completed step; a step event joins the event
-                self.ev.set_point(b, t_star, x_minus_np, self._u(b, t_star))
-                self._completed_step(b)
-                if self.done[b]:
-                    return x_minus, dd_row, c_row
-            grad = self.event_grad and self.ev.can_snapshot and x_minus.requires_grad
-            outcome = self._event_mode(b, t_star, x_minus_np, grad, signs)
-            x_plus, dd_row, c_row = self._apply_event(outcome, x_minus, dd_row, c_row, grad)
-            z_k = self.z[b]
-            if self.done[b]:
-                return x_plus, dd_row, c_row
-            # the rest of the step, back to the grid; none when the event ends the step (the step of
-            # length zero carries the event time's gradient only, so it is no completed step)
-            self.completed_at_end[b] = t_star == t_new
-            h_rest = (t_new - t_e).reshape(1, 1) if isinstance(t_e, torch.Tensor) else np.array([t_new - t_e])
-            t_k, x_k = t_star, x_plus
-            x_new_row, dx1_row, _ = self.step([b], np.array([t_star]), x_plus[None], h_rest, c_row)
-            x_new, dx1 = x_new_row[0], dx1_row[0]
-            z_new = self.ev.indicators(b, t_new, x_new.detach().numpy(), self._u(b, t_new))
-            if not any_crossed(z_k, z_new):
-                self.z[b] = z_new
-                return x_new, dd_row, c_row
-        raise FmuBuilderError(f"more than {MAX_EVENTS_PER_STEP} state events in one step at t={t_new:.6g} "
-                              "(chattering or Zeno behaviour); reduce the step size or fix the model")
+    def _cut_at_state_event(self, b, x_k, dx1, t_new, x_new, z_new, c_row):
+        """The step of element b from its point (t_k, x_k) to (t_new, x_new) cut at its earliest state
+        event, located by the engine's root finder on the step's dense output (Euler: linear; RK4:
+        cubic Hermite), beyond the crossing: (the state there [n], the located time, the event time
+        with its gradient, perturbation signs)."""
+        t_k, z_k, h = self.t[b], self.z[b], t_new - self.t[b]
+        if self.rk4:
+            f_new = self.rhs([b], np.array([t_new]), x_new[None], c_row)[0][0]
 
-    def _dense_output(self, b, t_k, x_k, dx1, t_new, x_new, c_row):
-        """theta -> state at t_k + theta (t_new - t_k), usable with numpy floats and tensors."""
-        if not self.rk4:
-            return lambda theta: x_k + theta * (x_new - x_k)
-        h = t_new - t_k
-        f_new, _ = self.rhs([b], np.array([t_new]), x_new[None], c_row)
-        f_new = f_new[0]
-        return lambda theta: hermite(theta, h, x_k, dx1, x_new, f_new)
-
-    def _locate(self, b, t_k, t_new, dense, z_lo, z_hi):
-        """The engine's root finder on the step's dense output; returns (theta beyond the crossing,
-        indicators there, index of the crossing indicator)."""
-        h = t_new - t_k
+        def dense(theta):
+            return hermite(theta, h, x_k, dx1, x_new, f_new) if self.rk4 else x_k + theta * (x_new - x_k)
 
         def indicators_at(t):
             return self.ev.indicators(b, t, dense((t - t_k) / h).detach().numpy(), self._u(b, t))
 
         with torch.no_grad():
-            t_hi, z_hi, fired, _ = locate(indicators_at, t_k, z_lo, t_new, z_hi,
-                                          max(time_tolerance(t_new), 1e-12 * h))
+            t_hi, z_hi, fired, _ = locate(indicators_at, t_k, z_k, t_new, z_new, max(time_tolerance(t_new), 1e-12 * h))
         # of several indicators firing at once, the steepest over the step carries the event time
-        which = int(np.flatnonzero(fired)[np.argmax(np.abs(z_hi[fired] - z_lo[fired]))])
-        return (t_hi - t_k) / h, z_hi, which
+        which = int(np.flatnonzero(fired)[np.argmax(np.abs(z_hi[fired] - z_k[fired]))])
+        theta = (t_hi - t_k) / h
+        t_star = t_k + theta * h
+        x_minus, t_e, signs = self._pre_event_state(b, dense, theta, t_k, t_new, t_star, z_k, z_hi, which)
+        return x_minus, t_star, t_e, signs
 
     def _pre_event_state(self, b, dense, theta, t_k, t_new, t_star, z_k, z_hi, j):
         """x(t_e) with t_e differentiable through the implicit-function correction (see module doc)."""
@@ -766,13 +765,3 @@ class _Run:
         signs = np.ones(self.n + self.ev.P)
         signs[: self.n] = np.where(gz != 0, side * np.sign(gz), 1.0)
         return x_minus, t_e, signs
-
-    def _apply_event(self, outcome, x_minus, dd_row, c_row, grad):
-        """Post-event (state [n], dd row, c row) of one element from its EventOutcome."""
-        if not grad or outcome.B is None:
-            if outcome.values_changed:
-                return torch.from_numpy(outcome.x_plus) + (x_minus - x_minus.detach()), dd_row, c_row
-            return x_minus, dd_row, c_row
-        dev = self._known_deviation(x_minus[None])
-        x, dd, c = self._linearised_event(x_minus[None], dev, {0: outcome}, dd_row, c_row, np.ones(1, dtype=bool))
-        return x[0], dd, c
