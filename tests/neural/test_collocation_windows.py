@@ -80,3 +80,21 @@ def test_collocation_finds_the_coulomb_friction_away_from_the_steps(dc_drive_fmu
     # rule above is what makes the difference)
     error_all, size_all, _ = _estimate_error(dc_drive_fmu, coulomb_data, monkeypatch, np.inf)
     assert error_all > 0.5 * size_all
+
+
+def test_the_output_is_scaled_to_the_estimated_effect_and_the_hybrid_stays_the_fmu(dc_drive_fmu):
+    import torch
+    from fmubuilder.neural.warm_start import scale_output_to_effect
+    model = NeuralFMU(dc_drive_fmu, TopologyConfig(channels=["der(speed)"], inputs=["speed"], hidden=[4],
+                                                   kind="residual"))
+    try:
+        topology = model.topology
+        with torch.no_grad():
+            topology.post_scale.fill_(47.0)        # the derivative's spread, as initialise_scaling sets it
+        effect = torch.tensor([[3.0], [-4.0], [0.0], [5.0]], dtype=torch.float64)
+        scale_output_to_effect(topology, effect)
+        assert float(topology.post_scale[0]) == pytest.approx(np.sqrt(np.mean([9.0, 16.0, 0.0, 25.0])))
+        x = torch.tensor([[10.0], [-50.0]], dtype=torch.float64)
+        assert torch.equal(topology.correction(x), torch.zeros(2, 1, dtype=torch.float64))
+    finally:
+        model.close()
