@@ -6,7 +6,8 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    magnitude) and the start of every batch element: the measured data hold no controller states, so
    each element starts from the FMU state saved by the reference (fmi2GetFMUstate, serialized; it
    carries the discrete states), with the measured states set to their measured values (the run's
-   own value where the data's first samples agree with it, see measured_initial_states).
+   own value where the data's first samples agree with it, see measured_initial_states; read one
+   sensor lag later, where a lagging sensor shows the state at the element's start).
    Unmeasured states of the plain FMU can be far from the truth (a controller integral that
    compensates an unmodelled load), and their transient at each element start would dominate the
    loss. So after pre-training the starts are captured again from a simulation of the hybrid, and
@@ -40,7 +41,8 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    starts at 1. Scaling by the signal's variance instead lets a cumulative signal (energy, whose
    variance over a cycle is huge) drown in the noise of the others, and the training then trades a
    better fit of noisy power transients for a drifting energy. The simulated signals pass through
-   the sensors' first-order lag (`sensor_lag`) first. Adam with exponential step-size decay per
+   the sensors' first-order lag (`sensor_lag`) first, each sensor starting an element at what the
+   data show there. Adam with exponential step-size decay per
    epoch, the pre-/post-processing at a tenth of the step size; with one batch per epoch, rewinds
    after an epoch that made the loss worse (see Trainer._keep_best), and the parameters of the
    lowest loss at the end. Elements in random order, `batch_size` side by side, or sequential (time
