@@ -21,6 +21,9 @@ from .model import NeuralFMU
 from .solve import ElementStart, simulate
 
 MAX_SAMPLES = 50_000
+# A window whose local line leaves more than this many times the typical residual spans a step or a
+# kink (see smooth_windows).
+ROUGHNESS_LIMIT = 2.0
 
 
 def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solver: str, window: float, inputs,
@@ -49,11 +52,42 @@ def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solve
     fmu_channels = np.stack([run.numpy(c)[keep, 0] for c in config.channels], axis=1)
     measured = np.zeros_like(fmu_channels)
     mask = np.zeros(fmu_channels.shape, dtype=bool)
+    smooth = smooth_windows(data, forced, times[keep] + sensor_lag, window)
     for j, state in enumerate(channel_states):
         if state in data.signals:
             _, slope, valid = local_fit(data.time, data.signals[state], times[keep] + sensor_lag, window)
-            measured[:, j], mask[:, j] = slope, valid
+            measured[:, j], mask[:, j] = slope, valid & smooth
     return ann_inputs, fmu_channels, measured, mask
+
+
+def smooth_windows(data: MeasuredData, states: list[str], at: np.ndarray, window: float) -> np.ndarray:
+    """Whether every forced state is a straight line plus noise within +-window/2 of each time in
+    `at`: the residual of its local linear fit at most ROUGHNESS_LIMIT times that state's median
+    residual (most windows hold only noise). A window across a load step or a kink of a set-point
+    bends: there the line's slope and value, hence the estimate of the missing term, are wrong by
+    far more than the effect (on the DC drive, near the load steps, by several times its size)."""
+    smooth = np.ones(at.shape, dtype=bool)
+    for state in states:
+        roughness = local_roughness(data.time, data.signals[state], at, window)
+        typical = np.nanmedian(roughness)
+        if np.isfinite(typical) and typical > 0:
+            smooth &= np.nan_to_num(roughness, nan=np.inf) <= ROUGHNESS_LIMIT * typical
+    return smooth
+
+
+def local_roughness(time: np.ndarray, values: np.ndarray, at: np.ndarray, window: float) -> np.ndarray:
+    """Root mean square residual of the least-squares line through the samples within +-window/2 of
+    each time in `at` (nan where fewer than 3 samples lie in the window)."""
+    origin, scale = time[0], max(float(np.std(values)), 1e-300)
+    t, y = time - origin, (values - np.mean(values)) / scale     # centred: the sums below cancel less
+    prefix = [np.concatenate(([0.0], np.cumsum(q))) for q in (np.ones_like(t), t, y, t * t, t * y, y * y)]
+    lo = np.searchsorted(time, at - 0.5 * window, side="left")
+    hi = np.searchsorted(time, at + 0.5 * window, side="right")
+    s0, st, sy, stt, sty, syy = (p[hi] - p[lo] for p in prefix)
+    count = np.maximum(s0, 1)
+    tt, ty, yy = stt - st * st / count, sty - st * sy / count, syy - sy * sy / count
+    residual = np.maximum(yy - np.where(tt > 0, ty * ty / np.where(tt > 0, tt, 1.0), 0.0), 0.0)
+    return np.where(s0 >= 3, np.sqrt(residual / np.maximum(s0 - 2, 1)) * scale, np.nan)
 
 
 def forced_run(model: NeuralFMU, data: MeasuredData, step: float, solver: str, forced: list[str], values,

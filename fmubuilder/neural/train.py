@@ -6,7 +6,8 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    magnitude) and the start of every batch element: the measured data hold no controller states, so
    each element starts from the FMU state saved by the reference (fmi2GetFMUstate, serialized; it
    carries the discrete states), with the measured states set to their measured values (the run's
-   own value where the data's first samples agree with it, see measured_initial_states).
+   own value where the data's first samples agree with it, see measured_initial_states; read one
+   sensor lag later, where a lagging sensor shows the state at the element's start).
    Unmeasured states of the plain FMU can be far from the truth (a controller integral that
    compensates an unmodelled load), and their transient at each element start would dominate the
    loss. So after pre-training the starts are captured again from a simulation of the hybrid, and
@@ -40,7 +41,8 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    starts at 1. Scaling by the signal's variance instead lets a cumulative signal (energy, whose
    variance over a cycle is huge) drown in the noise of the others, and the training then trades a
    better fit of noisy power transients for a drifting energy. The simulated signals pass through
-   the sensors' first-order lag (`sensor_lag`) first. Adam with exponential step-size decay per
+   the sensors' first-order lag (`sensor_lag`) first, each sensor starting an element at what the
+   data show there. Adam with exponential step-size decay per
    epoch, the pre-/post-processing at a tenth of the step size; with one batch per epoch, rewinds
    after an epoch that made the loss worse (see Trainer._keep_best), and the parameters of the
    lowest loss at the end. Elements in random order, `batch_size` side by side, or sequential (time
@@ -282,14 +284,17 @@ def simulate_over(model: NeuralFMU, data: MeasuredData, step: float, solver: str
 
 
 def measured_initial_states(model: NeuralFMU, data: MeasuredData, t0: float | None = None,
-                            model_values: dict | None = None) -> dict:
+                            model_values: dict | None = None, sensor_lag: float = 0.0) -> dict:
     """Values of the measured continuous states to start at t0 (default: the data's start) with: the
     model's own value (its start value, or `model_values` along a run) where the first samples of
-    data agree with it, else a line fitted through them (see MeasuredData.start_estimate)."""
+    data agree with it, else a line fitted through them (see MeasuredData.start_estimate). A sensor
+    with a first-order lag shows a smoothly moving state `sensor_lag` late: the samples from
+    t0 + sensor_lag tell the state at t0."""
     t0 = data.start if t0 is None else t0
     own = model_values if model_values is not None else {
         s: model.start_values.get(s, model.info.variable(s).start) for s in model.state_names()}
-    return {s: data.start_estimate(s, t0, own.get(s)) for s in model.state_names() if s in data.signals}
+    at = min(t0 + sensor_lag, float(data.time[-1]))
+    return {s: data.start_estimate(s, at, own.get(s)) for s in model.state_names() if s in data.signals}
 
 
 # ------------------------------------------------------------------------------------------
@@ -374,7 +379,8 @@ class Trainer:
         self.start_times = starts
         ref = self._capture_starts(plain=True)
         for index, element_start in enumerate(self._captured):
-            self.elements.append(_Element(index, element_start, self._targets(element_start.t0)))
+            self.elements.append(_Element(index, element_start, self._targets(element_start.t0),
+                                          self._sensor_start(element_start.t0)))
         if self.settings.loss_scale == "reference":
             self.scale = self._reference_scale()
         return ref
@@ -409,7 +415,8 @@ class Trainer:
     def _with_measured_states(self, start: ElementStart, along_run: dict) -> ElementStart:
         """The element starts at the measured states, or at the run's (`along_run`) where the data
         agree with them."""
-        start.states = measured_initial_states(self.model, self.data, start.t0, along_run)
+        start.states = measured_initial_states(self.model, self.data, start.t0, along_run,
+                                               sensor_lag=self.settings.sensor_lag or 0.0)
         return start
 
     def _reference_names(self) -> list[str]:
@@ -439,6 +446,11 @@ class Trainer:
                              torch.from_numpy(np.asarray(data.signals[name], dtype=float)[inside]),
                              torch.from_numpy(weight))
         return targets
+
+    def _sensor_start(self, t0: float) -> dict:
+        """{signal: what its sensor shows at t0} (a line through the first samples): a lagging sensor
+        enters an element showing where the signal was, not where it is."""
+        return {name: self.data.start_estimate(name, t0) for name in self.loss_signals}
 
     def evaluate_plain(self) -> dict:
         return evaluate(self.model, self.data, self.step, self.settings.solver, plain=True,
@@ -647,7 +659,8 @@ class Trainer:
         """{signal: (prediction - data) * sqrt(weight) at the batch's data points} (tensors)."""
         residuals = {}
         for j, name in enumerate(self.loss_signals):
-            values = self._through_sensor(trajectory.values[:, :, j])
+            shown = torch.tensor([element.sensor_start[name] for element in batch], dtype=trajectory.values.dtype)
+            values = self._through_sensor(trajectory.values[:, :, j], shown)
             pieces = []
             for b, element in enumerate(batch):
                 k0, frac, target, weight = element.targets[name]
@@ -667,16 +680,22 @@ class Trainer:
         count = len(self.loss_signals)
         return torch.cat([r / math.sqrt(r.numel() * self.scale[name] * count) for name, r in residuals.items()])
 
-    def _through_sensor(self, values: torch.Tensor) -> torch.Tensor:
-        """[K+1, B] simulated values seen through the sensors' first-order lag, settled at each
-        element's start (as `synth` does at the start of a run)."""
+    def _through_sensor(self, values: torch.Tensor, shown: torch.Tensor | None = None) -> torch.Tensor:
+        """[K+1, B] simulated values seen through the sensors' first-order lag. The sensor starts
+        each element showing `shown` [B] (what the data show there), or settled at the element's
+        first value (as `synth` does at the start of a run): the difference decays with the lag.
+        Settled starts made every element of a ramp or a heating begin with an error the size of
+        the lag times the slope, which on the DC drive outweighed the missing term."""
         lag = self.settings.sensor_lag or 0.0
         if lag <= 0.0:
             return values
         weights = torch.from_numpy(sensor_kernel(self.step, lag))
         padded = torch.cat([values[:1].expand(len(weights) - 1, -1), values], dim=0)
-        lagged = torch.nn.functional.conv1d(padded.T.unsqueeze(1), weights.flip(0).view(1, 1, -1))
-        return lagged.squeeze(1).T
+        lagged = torch.nn.functional.conv1d(padded.T.unsqueeze(1), weights.flip(0).view(1, 1, -1)).squeeze(1).T
+        if shown is None:
+            return lagged
+        decay = torch.exp(-self.step * torch.arange(values.shape[0], dtype=values.dtype) / lag)
+        return lagged + decay[:, None] * (shown - values[0])[None, :]
 
     # -- checkpoints --------------------------------------------------------------------------
     def _save_checkpoint(self, path: Path, optimizer, scheduler, epoch: int) -> None:
@@ -712,6 +731,7 @@ class _Element:
     index: int
     start: ElementStart
     targets: dict
+    sensor_start: dict        # {signal: what its sensor shows at the element's start}
 
 
 # A rise of the epoch loss up to this fraction is no overshoot: carried-over element starts move the

@@ -18,6 +18,10 @@ import torch
 
 from .collocation import collocation_samples
 
+# Scale the ANN's output to the estimated effect before the warm start's fit (see
+# scale_output_to_effect).
+OUTPUT_AT_EFFECT_SIZE = True
+
 
 def collocation_targets(trainer):
     """(raw ANN inputs [N, n_in], target of the ANN part [N, C]) along the measured trajectory, or
@@ -37,7 +41,10 @@ def collocation_targets(trainer):
     # gate_ann * r + gate_fmu * der_fmu = measured  ->  r = (measured - gate_fmu der_fmu) / gate_ann
     target = (torch.from_numpy(measured) - gate_fmu * torch.from_numpy(fmu_channels)) / gate_ann
     target = torch.where(torch.from_numpy(mask), target, topology.neutral_target(torch.from_numpy(fmu_channels)))
-    return torch.from_numpy(np.ascontiguousarray(inputs)), target
+    # Samples with no valid estimate (a window across a step, see collocation.smooth_windows) are
+    # left out rather than pulled to the neutral target.
+    rows = torch.from_numpy(mask.any(axis=1))
+    return torch.from_numpy(np.ascontiguousarray(inputs))[rows], target[rows]
 
 
 def fit_full_batch(topology, x: torch.Tensor, target: torch.Tensor, iterations: int) -> float:
@@ -83,6 +90,8 @@ def warm_start(trainer) -> dict:
     before_fit = _copy(topology.ann.parameters())
     loss_before = _loss_from_own_starts(trainer)
     x, target = samples
+    if OUTPUT_AT_EFFECT_SIZE:
+        scale_output_to_effect(topology, target)
     error = fit_full_batch(topology, x, target, trainer.settings.warm_start_iterations)
     loss_after = _loss_from_own_starts(trainer)
     kept = loss_after < loss_before
@@ -94,6 +103,20 @@ def warm_start(trainer) -> dict:
     # simulations without gradient: the forced run, and a capture and a loss per evaluation
     return {"samples": int(x.shape[0]), "fit_error": error, "loss_before": loss_before, "loss_after": loss_after,
             "kept": kept, "simulations": 5 if kept else 7}
+
+
+def scale_output_to_effect(topology, target: torch.Tensor) -> None:
+    """Residual topology: the ANN's output scaled to the root mean square of the estimated effect
+    per channel instead of the channel derivative's spread (on the DC drive 10-40 times larger
+    than a friction term), so that a step of the network's weights moves the correction by a share
+    of the effect, not of the whole derivative. The last layer is still zero: the hybrid is
+    unchanged by it."""
+    if topology.config.kind != "residual" or len(target) < 2:
+        return
+    size = target.pow(2).mean(dim=0).sqrt()
+    with torch.no_grad():
+        current = topology.post_scale.detach().clone()
+        topology.post_scale.copy_(torch.where(size > 0, torch.minimum(size, current), current))
 
 
 def _loss_from_own_starts(trainer) -> float:

@@ -212,12 +212,13 @@ def test_report_json_and_markdown(runs, truth):
 
 def test_a_calibration_worse_on_validation_is_not_chosen(runs):
     """Windage is a missing speed-squared term: a higher viscous friction explains part of it and is
-    offered, but the fitted term is better on the validation data and is chosen."""
+    offered, but the fitted term (or the ANN started from it, which ends at its best validation
+    epoch, the term included) is better on the validation data and is chosen."""
     report = runs("dc_drive_truth_windage").report
     scores = report["selection"]["scores"]
     calibrated = [name for name in scores if name.startswith("calibrated ")]
     assert "calibrated viscous_friction" in calibrated
-    assert report["chosen"] == "fitted term"
+    assert report["chosen"] in ("fitted term", "neural on the fitted term")
     assert all(scores[name] > scores["fitted term"] for name in calibrated)
 
 
