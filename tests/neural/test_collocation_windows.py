@@ -93,7 +93,7 @@ def test_the_output_is_scaled_to_the_estimated_effect_and_the_hybrid_stays_the_f
             topology.post_scale.fill_(47.0)        # the derivative's spread, as initialise_scaling sets it
         effect = torch.tensor([[3.0], [-4.0], [0.0], [5.0]], dtype=torch.float64)
         scale_output_to_effect(topology, effect)
-        assert float(topology.post_scale[0]) == pytest.approx(np.sqrt(np.mean([9.0, 16.0, 0.0, 25.0])))
+        assert float(topology.post_scale[0].detach()) == pytest.approx(np.sqrt(np.mean([9.0, 16.0, 0.0, 25.0])))
         x = torch.tensor([[10.0], [-50.0]], dtype=torch.float64)
         assert torch.equal(topology.correction(x), torch.zeros(2, 1, dtype=torch.float64))
     finally:
