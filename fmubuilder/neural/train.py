@@ -47,7 +47,8 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    after an epoch that made the loss worse (see Trainer._keep_best), and the parameters of the
    lowest loss at the end. Elements in random order, `batch_size` side by side, or sequential (time
    order, one at a time, each continuing the state just computed). Or `optimizer="lbfgs"`: one
-   L-BFGS step over all elements per epoch, its line search on fixed element starts. With
+   L-BFGS step over all elements per epoch, its line search on fixed element starts, the
+   pre-/post-processing fixed (see lbfgs_parameters). With
    `validation` data the training ends instead with the parameters of the best validation score,
    the start included. Fixed seeds, a time budget, a checkpoint after every epoch, and resume.
 5. Errors before (plain FMU) and after (trained hybrid) over the whole data, simulated with
@@ -569,6 +570,7 @@ class Trainer:
         units (m/s² for a speed) moved by 3e-3 per epoch outruns the network: the correction turns
         into a constant offset, wrong at standstill, before the network has shaped it."""
         if self.settings.optimizer == "lbfgs":
+            parameters = lbfgs_parameters(self.model.topology, parameters)
             # max_eval: torch's default (max_iter * 5 // 4 = 1) leaves its line search no evaluation
             # beyond the first trial, so a step that overshot was taken back to t = 0 and the
             # next one, without a curvature pair, tried the raw gradient at t = 1.
@@ -797,6 +799,16 @@ def sensor_kernel(step: float, lag: float, tolerance: float = 1e-12) -> np.ndarr
     m = np.arange(1, taps)
     weights = np.concatenate([[c], p * a ** (m - 1) + c * a ** m])
     return weights / weights.sum()
+
+
+def lbfgs_parameters(topology, parameters) -> list:
+    """The trained parameters L-BFGS moves: all but the pre-/post-processing. Their units differ
+    from the weights' by orders of magnitude, and L-BFGS's first steps follow the raw gradient: on
+    the DC drive's Coulomb data after the warm start the input scale's gradient was 100 times the
+    weights' and so curved along it that a step of 1e-5 raised the loss; with it the line search
+    spent 10 loss evaluations on a step that lowered the loss by 0.3 %."""
+    processing = {id(p) for p in topology.processing_parameters()}
+    return [p for p in parameters if id(p) not in processing]
 
 
 def _same_point(a: tuple, b: tuple) -> bool:

@@ -13,7 +13,7 @@ from fmubuilder.build import example_fmu
 from fmubuilder.data import MeasuredData
 from fmubuilder.neural.model import NeuralFMU
 from fmubuilder.neural.topology import TopologyConfig
-from fmubuilder.neural.train import LBFGS_LINE_SEARCH_EVALUATIONS, TrainSettings, Trainer
+from fmubuilder.neural.train import LBFGS_LINE_SEARCH_EVALUATIONS, TrainSettings, Trainer, lbfgs_parameters
 from fmubuilder.simulation import simulate
 
 CONFIG = TopologyConfig(channels=["der(speed)"], inputs=["speed"], hidden=[8], kind="residual")
@@ -41,7 +41,9 @@ def trainer(dc_drive_fmu, coulomb_data):
 
 
 def parameters(trainer) -> list[torch.Tensor]:
-    return [p for p in trainer.model.topology.parameters() if p.requires_grad]
+    """The parameters L-BFGS moves."""
+    topology = trainer.model.topology
+    return lbfgs_parameters(topology, [p for p in topology.parameters() if p.requires_grad])
 
 
 def loss_and_gradient(trainer) -> tuple[float, torch.Tensor]:
@@ -51,6 +53,8 @@ def loss_and_gradient(trainer) -> tuple[float, torch.Tensor]:
     loss = trainer.batch_loss(trainer.elements, carry=False)
     loss.backward()
     gradient = torch.cat([(p.grad if p.grad is not None else torch.zeros_like(p)).flatten() for p in params])
+    for p in trainer.model.topology.parameters():
+        p.grad = None
     return float(loss.detach()), gradient
 
 
