@@ -316,6 +316,13 @@ class FmuEvaluator:
             ur = None if u is None else u[r]
             self.set_point(b, float(t[r]), x[r], ur)
             self.read(b, out[r])
+            if not (np.isfinite(x[r]).all() and np.isfinite(out[r]).all()):
+                # A diverged simulation (a line-search trial far out): no derivative exists there,
+                # and finite differences of inf - inf only flood the log with numpy warnings.
+                for J in (Jx, Jp):
+                    if J is not None:
+                        J[r] = np.nan
+                continue
             if jac_x:
                 self._jacobian_x(b, x[r], out[r], Jx[r])
             if Jp is not None:
@@ -460,7 +467,8 @@ class FmuEvaluator:
         at a state event the perturbed pre-event state stays beyond the crossing."""
         inst = self.instances[b]
         self.set_point(b, t, x_minus, u)
-        want = sensitivity is not None and self.can_snapshot
+        # No linearisation of an event at a diverged (non-finite) state: see evaluate.
+        want = sensitivity is not None and self.can_snapshot and bool(np.isfinite(x_minus).all())
         if want:
             self._pre[b] = inst.get_fmu_state(self._pre[b])
         info = event_mode(inst, resume_on_terminate=True)

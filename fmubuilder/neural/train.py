@@ -47,7 +47,8 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    after an epoch that made the loss worse (see Trainer._keep_best), and the parameters of the
    lowest loss at the end. Elements in random order, `batch_size` side by side, or sequential (time
    order, one at a time, each continuing the state just computed). Or `optimizer="lbfgs"`: one
-   L-BFGS step over all elements per epoch, its line search on fixed element starts. With
+   L-BFGS step over all elements per epoch, its line search on fixed element starts, the
+   pre-/post-processing fixed (see lbfgs_parameters). With
    `validation` data the training ends instead with the parameters of the best validation score,
    the start included. Fixed seeds, a time budget, a checkpoint after every epoch, and resume.
 5. Errors before (plain FMU) and after (trained hybrid) over the whole data, simulated with
@@ -329,6 +330,7 @@ class Trainer:
         self.warm_start: dict | None = None   # what the warm start did (see warm_start.py)
         self.gauss_newton: dict | None = None  # what the Gauss-Newton warm start did (gauss_newton.py)
         self.best_loss, self.best_state, self._best = math.inf, None, None   # see _keep_best
+        self._lbfgs_last = None    # ((parameters, element starts), loss, gradient) of the last L-BFGS evaluation
 
     def elapsed(self) -> float:
         return time.perf_counter() - self.started
@@ -525,16 +527,42 @@ class Trainer:
         """One L-BFGS iteration over all elements at once; its line search evaluates the loss a few
         times on the same element starts (no carry-over: the loss must be one function). Returns
         the loss at the parameters the step started from."""
-        def closure():
-            optimizer.zero_grad()
-            loss = self.batch_loss(self.elements, carry=False)
-            loss.backward()
-            self.loss_evaluations += 1
-            return loss
-        loss = float(optimizer.step(closure).detach())
+        loss = float(optimizer.step(self._lbfgs_closure(optimizer)))
         if bar is not None:
             bar.advance(1, epoch=f"{epoch + 1}/{self.settings.epochs}", loss=f"{loss:.4g}")
         return [loss] if math.isfinite(loss) else []
+
+    def _lbfgs_closure(self, optimizer):
+        """The loss and its gradient for torch's L-BFGS, with two guards:
+        * each step() starts by evaluating the point where the previous step's line search ended;
+          that evaluation is remembered and given back instead of simulated again (a whole pass),
+          as long as the parameters and the element starts are the same objects' same values;
+        * a trial point whose simulation diverged (loss inf or nan) reports an infinite loss and a
+          nan gradient: the strong Wolfe search then brackets it and bisects back towards the
+          start. A nan loss compares false with everything and was accepted as the step."""
+        parameters = optimizer.param_groups[0]["params"]
+
+        def closure():
+            point = (torch.cat([p.detach().flatten() for p in parameters]), [e.start for e in self.elements])
+            remembered = self._lbfgs_last
+            if remembered is not None and _same_point(remembered[0], point):
+                for p, gradient in zip(parameters, remembered[2]):
+                    p.grad = gradient.clone()
+                return remembered[1].clone()
+            optimizer.zero_grad()
+            loss = self.batch_loss(self.elements, carry=False)
+            self.loss_evaluations += 1
+            if torch.isfinite(loss):
+                loss.backward()
+            else:
+                loss = torch.tensor(math.inf, dtype=loss.dtype)
+                for p in parameters:
+                    p.grad = torch.full_like(p, math.nan)
+            loss = loss.detach()
+            self._lbfgs_last = (point, loss, [p.grad.detach().clone() if p.grad is not None else torch.zeros_like(p)
+                                              for p in parameters])
+            return loss
+        return closure
 
     def _optimizer(self, parameters):
         """Adam; the pre-/post-processing at processing_step_factor times the step size. Adam moves
@@ -542,7 +570,12 @@ class Trainer:
         units (m/s² for a speed) moved by 3e-3 per epoch outruns the network: the correction turns
         into a constant offset, wrong at standstill, before the network has shaped it."""
         if self.settings.optimizer == "lbfgs":
-            return torch.optim.LBFGS(parameters, lr=1.0, max_iter=1, history_size=10, line_search_fn="strong_wolfe")
+            parameters = lbfgs_parameters(self.model.topology, parameters)
+            # max_eval: torch's default (max_iter * 5 // 4 = 1) leaves its line search no evaluation
+            # beyond the first trial, so a step that overshot was taken back to t = 0 and the
+            # next one, without a curvature pair, tried the raw gradient at t = 1.
+            return torch.optim.LBFGS(parameters, lr=1.0, max_iter=1, max_eval=LBFGS_LINE_SEARCH_EVALUATIONS,
+                                     history_size=10, line_search_fn="strong_wolfe")
         processing = {id(p) for p in self.model.topology.processing_parameters()}
         network = [p for p in parameters if id(p) not in processing]
         slow = [p for p in parameters if id(p) in processing]
@@ -734,6 +767,11 @@ class _Element:
     sensor_start: dict        # {signal: what its sensor shows at the element's start}
 
 
+# Loss evaluations the line search of one L-BFGS step may take (each a pass over all elements): its
+# first trial and up to 9 more that bracket and zoom. (torch counts the step's start in max_eval;
+# the closure remembers that one, see Trainer._lbfgs_closure.)
+LBFGS_LINE_SEARCH_EVALUATIONS = 10
+
 # A rise of the epoch loss up to this fraction is no overshoot: carried-over element starts move the
 # loss a little even where the parameters barely do.
 REWIND_TOLERANCE = 0.01
@@ -761,6 +799,21 @@ def sensor_kernel(step: float, lag: float, tolerance: float = 1e-12) -> np.ndarr
     m = np.arange(1, taps)
     weights = np.concatenate([[c], p * a ** (m - 1) + c * a ** m])
     return weights / weights.sum()
+
+
+def lbfgs_parameters(topology, parameters) -> list:
+    """The trained parameters L-BFGS moves: all but the pre-/post-processing. Their units differ
+    from the weights' by orders of magnitude, and L-BFGS's first steps follow the raw gradient: on
+    the DC drive's Coulomb data after the warm start the input scale's gradient was 100 times the
+    weights' and so curved along it that a step of 1e-5 raised the loss; with it the line search
+    spent 10 loss evaluations on a step that lowered the loss by 0.3 %."""
+    processing = {id(p) for p in topology.processing_parameters()}
+    return [p for p in parameters if id(p) not in processing]
+
+
+def _same_point(a: tuple, b: tuple) -> bool:
+    """Equal parameter values and the very same element starts."""
+    return torch.equal(a[0], b[0]) and len(a[1]) == len(b[1]) and all(x is y for x, y in zip(a[1], b[1]))
 
 
 def _copy_state(module: torch.nn.Module) -> dict:
