@@ -101,7 +101,8 @@ class Calibration:
         """What the report says about this candidate (and what its round trip needs)."""
         same = next((s.equivalent for s in ranked if s.name == self.name), [])
         return {"calibrated": {self.name: self.value}, "declared": {self.name: self.declared},
-                "equivalent_parameters": list(same), "train_score": self.train_score, "simulations": self.simulations, "fitted_on": fitted_on,
+                "equivalent_parameters": list(same), "train_score": self.train_score,
+                "simulations": self.simulations, "fitted_on": fitted_on,
                 "screening": [{"parameter": s.name, "explained": s.explained} for s in ranked[:SCREEN_REPORTED]],
                 "original_fmu": str(original_fmu), "step": step}
 
@@ -260,8 +261,9 @@ def fit_parameter(model_fmu, runs: Runs, scoring: Scoring, name: str, declared: 
 def calibrate(model_fmu, info, runs: Runs, scoring: Scoring, *,
               say=None) -> tuple[list[Sensitivity], list[Calibration]]:
     """Screen the parameters on the first run, fit the best MAX_CALIBRATED on all `runs`, less
-    those that act like a higher-ranked one (the same model again: not fitted, none in their place). Returns the screening (all
-    parameters, ranked) and the fits that lowered the training score."""
+    those that act like a higher-ranked one (the same model again: not fitted, none in their
+    place). Returns the screening (all parameters, ranked) and the fits that lowered the training
+    score."""
     say = say or (lambda *a, **k: None)
     ranked = screen_parameters(model_fmu, info, runs, scoring)
     fits = []

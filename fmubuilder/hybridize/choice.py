@@ -14,7 +14,7 @@
 
 The margin is what the noise alone can do to the ratio of two scores: at the floor a signal's MSE
 over its noise variance, estimated from n independent pieces, has a relative spread of sqrt(2 / n);
-the pieces are blocks of BLOCK_SECONDS (longer than the sensors' noise correlation, as the ANN's
+the pieces are blocks of inputs.BLOCK_SECONDS (longer than the sensors' noise correlation, as the ANN's
 input choice takes them). Two candidates' log-scores then differ by noise with a spread of at most
 sqrt(2 * 2 / n) per signal (their errors share the noise, so less), over S signals averaged
 sqrt(4 / (n S)); the margin is MARGIN_SIGMAS of that. Conservative where the signals lie far above
@@ -26,7 +26,7 @@ import math
 
 import numpy as np
 
-from .inputs import BLOCK_SECONDS, time_blocks
+from .inputs import time_blocks
 
 # The ANN candidates and their start: they must beat the one-number candidates by the margin.
 ANN_CANDIDATES = ("neural", "neural on the fitted term")

@@ -277,13 +277,9 @@ def _select(candidates: list[Candidate], plain: Scores, validation: list[Part] =
     (their noise and length) the floors are the plain model's MSE and there is no margin."""
     from .choice import RULE, choose, floors_of, noise_margin, validation_score
     errors = plain.errors["validation"]
-    noise = {}
-    if validation:
-        noise = {name: validation[0].data.noise_variance(name) for name in errors}
+    noise = {name: validation[0].data.noise_variance(name) for name in errors} if validation else {}
     floors = floors_of(errors, noise)
-    margin = 1.0
-    if validation:
-        margin = noise_margin([p.samples().time for p in validation], len(floors))
+    margin = noise_margin([p.samples().time for p in validation], len(floors)) if validation else 1.0
     scores = {c.name: validation_score(c.scores.errors["validation"], floors) for c in candidates}
     plain_score = validation_score(errors, floors)
     return {"on": "validation", "scores": scores, "chosen": choose(scores, plain_score, margin),

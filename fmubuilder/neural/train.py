@@ -48,7 +48,7 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    lowest loss at the end. Elements in random order, `batch_size` side by side, or sequential (time
    order, one at a time, each continuing the state just computed). Or `optimizer="lbfgs"`: one
    L-BFGS step over all elements per epoch, its line search on fixed element starts, the
-   pre-/post-processing fixed (see lbfgs_parameters). With
+   pre-/post-processing fixed (see network_parameters). With
    `validation` data the training ends instead with the parameters of the best validation score,
    the start included. Fixed seeds, a time budget, a checkpoint after every epoch, and resume.
 5. Errors before (plain FMU) and after (trained hybrid) over the whole data, simulated with
@@ -570,15 +570,15 @@ class Trainer:
         units (m/s² for a speed) moved by 3e-3 per epoch outruns the network: the correction turns
         into a constant offset, wrong at standstill, before the network has shaped it."""
         if self.settings.optimizer == "lbfgs":
-            parameters = lbfgs_parameters(self.model.topology, parameters)
+            parameters = network_parameters(self.model.topology, parameters)
             # max_eval: torch's default (max_iter * 5 // 4 = 1) leaves its line search no evaluation
             # beyond the first trial, so a step that overshot was taken back to t = 0 and the
             # next one, without a curvature pair, tried the raw gradient at t = 1.
             return torch.optim.LBFGS(parameters, lr=1.0, max_iter=1, max_eval=LBFGS_LINE_SEARCH_EVALUATIONS,
                                      history_size=10, line_search_fn="strong_wolfe")
-        processing = {id(p) for p in self.model.topology.processing_parameters()}
-        network = [p for p in parameters if id(p) not in processing]
-        slow = [p for p in parameters if id(p) in processing]
+        network = network_parameters(self.model.topology, parameters)
+        in_network = {id(p) for p in network}
+        slow = [p for p in parameters if id(p) not in in_network]
         groups = [{"params": network}]
         if slow and self.settings.processing_step_factor > 0:
             groups.append({"params": slow, "lr": self.settings.learning_rate * self.settings.processing_step_factor})
@@ -801,9 +801,10 @@ def sensor_kernel(step: float, lag: float, tolerance: float = 1e-12) -> np.ndarr
     return weights / weights.sum()
 
 
-def lbfgs_parameters(topology, parameters) -> list:
-    """The trained parameters L-BFGS moves: all but the pre-/post-processing. Their units differ
-    from the weights' by orders of magnitude, and L-BFGS's first steps follow the raw gradient: on
+def network_parameters(topology, parameters) -> list:
+    """The trained parameters less the pre-/post-processing: all that L-BFGS moves, and Adam's group
+    at the full step size. The processing's units differ from the weights' by orders of
+    magnitude, and L-BFGS's first steps follow the raw gradient: on
     the DC drive's Coulomb data after the warm start the input scale's gradient was 100 times the
     weights' and so curved along it that a step of 1e-5 raised the loss; with it the line search
     spent 10 loss evaluations on a step that lowered the loss by 0.3 %."""

@@ -18,10 +18,6 @@ import torch
 
 from .collocation import collocation_samples
 
-# Scale the ANN's output to the estimated effect before the warm start's fit (see
-# scale_output_to_effect).
-OUTPUT_AT_EFFECT_SIZE = True
-
 
 def collocation_targets(trainer):
     """(raw ANN inputs [N, n_in], target of the ANN part [N, C]) along the measured trajectory, or
@@ -90,8 +86,7 @@ def warm_start(trainer) -> dict:
     before_fit = _copy(topology.ann.parameters())
     loss_before = _loss_from_own_starts(trainer)
     x, target = samples
-    if OUTPUT_AT_EFFECT_SIZE:
-        scale_output_to_effect(topology, target)
+    scale_output_to_effect(topology, target)
     error = fit_full_batch(topology, x, target, trainer.settings.warm_start_iterations)
     loss_after = _loss_from_own_starts(trainer)
     kept = loss_after < loss_before

@@ -13,7 +13,7 @@ from fmubuilder.build import example_fmu
 from fmubuilder.data import MeasuredData
 from fmubuilder.neural.model import NeuralFMU
 from fmubuilder.neural.topology import TopologyConfig
-from fmubuilder.neural.train import LBFGS_LINE_SEARCH_EVALUATIONS, TrainSettings, Trainer, lbfgs_parameters
+from fmubuilder.neural.train import LBFGS_LINE_SEARCH_EVALUATIONS, TrainSettings, Trainer, network_parameters
 from fmubuilder.simulation import simulate
 
 CONFIG = TopologyConfig(channels=["der(speed)"], inputs=["speed"], hidden=[8], kind="residual")
@@ -43,7 +43,7 @@ def trainer(dc_drive_fmu, coulomb_data):
 def parameters(trainer) -> list[torch.Tensor]:
     """The parameters L-BFGS moves."""
     topology = trainer.model.topology
-    return lbfgs_parameters(topology, [p for p in topology.parameters() if p.requires_grad])
+    return network_parameters(topology, [p for p in topology.parameters() if p.requires_grad])
 
 
 def loss_and_gradient(trainer) -> tuple[float, torch.Tensor]:
