@@ -4,7 +4,7 @@ depends on (see diagnosis.py). Names load on first use (scipy is slow to import)
 from .._lazy import lazy_exports
 
 _EXPORTS = {"diagnose": "diagnosis", "Diagnosis": "diagnosis", "Candidate": "diagnosis",
-            "SignalErrors": "diagnosis", "added_terms": "diagnosis"}
+            "SignalErrors": "diagnosis"}
 
 __all__ = sorted(_EXPORTS)
 __getattr__ = lazy_exports(__name__, _EXPORTS)

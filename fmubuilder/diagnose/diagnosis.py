@@ -33,8 +33,8 @@ from ..errors import FmuBuilderError
 from ..fmi.archive import read_model_info
 from . import significance
 from ..data import MeasuredData, load_data
-from .runs import AddedTerm, ModelRun, ModelRunner, form_text, rms
-from .trace import MAX_CHANNELS, SECOND_CHANNEL_RATIO, FittedTerm, Tracer, candidate_variables
+from .runs import ModelRun, ModelRunner, form_text, rms
+from .trace import MAX_CHANNELS, SECOND_CHANNEL_RATIO, TracedTerm, Tracer, candidate_variables
 
 TERM_MIN_EXPLAINED = 0.8       # a fitted term is offered when it removes this share of the excess chi-square
 AMBIGUOUS = 1.1                # another channel whose best trial leaves less than 1.1 times the
@@ -250,7 +250,7 @@ def _joint_test(data: MeasuredData, run: ModelRun) -> significance.JointTest:
 
 
 def _trace(diagnosis: Diagnosis, info, data: MeasuredData, runner: ModelRunner, nominal: ModelRun,
-           tests, variables, time_budget: float | None) -> FittedTerm | None:
+           tests, variables, time_budget: float | None) -> TracedTerm | None:
     """Trace the effect over the data's first TRACE_SAMPLES samples; a time budget only caps
     the wall time."""
     noise = {e.signal: math.hypot(t.noise, t.floor) for e, t in zip(diagnosis.errors, tests)}
@@ -277,7 +277,7 @@ def _trace(diagnosis: Diagnosis, info, data: MeasuredData, runner: ModelRunner, 
                                    "were skipped and the tracing may be incomplete; give a larger budget")
 
 
-def _trace_window(diagnosis, info, data, runner, nominal, noise, variables, deadline) -> FittedTerm | None:
+def _trace_window(diagnosis, info, data, runner, nominal, noise, variables, deadline) -> TracedTerm | None:
     in_window = (data.time >= runner.start) & (data.time <= runner.stop)
     measured = {name: values[in_window] for name, values in data.signals.items()}
     tracer = Tracer(runner, nominal, measured, noise)
@@ -337,7 +337,7 @@ def _candidate(info, trial) -> Candidate:
                      equivalent=list(trial.equivalent))
 
 
-def _fitted_dict(info, fitted: FittedTerm) -> dict:
+def _fitted_dict(info, fitted: TracedTerm) -> dict:
     channel = info.derivatives[fitted.channel].name
     expression = " + ".join(t.expression() for t in fitted.terms).replace("+ -", "- ")
     return {
@@ -352,11 +352,3 @@ def _fitted_dict(info, fitted: FittedTerm) -> dict:
         "offered": False,
     }
 
-
-def added_terms(fitted_term: dict, info) -> list[AddedTerm]:
-    """The AddedTerms of a fitted term dict (e.g. read back from the JSON report)."""
-    channel = info.state_index(fitted_term["channel"])
-    terms = []
-    for t in fitted_term["terms"]:
-        terms.append(AddedTerm(channel, t["variable"], t["basis"], float(t["center"]), float(t["coefficient"])))
-    return terms

@@ -109,7 +109,8 @@ class ChannelScore:
 
 
 @dataclass
-class FittedTerm:
+class TracedTerm:
+    """The term the tracing fitted: the added terms of one channel and the variance they explain."""
     channel: int
     terms: list[AddedTerm]
     explained_variance: float             # predicted by the linear responses
@@ -170,8 +171,9 @@ class Tracer:
     def _scored(self, trial: Trial) -> Trial:
         trial.score = _cos2(trial.by_signal, self.r)
         trial.shape_score = _cos2(trial.by_precision, self.r_precise)
-        ss = float(trial.by_precision @ trial.by_precision)
-        trial.coefficient = float(trial.by_precision @ self.r_precise) / ss if ss > 0 else 0.0
+        # (S.r)/(S.S) through the norm, as in _cos2: S.S of a response that ran off overflows.
+        norm = _norm(trial.by_precision)
+        trial.coefficient = float((trial.by_precision / norm) @ self.r_precise) / norm if 0 < norm < math.inf else 0.0
         return trial
 
     # -- step 1: channels -------------------------------------------------------------------
@@ -182,7 +184,7 @@ class Tracer:
         for c in counted(range(self.info.n_states), "diagnosis: screening the derivatives", "derivative"):
             trial_size = SCREEN_SIZE * self._derivative_scale(c)
             constant = self.trial(c, None, "1", 0.0, trial_size)
-            gain = float(np.linalg.norm(constant.by_signal)) if constant is not None else 0.0
+            gain = _norm(constant.by_signal) if constant is not None else 0.0
             if not gain > 1e-12 * math.sqrt(self.rr):
                 scores.append(ChannelScore(c, 0.0, False, 0.0))
                 continue
@@ -262,7 +264,7 @@ class Tracer:
         return trials
 
     # -- step 3: term -----------------------------------------------------------------------
-    def fit_term(self, trials: list[Trial]) -> FittedTerm | None:
+    def fit_term(self, trials: list[Trial]) -> TracedTerm | None:
         """A term in the leading variable: one of its forms, or a pair of its forms when the
         pair explains PAIR_GAIN more of the residual. Another of the leading variables is
         taken only when it fits better by more than a tie (SCORE_TIE). The VERIFIED best
@@ -288,7 +290,7 @@ class Tracer:
                      for t, k in zip(option, coefficients)]
             verified, terms = self._verify(terms)
             if best is None or verified > best.verified_explained_variance:
-                best = FittedTerm(option[0].channel, terms, ev, verified)
+                best = TracedTerm(option[0].channel, terms, ev, verified)
         return best
 
     def _verify(self, terms: list[AddedTerm]) -> tuple[float, list[AddedTerm]]:
@@ -380,11 +382,16 @@ def _leader(group: list[Trial]) -> Trial:
     return leader
 
 
-def _cos2(a: np.ndarray, b: np.ndarray) -> float:
-    # Through the norms: a response that ran off (1e160) must not overflow the squared products.
+def _norm(a: np.ndarray) -> float:
+    """|a|; inf, without a warning, for a response that ran off (1e160) so far that its squares overflow."""
     with np.errstate(over="ignore"):
-        na, nb = float(np.linalg.norm(a)), float(np.linalg.norm(b))
-    if not (na > 0 and nb > 0 and np.isfinite(na) and np.isfinite(nb)):
+        return float(np.linalg.norm(a))
+
+
+def _cos2(a: np.ndarray, b: np.ndarray) -> float:
+    # Through the norms: a response that ran off must not overflow the squared products.
+    na, nb = _norm(a), _norm(b)
+    if not (0 < na < math.inf and 0 < nb < math.inf):
         return 0.0
     return float((a / na) @ (b / nb)) ** 2
 
