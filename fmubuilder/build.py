@@ -69,7 +69,7 @@ def build_cmake_project(
     cmake = _require_tools()
 
     cache_entries = {"CMAKE_BUILD_TYPE": "Release"}
-    headers = _fmi_headers_dir()
+    headers = fmi_headers_dir()
     if headers is not None:
         cache_entries["FMI_HEADERS_DIR"] = str(headers)
     cache_entries.update(definitions or {})
@@ -92,14 +92,18 @@ def _require_tools() -> str:
     if cmake is None:
         raise FmuBuilderError(
             "cmake not found, neither on PATH nor as the Python package `cmake`: "
-            "install it with `pip install cmake` (or apt-get install cmake)"
-        )
-    compilers = [os.environ.get("CC", ""), "cc", "gcc", "clang"]
-    if not any(name and shutil.which(name) for name in compilers):
-        raise FmuBuilderError(
-            "no C compiler found (cc, gcc, clang or $CC): install one, e.g. apt-get install build-essential"
-        )
+            "install it with `pip install cmake` (or apt-get install cmake)")
+    c_compiler()    # CMake's own message about a missing compiler is far less clear
     return cmake
+
+
+def c_compiler() -> str:
+    """$CC, else cc, gcc or clang, whichever is on PATH first."""
+    compiler = next((c for c in (os.environ.get("CC", ""), "cc", "gcc", "clang") if c and shutil.which(c)), None)
+    if compiler is None:
+        raise FmuBuilderError("no C compiler found (cc, gcc, clang or $CC): install one, e.g. "
+                              "apt-get install build-essential")
+    return compiler
 
 
 def find_cmake() -> str | None:
@@ -116,7 +120,7 @@ def find_cmake() -> str | None:
     return shutil.which("cmake", path=cmake.CMAKE_BIN_DIR)
 
 
-def _fmi_headers_dir() -> pathlib.Path | None:
+def fmi_headers_dir() -> pathlib.Path | None:
     """fmpy ships the FMI 2.0 headers; CMake would otherwise ask whatever python is on PATH."""
     try:
         import fmpy
@@ -213,8 +217,7 @@ def repo_root() -> pathlib.Path:
             return root
     raise FmuBuilderError(
         f"the C templates, CMake files and example sources are missing next to {package}: "
-        "reinstall fmubuilder (pip install --force-reinstall fmubuilder) or use a complete source checkout"
-    )
+        "reinstall fmubuilder (pip install --force-reinstall fmubuilder) or use a complete source checkout")
 
 
 def data_path(*parts: str) -> pathlib.Path:
@@ -257,7 +260,7 @@ def examples_source_hash() -> str:
     """Hash of everything that goes into the example build (sources, headers, CMake files)."""
     root = repo_root()
     digest = hashlib.sha256(_CACHE_FORMAT.encode())
-    digest.update(str(_fmi_headers_dir()).encode())
+    digest.update(str(fmi_headers_dir()).encode())
     for path in _build_inputs(root):
         digest.update(str(path.relative_to(root)).encode() + b"\0")
         digest.update(path.read_bytes() + b"\0")

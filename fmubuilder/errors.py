@@ -7,3 +7,9 @@ class FmuBuilderError(Exception):
     The CLI prints the message as a single line and exits with a non-zero code,
     without a traceback.
     """
+
+
+def first_line(exc: BaseException) -> str:
+    """An exception's message cut to one line, or its type's name when it has none."""
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__

@@ -33,6 +33,7 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
+from .data import sidecar_path
 from .errors import FmuBuilderError
 from .files import copy_atomically, file_sha256, write_atomically
 from .progress import counted
@@ -235,7 +236,7 @@ def write_example(name: str, output: Path, *, force: bool = False, workers: int 
     for data_set, csv_path in zip(sets, cached):
         data[data_set.file_name] = output / data_set.file_name
         copy_atomically(csv_path, output / data_set.file_name)
-        copy_atomically(_sidecar(csv_path), _sidecar(output / data_set.file_name))
+        copy_atomically(sidecar_path(csv_path), sidecar_path(output / data_set.file_name))
     readme = _readme(sets, data) if name == "vldm" else _dc_drive_readme(sets)
     write_atomically(output / "README.md", readme)
     print(f"wrote the '{name}' example to {output}/: {len(fmus)} FMUs, {len(data)} data sets"
@@ -330,11 +331,6 @@ def _generate(fmu: Path, data_set: DataSet, target: Path) -> None:
         except OSError:
             if not folder.is_dir():  # not just another process finishing the same set first
                 raise
-
-
-def _sidecar(path: Path) -> Path:
-    from .synth import sidecar_path
-    return sidecar_path(path)
 
 
 # ---------------------------------------------------------------------------------------

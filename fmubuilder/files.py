@@ -32,7 +32,7 @@ def copy_atomically(source: str | os.PathLike, target: str | os.PathLike) -> Pat
 
 
 def _replace_atomically(target: Path, write) -> Path:
-    folder = target.parent if str(target.parent) else Path(".")
+    folder = target.parent      # Path("x").parent is Path(".")
     if not folder.is_dir():
         raise FmuBuilderError(f"cannot write {target}: folder {folder} does not exist; create it first")
     if target.is_dir():
@@ -61,10 +61,9 @@ def staging_folder(target: str | os.PathLike) -> Path:
     """An empty folder beside `target` (hidden, `.partial`) to build a new version of it in;
     `replace_folder` then puts it in target's place. Same file system, so the swap is a rename."""
     target = Path(target)
-    parent = target.parent if str(target.parent) else Path(".")
     try:
-        parent.mkdir(parents=True, exist_ok=True)
-        return Path(tempfile.mkdtemp(dir=parent, prefix=f".{target.name}.", suffix=PARTIAL_SUFFIX))
+        target.parent.mkdir(parents=True, exist_ok=True)
+        return Path(tempfile.mkdtemp(dir=target.parent, prefix=f".{target.name}.", suffix=PARTIAL_SUFFIX))
     except OSError as exc:
         raise FmuBuilderError(f"cannot write {target}: {exc.strerror or exc}") from None
 
@@ -84,18 +83,17 @@ def replace_folder(staging: str | os.PathLike, target: str | os.PathLike) -> Pat
     except OSError as exc:
         if old is not None:
             os.replace(old / "previous", target)
-            shutil.rmtree(old, ignore_errors=True)
         raise FmuBuilderError(f"cannot write {target}: {exc.strerror or exc}") from None
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+    finally:
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
     return target
 
 
 def partial_files(target: str | os.PathLike) -> list[Path]:
     """Leftovers of an interrupted atomic write of `target`."""
     target = Path(target)
-    folder = target.parent if str(target.parent) else Path(".")
-    return sorted(folder.glob(f".{target.name}.*{PARTIAL_SUFFIX}")) if folder.is_dir() else []
+    return sorted(target.parent.glob(f".{target.name}.*{PARTIAL_SUFFIX}")) if target.parent.is_dir() else []
 
 
 def file_sha256(path: str | os.PathLike) -> str:

@@ -385,7 +385,7 @@ def _run_start_values(info, start_values: dict, settings: BenchSettings,
 # Writing and reading
 
 
-def check_output_path(path: str | os.PathLike, force: bool = False) -> Path:
+def check_data_path(path: str | os.PathLike, force: bool = False) -> Path:
     """Refuse a data path whose CSV or sidecar exists (unless ``force``) or whose folder is missing."""
     path = Path(path)
     for target in (path, sidecar_path(path)):
@@ -401,7 +401,7 @@ def check_output_path(path: str | os.PathLike, force: bool = False) -> Path:
 def write_measurement(measurement: Measurement, path: str | os.PathLike, *, force: bool = False,
                       extra_metadata: Mapping[str, object] | None = None) -> Path:
     """Write the data CSV and its sidecar JSON atomically; refuse to overwrite without ``force``."""
-    path = check_output_path(path, force)
+    path = check_data_path(path, force)
     metadata = dict(measurement.metadata)
     metadata["data_file"] = path.name
     metadata.update(extra_metadata or {})
@@ -418,8 +418,6 @@ def format_csv(columns: Mapping[str, np.ndarray], time_resolution: float) -> str
     lines = [",".join(columns)]
     lines += [",".join(fmt % value for fmt, value in zip(formats, row)) for row in table.tolist()]
     return "\n".join(lines) + "\n"
-
-
 
 
 def _metadata(fmu: Path, info, start_time: float, stop_time: float, start_values: dict,

@@ -12,6 +12,7 @@ command created and the `.partial` leftovers of interrupted atomic writes.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import select
@@ -87,10 +88,8 @@ def _worker(args, execute, temp_root: Path) -> None:
         code = 2
     finally:
         for stream in (sys.stdout, sys.stderr):
-            try:
+            with contextlib.suppress(Exception):
                 stream.flush()
-            except Exception:
-                pass
         CALL[REPORT_SLOT] = REPORTED + code
         os._exit(code)
 
@@ -155,10 +154,8 @@ class _Supervisor:
 
     def _wait_for_exit(self, timeout: float):
         if self.pidfd is not None:
-            try:
+            with contextlib.suppress(InterruptedError):
                 select.select([self.pidfd], [], [], timeout)
-            except InterruptedError:
-                pass
         else:
             time.sleep(timeout)
         try:
@@ -186,10 +183,8 @@ class _Supervisor:
 
     def _kill(self) -> None:
         _send(self.pid, signal.SIGKILL)
-        try:
+        with contextlib.suppress(ChildProcessError):
             os.waitpid(self.pid, 0)
-        except ChildProcessError:
-            pass
 
     def _verdict(self, status: int) -> tuple[int, str, str]:
         reported = CALL[REPORT_SLOT]
@@ -224,10 +219,8 @@ def _at(t: float) -> str:
 
 
 def _send(pid: int, sig: int) -> None:
-    try:
+    with contextlib.suppress(ProcessLookupError):
         os.kill(pid, sig)
-    except ProcessLookupError:
-        pass
 
 
 def _open_pidfd(pid: int):
@@ -258,10 +251,7 @@ def _remove_outputs_of_failed_run(before: dict) -> None:
         for partial in partial_files(path):     # files, or folders staged to replace a folder
             _remove(partial)
         if fingerprint is None:
-            if path.is_dir() and not path.is_symlink():
-                shutil.rmtree(path, ignore_errors=True)
-            elif path.exists() or path.is_symlink():
-                path.unlink(missing_ok=True)
+            _remove(path)
         elif path.is_dir():
             for partial in path.rglob(f".*{PARTIAL_SUFFIX}"):
                 _remove(partial)

@@ -51,13 +51,13 @@ def add_example_parser(subparsers, common=None) -> None:
 
 
 def cmd_synth(args) -> None:
-    from ..synth import BenchSettings, check_output_path, measure, sidecar_path, write_measurement
+    from ..synth import BenchSettings, check_data_path, measure, sidecar_path, write_measurement
     output = Path(args.output)
     settings = BenchSettings(
         signals=tuple(parse_names(args.signals, "--signals")), noise_std=parse_floats(args.noise, "--noise"),
         sample_rate=positive(args.sample_rate, "--sample-rate"), jitter=args.jitter, lag=args.lag,
         runs=args.runs, run_variation=parse_floats(args.run_variation, "--run-variation"), seed=args.seed)
-    check_output_path(output, args.force)  # before the simulation, which may take a while
+    check_data_path(output, args.force)  # before the simulation, which may take a while
     measurement = measure(args.fmu, start_time=args.start_time, stop_time=args.stop_time,
                           start_values=parse_assignments(args.start), settings=settings)
     write_measurement(measurement, output, force=args.force)

@@ -61,8 +61,6 @@ def cmd_train(args) -> None:
         hidden = [int(h) for h in parse_names(args.hidden, "--hidden")]
     except ValueError:
         raise FmuBuilderError(f"--hidden must be comma-separated integers, got '{args.hidden}'") from None
-    if args.resume and args.force:
-        args.force = True
     settings = TrainSettings(
         epochs=args.epochs, element_length=args.element_length, order=args.order, batch_size=args.batch_size,
         step_size=args.step_size, solver=args.solver, learning_rate=args.lr, decay=args.decay,

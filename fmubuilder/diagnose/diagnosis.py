@@ -32,14 +32,13 @@ import numpy as np
 from ..errors import FmuBuilderError
 from ..fmi.archive import read_model_info
 from . import significance
-from ..data import MeasuredData, load_data
+from ..data import START_SAMPLES, MeasuredData, load_data
 from .runs import ModelRun, ModelRunner, form_text, rms
 from .trace import MAX_CHANNELS, SECOND_CHANNEL_RATIO, TracedTerm, Tracer, candidate_variables
 
 TERM_MIN_EXPLAINED = 0.8       # a fitted term is offered when it removes this share of the excess chi-square
 AMBIGUOUS = 1.1                # another channel whose best trial leaves less than 1.1 times the
                                # unexplained variance of the best one explains the data about as well
-START_ESTIMATE_SAMPLES = 5
 START_TOLERANCE = 4.0          # standard errors between a measured start and the model's
 TRACE_SAMPLES = 1000           # the tracing's trials cover at most this many leading samples (100 s at 10 Hz)
 
@@ -191,7 +190,7 @@ def start_values_from_data(info, data: MeasuredData, given: dict, nominal: Model
     data recorded from the model's own start are not shifted by their noise."""
     found = {}
     states = {v.name: v for v in info.states}
-    k = START_ESTIMATE_SAMPLES
+    k = START_SAMPLES      # the same few samples as a simulation started at a measured time
     t = data.time[:k] - data.time[0]
     design = np.column_stack([np.ones(k), t / float(t[-1])])
     # Standard error of the intercept per unit noise: sqrt of (X^T X)^-1 [0, 0].

@@ -113,7 +113,6 @@ class SignalTest:
     chi2: float           # Q of this signal alone
     dof: int
     p_value: float
-    long_run_noise: float = 0.0   # noise of a mean over n samples is this / sqrt(n)
 
     @property
     def significant(self) -> bool:
@@ -301,8 +300,7 @@ def signal_test(residual: np.ndarray, model_values: np.ndarray, spread: np.ndarr
     """The test of one signal's residual alone (for the per-signal columns of the report)."""
     fit = fit_noise(residual, model_values, spread, runs)
     joint = joint_test([residual], [model_values], [spread], runs, fits=[fit])
-    return SignalTest(noise=fit.marginal, floor=fit.floor, chi2=joint.chi2, dof=joint.dof,
-                      p_value=joint.p_value, long_run_noise=fit.long_run)
+    return SignalTest(noise=fit.marginal, floor=fit.floor, chi2=joint.chi2, dof=joint.dof, p_value=joint.p_value)
 
 
 def _noise_coherence(residuals: list[np.ndarray], fits: list[NoiseFit]) -> np.ndarray:

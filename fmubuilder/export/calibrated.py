@@ -16,12 +16,8 @@ against fmpy and fmubuilder's replica of fmpy's Euler loop running the original 
 """
 from __future__ import annotations
 
-import datetime
-import os
-import shutil
 import subprocess
 import tempfile
-import uuid
 import zipfile
 from pathlib import Path
 
@@ -31,10 +27,14 @@ from lxml import etree
 from fmubuilder.build import data_path
 from fmubuilder.errors import FmuBuilderError
 from fmubuilder.files import copy_atomically
+from fmubuilder.fmi.archive import PLATFORM     # the calibration library is built for linux64 only
+
+from .c_text import c_string
+from .hybrid_description import new_identity
+from .wrapper import check_model_identifier, check_output_fmu, check_with_fmpy
 
 SOURCE = data_path("c_templates", "calibrated_fmu.c")
 SUFFIX = "_calibrated"
-PLATFORM = "linux64"
 # Round trip: fmpy on the calibrated FMU against the original with the values, same solver and step.
 ROUNDTRIP_TOLERANCE = 1e-9
 
@@ -42,30 +42,24 @@ ROUNDTRIP_TOLERANCE = 1e-9
 def export_calibrated(original_fmu, parameters: dict[str, float], output_fmu, force: bool = False) -> Path:
     """Write the original FMU with `parameters` ({name: value}) calibrated to `output_fmu`."""
     from fmubuilder.fmi import read_model_info
-    from .wrapper import check_model_identifier
-    original_fmu, output = Path(original_fmu), Path(output_fmu)
-    if output.suffix.lower() != ".fmu":
-        raise FmuBuilderError(f"{output}: the output file must end in .fmu")
-    if output.exists() and not force:
-        raise FmuBuilderError(f"{output} exists; choose another name or overwrite it with --force (force=True)")
+    original_fmu, output = Path(original_fmu), check_output_fmu(output_fmu, force)
     if not parameters:
         raise FmuBuilderError("no calibrated parameters given; give at least one {name: value}")
     info = read_model_info(original_fmu)
     check_model_identifier(info.model_identifier, original_fmu)
     overrides = _overrides(info, parameters)
     identifier = info.model_identifier + SUFFIX
-    guid = "{" + str(uuid.uuid4()) + "}"
     with tempfile.TemporaryDirectory(prefix="fmubuilder-calibrated-") as scratch:
         scratch = Path(scratch)
         with zipfile.ZipFile(original_fmu) as original:
             inner_binary = f"binaries/{PLATFORM}/{info.model_identifier}.so"
             if inner_binary not in original.namelist():
                 raise FmuBuilderError(f"{original_fmu} has no {inner_binary}; export it for {PLATFORM}")
+            xml, guid = calibrated_description(original.read("modelDescription.xml"), identifier, overrides)
             library = _compile(scratch, f"{info.model_identifier}.so", identifier, guid, info.guid, overrides)
-            xml = calibrated_description(original.read("modelDescription.xml"), identifier, guid, overrides)
             packed = scratch / "calibrated.fmu"
             _pack(original, packed, xml, library, identifier)
-        _check_with_fmpy(packed, original_fmu)
+        check_with_fmpy(packed, original_fmu)
         output.parent.mkdir(parents=True, exist_ok=True)
         copy_atomically(packed, output)
     return output
@@ -86,15 +80,13 @@ def _overrides(info, parameters: dict[str, float]) -> list[tuple[str, int, float
     return overrides
 
 
-def calibrated_description(original_xml: bytes, identifier: str, guid: str,
-                           overrides: list[tuple[str, int, float]]) -> bytes:
-    """The original's modelDescription.xml with the calibrated start values and a new identity."""
+def calibrated_description(original_xml: bytes, identifier: str,
+                           overrides: list[tuple[str, int, float]]) -> tuple[bytes, str]:
+    """The original's modelDescription.xml with the calibrated start values and a new identity,
+    and its new GUID."""
     root = etree.fromstring(original_xml)
     values = {name: value for name, _, value in overrides}
-    root.set("guid", guid)
-    root.set("generationTool", "fmubuilder")
-    now = datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0)
-    root.set("generationDateAndTime", now.strftime("%Y-%m-%dT%H:%M:%SZ"))
+    guid = new_identity(root)
     calibrated = ", ".join(f"{name} = {value:.6g}" for name, value in values.items())
     root.set("description", f"{root.get('description') or root.get('modelName')} (calibrated: {calibrated})")
     for kind in ("ModelExchange", "CoSimulation"):
@@ -105,26 +97,23 @@ def calibrated_description(original_xml: bytes, identifier: str, guid: str,
     for variable in root.find("ModelVariables").findall("ScalarVariable"):
         if variable.get("name") in values:
             variable.find("Real").set("start", repr(values[variable.get("name")]))
-    return etree.tostring(root, xml_declaration=True, encoding="UTF-8", pretty_print=True)
+    return etree.tostring(root, xml_declaration=True, encoding="UTF-8", pretty_print=True), guid
 
 
 def _compile(scratch: Path, inner: str, identifier: str, guid: str, inner_guid: str,
              overrides: list[tuple[str, int, float]]) -> Path:
-    from fmubuilder.build import _fmi_headers_dir
-    compiler = next((c for c in (os.environ.get("CC", ""), "cc", "gcc", "clang") if c and shutil.which(c)), None)
-    if compiler is None:
-        raise FmuBuilderError("no C compiler found (cc, gcc, clang or $CC): install one, e.g. "
-                              "apt-get install build-essential")
-    headers = _fmi_headers_dir()
+    from fmubuilder.build import c_compiler, fmi_headers_dir
+    compiler = c_compiler()
+    headers = fmi_headers_dir()
     if headers is None:
         raise FmuBuilderError("fmpy's FMI 2.0 headers are missing; reinstall fmpy (pip install --force-reinstall fmpy)")
     library = scratch / f"{identifier}.so"
     definitions = {
-        "CALIBRATED_GUID": _c_string(guid), "INNER_GUID": _c_string(inner_guid),
-        "INNER_LIBRARY": _c_string(inner), "N_OVERRIDES": str(len(overrides)),
+        "CALIBRATED_GUID": c_string(guid), "INNER_GUID": c_string(inner_guid),
+        "INNER_LIBRARY": c_string(inner), "N_OVERRIDES": str(len(overrides)),
         "OVERRIDE_VRS": "{" + ", ".join(f"{vr}u" for _, vr, _ in overrides) + "}",
         "OVERRIDE_VALUES": "{" + ", ".join(repr(v) for _, _, v in overrides) + "}",
-        "OVERRIDE_NAMES": "{" + ", ".join(_c_string(name) for name, _, _ in overrides) + "}",
+        "OVERRIDE_NAMES": "{" + ", ".join(c_string(name) for name, _, _ in overrides) + "}",
     }
     command = [compiler, "-shared", "-fPIC", "-O2", "-Wall", "-I", str(headers),
                *[f"-D{key}={value}" for key, value in definitions.items()],
@@ -133,11 +122,6 @@ def _compile(scratch: Path, inner: str, identifier: str, guid: str, inner_guid: 
     if done.returncode != 0:
         raise FmuBuilderError(f"compiling the calibrated FMU's library failed: {done.stderr.strip()[-2000:]}")
     return library
-
-
-def _c_string(text: str) -> str:
-    from .wrapper import c_string
-    return c_string(text)
 
 
 def _pack(original: zipfile.ZipFile, packed: Path, xml: bytes, library: Path, identifier: str) -> None:
@@ -156,11 +140,6 @@ def _pack(original: zipfile.ZipFile, packed: Path, xml: bytes, library: Path, id
         info.external_attr = 0o755 << 16
         info.compress_type = zipfile.ZIP_DEFLATED
         out.writestr(info, library.read_bytes())
-
-
-def _check_with_fmpy(fmu: Path, original: Path) -> None:
-    from .wrapper import _check_with_fmpy as check
-    check(fmu, original)
 
 
 # -- round trip ---------------------------------------------------------------------------------

@@ -92,8 +92,7 @@ def derive_model_description(original_xml: bytes, spec: HybridSpec, info) -> Hyb
     except etree.XMLSyntaxError as exc:
         raise FmuBuilderError(f"the original modelDescription.xml is not valid XML ({exc})") from None
     identifier = hybrid_identifier(info.model_identifier)
-    guid = "{" + str(uuid.uuid4()) + "}"
-    _set_header(root, info, spec, guid)
+    guid = _set_header(root, info, spec)
     _set_model_exchange(root, identifier)
     log_categories = _log_categories(root)
     variables = root.find("ModelVariables")
@@ -106,15 +105,22 @@ def derive_model_description(original_xml: bytes, spec: HybridSpec, info) -> Hyb
                              log_categories=log_categories)
 
 
-def _set_header(root, info, spec: HybridSpec, guid: str) -> None:
-    words = _words(spec)
+def new_identity(root) -> str:
+    """A derived FMU's own GUID (returned) and generation stamp on the root of its modelDescription."""
+    guid = "{" + str(uuid.uuid4()) + "}"
     root.set("guid", guid)
-    root.set("modelName", f"{info.model_name}_hybrid")
-    root.set("description", f"{info.model_name} with {', '.join(spec.channels)} corrected by {words.thing} "
-                            f"(gates {words.gate}, p_fmu per corrected derivative)")
     root.set("generationTool", GENERATION_TOOL)
     now = datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0)
     root.set("generationDateAndTime", now.strftime("%Y-%m-%dT%H:%M:%SZ"))
+    return guid
+
+
+def _set_header(root, info, spec: HybridSpec) -> str:
+    words = _words(spec)
+    root.set("modelName", f"{info.model_name}_hybrid")
+    root.set("description", f"{info.model_name} with {', '.join(spec.channels)} corrected by {words.thing} "
+                            f"(gates {words.gate}, p_fmu per corrected derivative)")
+    return new_identity(root)
 
 
 def _set_model_exchange(root, identifier: str) -> None:
@@ -242,19 +248,13 @@ def _update_structure(root, spec: HybridSpec, info) -> None:
                 for section in ("Outputs", "Derivatives", "InitialUnknowns")}
     state_names = {s.name for s in info.states}
     network_deps = _network_dependencies(spec, info, unknowns, index_of, state_names)
-    for channel in spec.channels:
-        derivative = unknowns["Derivatives"].get(channel)
-        if derivative is not None:
-            _merge_dependencies(derivative, network_deps)
-        initial = unknowns["InitialUnknowns"].get(channel)
+    corrected = [(channel, "Derivatives") for channel in spec.channels] + [(a, "Outputs") for a in spec.aliases]
+    for name, section in corrected:
+        unknown = unknowns[section].get(name)
+        if unknown is not None:   # a local alias has no entry
+            _merge_dependencies(unknown, network_deps)
+        initial = unknowns["InitialUnknowns"].get(name)
         if initial is not None:  # initial dependencies through the network are not tracked
-            _drop_dependencies(initial)
-    for alias in spec.aliases:
-        output = unknowns["Outputs"].get(alias)
-        if output is not None:   # a local alias has no entry
-            _merge_dependencies(output, network_deps)
-        initial = unknowns["InitialUnknowns"].get(alias)
-        if initial is not None:
             _drop_dependencies(initial)
 
 

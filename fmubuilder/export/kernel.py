@@ -15,20 +15,17 @@ from __future__ import annotations
 
 import math
 import os
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import jinja2
 import numpy as np
 import onnx
 from onnx import numpy_helper
 
-from fmubuilder.build import data_path
 from fmubuilder.errors import FmuBuilderError
 from fmubuilder.files import write_atomically
 
-TEMPLATE_DIR = data_path("c_templates")
+from .c_text import C_IDENTIFIER, c_comment, c_double, templates
 
 BINARY_OPS = {"Add": "+", "Sub": "-", "Mul": "*", "Div": "/"}
 # Elementwise unary operations (Abs and Neg appear in fitted symbolic terms such as k*w*|w|).
@@ -38,7 +35,6 @@ SUPPORTED_OPS = tuple(
     sorted({"Gemm", "MatMul", "Constant", "Shape", *BINARY_OPS, *ACTIVATIONS, *SHAPE_OPS})
 )
 
-_C_IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
 _DEFAULT_DOMAINS = ("", "ai.onnx")
 
 
@@ -74,10 +70,9 @@ def generate_kernel(model: onnx.ModelProto | str | os.PathLike, prefix: str = "a
     `prefix` names every symbol of the kernel, so kernels with different prefixes can be linked
     into one library.
     """
-    if not isinstance(prefix, str) or not _C_IDENTIFIER.match(prefix):
+    if not isinstance(prefix, str) or not C_IDENTIFIER.match(prefix):
         raise FmuBuilderError(
-            f"kernel prefix {prefix!r} is not a C identifier; use letters, digits and '_' (not leading digit)"
-        )
+            f"kernel prefix {prefix!r} is not a C identifier; use letters, digits and '_' (not leading digit)")
     program = _Lowering(_load_model(model), prefix).run()
     return _render(program)
 
@@ -186,15 +181,13 @@ class _Lowering:
         inputs = [i for i in self.graph.input if i.name not in self.constants]
         if len(inputs) != 1:
             raise FmuBuilderError(
-                f"the ONNX graph has {len(inputs)} inputs; the C kernel needs exactly one input vector"
-            )
+                f"the ONNX graph has {len(inputs)} inputs; the C kernel needs exactly one input vector")
         tensor_type = inputs[0].type.tensor_type
         if tensor_type.elem_type != onnx.TensorProto.DOUBLE:
             type_name = onnx.TensorProto.DataType.Name(tensor_type.elem_type)
             raise FmuBuilderError(
                 f"the ONNX graph input is {type_name}, the C kernel computes in DOUBLE; "
-                "export the network in float64 with freeze()"
-            )
+                "export the network in float64 with freeze()")
         # A symbolic (batch) dimension is one sample.
         shape = tuple(d.dim_value if d.HasField("dim_value") else 1 for d in tensor_type.shape.dim)
         return inputs[0].name, shape
@@ -202,8 +195,7 @@ class _Lowering:
     def _graph_output(self) -> str:
         if len(self.graph.output) != 1:
             raise FmuBuilderError(
-                f"the ONNX graph has {len(self.graph.output)} outputs; the C kernel needs exactly one output"
-            )
+                f"the ONNX graph has {len(self.graph.output)} outputs; the C kernel needs exactly one output")
         name = self.graph.output[0].name
         if name not in self.shapes and name not in self.constants:
             raise FmuBuilderError(f"the ONNX graph output {name!r} is computed by no node; the model is malformed")
@@ -231,8 +223,7 @@ class _Lowering:
             if name and name not in self.shapes and name not in self.constants:
                 raise FmuBuilderError(
                     f"input {name!r} of ONNX node {_describe(node)} is produced by no earlier node; "
-                    "the graph is malformed or not topologically sorted"
-                )
+                    "the graph is malformed or not topologically sorted")
         if not any(name in self.shapes for name in node.input):
             self._fold(node)
         elif node.op_type == "Shape":  # shapes are static: Shape of a computed tensor is a constant
@@ -261,8 +252,7 @@ class _Lowering:
         except Exception as exc:  # the reference implementation raises many types
             raise FmuBuilderError(
                 f"cannot evaluate ONNX node {_describe(node)} on its constant inputs ({exc}); "
-                "check the exported model with onnx.checker"
-            ) from exc
+                "check the exported model with onnx.checker") from exc
         for name, value in zip(node.output, results):
             self.constants[name] = np.asarray(value)
 
@@ -272,16 +262,14 @@ class _Lowering:
         if any(n in self.shapes for n in node.input[1:]):
             raise FmuBuilderError(
                 f"ONNX node {_describe(node)} takes its target shape from a computed tensor; "
-                "the C kernel needs constant shapes"
-            )
+                "the C kernel needs constant shapes")
         self._fold(node, shape_inputs)
         new_shape = self.constants.pop(node.output[0]).shape
         if math.prod(new_shape) != math.prod(self.shapes[source]):
             raise FmuBuilderError(
                 f"ONNX node {_describe(node)} changes the element count from "
                 f"{math.prod(self.shapes[source])} to {math.prod(new_shape)}; the C kernel supports "
-                "shape operators only on a single sample"
-            )
+                "shape operators only on a single sample")
         self._alias(node.output[0], source, new_shape)
 
     def _lower_binary(self, node: onnx.NodeProto) -> None:
@@ -290,9 +278,7 @@ class _Lowering:
         try:
             out_shape = tuple(np.broadcast_shapes(shape_of(lhs), shape_of(rhs)))
         except ValueError as exc:
-            raise FmuBuilderError(
-                f"the operands of ONNX node {_describe(node)} do not broadcast ({exc})"
-            ) from exc
+            raise FmuBuilderError(f"the operands of ONNX node {_describe(node)} do not broadcast ({exc})") from exc
         size = math.prod(out_shape)
         operands = [self._elementwise_operand(node, name, out_shape) for name in (lhs, rhs)]
         reads = tuple(o.ref for o in operands if o.kind == "tensor")
@@ -304,12 +290,11 @@ class _Lowering:
             if math.prod(self.shapes[name]) != math.prod(out_shape):
                 raise FmuBuilderError(
                     f"ONNX node {_describe(node)} broadcasts the computed tensor {name!r} of shape "
-                    f"{list(self.shapes[name])} to {list(out_shape)}; the C kernel only broadcasts constants"
-                )
+                    f"{list(self.shapes[name])} to {list(out_shape)}; the C kernel only broadcasts constants")
             return _Operand("tensor", self.root[name])
         values = self._float_constant(name)
         if values.size == 1:
-            literal = _c_double(values.item())
+            literal = c_double(values.item())
             # Parenthesised so that `x - -2.0` cannot turn into a decrement.
             return _Operand("scalar", f"({literal})" if literal.startswith(("-", "(")) else literal)
         broadcast = self._broadcast_constant(node, name, out_shape)
@@ -348,8 +333,7 @@ class _Lowering:
         self._check_contraction(node, vector, weight)
         if c_name in self.shapes:
             raise FmuBuilderError(
-                f"ONNX node {_describe(node)} adds a computed tensor as C; the C kernel needs a constant bias"
-            )
+                f"ONNX node {_describe(node)} adds a computed tensor as C; the C kernel needs a constant bias")
         bias = None
         if c_name and beta != 0.0:
             # beta * C is one rounding either way; doing it here gives the same doubles as at run time.
@@ -372,8 +356,7 @@ class _Lowering:
         if weight.ndim != 2:
             raise FmuBuilderError(
                 f"ONNX node {_describe(node)} multiplies by a {weight.ndim}-D constant; "
-                "the C kernel supports 1-D and 2-D weight matrices"
-            )
+                "the C kernel supports 1-D and 2-D weight matrices")
         self._check_contraction(node, vector, weight)
         try:
             out_shape = np.matmul(np.zeros(shapes[0]), np.zeros(shapes[1])).shape
@@ -393,7 +376,7 @@ class _Lowering:
             "n_in": n_in,
             # Row j holds the weights of output j, contiguous for the dot product.
             "weight": self._add_array("weight", np.ascontiguousarray(weight).ravel()),
-            "alpha": None if alpha == 1.0 else _c_double(alpha),
+            "alpha": None if alpha == 1.0 else c_double(alpha),
             "bias": None if bias is None else self._add_array("bias", bias),
         }
         step = _Step("dense", node.output[0], n_out, _describe(node), (self.root[vector],), params)
@@ -422,8 +405,7 @@ class _Lowering:
         matrix = self._float_constant(name)
         if matrix.ndim != 2:
             raise FmuBuilderError(
-                f"ONNX node {_describe(node)} has a {matrix.ndim}-D operand {name!r}; Gemm needs 2-D matrices"
-            )
+                f"ONNX node {_describe(node)} has a {matrix.ndim}-D operand {name!r}; Gemm needs 2-D matrices")
         return matrix
 
     def _broadcast_constant(self, node, name: str, shape: tuple[int, ...]) -> np.ndarray:
@@ -432,20 +414,17 @@ class _Lowering:
             return np.broadcast_to(self._float_constant(name), shape).ravel()
         except ValueError as exc:
             raise FmuBuilderError(
-                f"the constant {name!r} of ONNX node {_describe(node)} does not broadcast to {list(shape)}"
-            ) from exc
+                f"the constant {name!r} of ONNX node {_describe(node)} does not broadcast to {list(shape)}") from exc
 
     def _not_one_sample(self, node, name: str) -> FmuBuilderError:
         return FmuBuilderError(
             f"ONNX node {_describe(node)} treats the computed tensor {name!r} of shape "
-            f"{list(self.shapes[name])} as a batch; the C kernel evaluates one sample, export with batch size 1"
-        )
+            f"{list(self.shapes[name])} as a batch; the C kernel evaluates one sample, export with batch size 1")
 
     @staticmethod
     def _two_computed_operands(node) -> FmuBuilderError:
         return FmuBuilderError(
-            f"ONNX node {_describe(node)} multiplies two computed tensors; the C kernel needs constant weights"
-        )
+            f"ONNX node {_describe(node)} multiplies two computed tensors; the C kernel needs constant weights")
 
 
 def _live_steps(steps: list[_Step], output_tensor: str) -> list[_Step]:
@@ -465,18 +444,11 @@ def _constant_node_value(node: onnx.NodeProto) -> np.ndarray:
     if attr.name in ("value_float", "value_floats", "value_int", "value_ints"):
         return np.asarray(onnx.helper.get_attribute_value(attr))
     raise FmuBuilderError(
-        f"ONNX Constant node {node.name!r} holds a {attr.name}; the C kernel supports dense numeric constants"
-    )
+        f"ONNX Constant node {node.name!r} holds a {attr.name}; the C kernel supports dense numeric constants")
 
 
 def _describe(node: onnx.NodeProto) -> str:
     return f"{node.op_type} {node.name!r}" if node.name else node.op_type
-
-
-def _c_comment(text: str) -> str:
-    """Text safe inside a C block comment: ASCII, one line, no comment terminator."""
-    text = text.encode("ascii", "backslashreplace").decode("ascii")
-    return " ".join(text.split()).replace("*/", "* /")
 
 
 def _unsupported(node: onnx.NodeProto) -> FmuBuilderError:
@@ -485,18 +457,7 @@ def _unsupported(node: onnx.NodeProto) -> FmuBuilderError:
     return FmuBuilderError(
         f"ONNX operator {op}{where} is not supported by the C kernel generator; "
         f"supported: {', '.join(SUPPORTED_OPS)}; build the network from Linear layers, Tanh/Sigmoid/ReLU "
-        "and elementwise scaling"
-    )
-
-
-def _c_double(value: float) -> str:
-    """C literal that parses to exactly `value` (repr gives the shortest round-tripping decimal)."""
-    value = float(value)
-    if math.isnan(value):
-        return "NAN"
-    if math.isinf(value):
-        return "HUGE_VAL" if value > 0 else "-HUGE_VAL"
-    return repr(value)
+        "and elementwise scaling")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -543,7 +504,7 @@ def _render(program: _Program) -> GeneratedKernel:
 
     steps = []
     for step in program.steps:
-        view = {"kind": step.kind, "dst": storage[step.dst], "size": step.size, "node": _c_comment(step.node)}
+        view = {"kind": step.kind, "dst": storage[step.dst], "size": step.size, "node": c_comment(step.node)}
         view.update(step.params)
         for key in ("lhs", "rhs"):
             if key in view:
@@ -560,21 +521,15 @@ def _render(program: _Program) -> GeneratedKernel:
         "header_name": f"{program.prefix}.h",
         "n_inputs": program.n_inputs,
         "n_outputs": program.n_outputs,
-        "op_types": [_c_comment(op) for op in program.op_types],
-        "arrays": [(name, [_c_double(v) for v in values]) for name, values in program.arrays],
+        "op_types": [c_comment(op) for op in program.op_types],
+        "arrays": [(name, [c_double(v) for v in values]) for name, values in program.arrays],
         "buffers": buffers,
         "buffer_size": buffer_size,
         "steps": steps,
         "uses_input": any(program.input_tensor in s.reads for s in program.steps),
         "uses_sigmoid": any(s.get("function") == "sigmoid" for s in steps),
     }
-    env = jinja2.Environment(
-        loader=jinja2.FileSystemLoader(TEMPLATE_DIR),
-        undefined=jinja2.StrictUndefined,
-        trim_blocks=True,
-        lstrip_blocks=True,
-        keep_trailing_newline=True,
-    )
+    env = templates()
     header = env.get_template("ann_kernel.h.j2").render(context)
     source = env.get_template("ann_kernel.c.j2").render(context)
     return GeneratedKernel(program.prefix, program.n_inputs, program.n_outputs, header, source)

@@ -90,12 +90,10 @@ def _probe_outputs(network: torch.nn.Module, n_inputs: int) -> int:
     except Exception as exc:  # the user's forward() can raise anything
         raise FmuBuilderError(
             f"the network does not accept an input of shape [1, {n_inputs}] ({exc}); "
-            "pass the number of inputs its first layer expects"
-        ) from exc
+            "pass the number of inputs its first layer expects") from exc
     if not isinstance(out, torch.Tensor):
         raise FmuBuilderError(
-            f"the network returns {type(out).__name__}, not one tensor; wrap it so forward() returns one tensor"
-        )
+            f"the network returns {type(out).__name__}, not one tensor; wrap it so forward() returns one tensor")
     return int(out.numel())
 
 
@@ -127,8 +125,7 @@ def _export(network: torch.nn.Module, n_inputs: int) -> bytes:
     except Exception as exc:  # exporter errors come in many types
         raise FmuBuilderError(
             f"torch could not export the network to ONNX ({exc}); use only standard layers "
-            "(Linear, Tanh, Sigmoid, ReLU, elementwise scaling) in forward()"
-        ) from exc
+            "(Linear, Tanh, Sigmoid, ReLU, elementwise scaling) in forward()") from exc
     return buffer.getvalue()
 
 
@@ -149,8 +146,7 @@ def _check_against_torch(network: torch.nn.Module, onnx_bytes: bytes, samples: n
             if actual.shape != expected.shape:
                 raise FmuBuilderError(
                     f"the ONNX export returns {actual.size} values but the network {expected.size}; "
-                    "make forward() return one tensor without data-dependent shapes"
-                )
+                    "make forward() return one tensor without data-dependent shapes")
             diff = np.abs(actual - expected)
             allowed = CHECK_TOLERANCE * np.maximum(1.0, np.abs(expected))
             # NaN == NaN counts as agreement: both sides propagate it the same way.
@@ -159,7 +155,6 @@ def _check_against_torch(network: torch.nn.Module, onnx_bytes: bytes, samples: n
                 raise FmuBuilderError(
                     f"the ONNX export disagrees with the torch network (|diff| = {np.max(diff):.3g} "
                     f"at input {x.ravel().tolist()}); remove data-dependent control flow and "
-                    "randomness from forward()"
-                )
+                    "randomness from forward()")
             max_abs_diff = max(max_abs_diff, float(np.nanmax(diff, initial=0.0)))
     return max_abs_diff

@@ -106,15 +106,19 @@ class HybridSpec:
             raise FmuBuilderError(f"{path}: no such file; give the hybrid spec JSON written at training") from None
         except (OSError, ValueError) as exc:
             raise FmuBuilderError(f"{path}: not a readable JSON file ({exc}); give a hybrid spec JSON") from None
+        return cls.from_dict(data, path.resolve().parent, str(path))
+
+    @classmethod
+    def from_dict(cls, data, base: Path, source: str) -> "HybridSpec":
+        """The spec of a dict in the JSON form, its paths relative to `base`; `source` names it in errors."""
         if not isinstance(data, dict) or data.get("format") != FORMAT:
-            raise FmuBuilderError(f"{path} is not a hybrid spec (no \"format\": \"{FORMAT}\"); give the spec JSON")
+            raise FmuBuilderError(f"{source} is not a hybrid spec (no \"format\": \"{FORMAT}\"); give the spec JSON")
         if data.get("version") != VERSION:
             raise FmuBuilderError(
-                f"{path} is a hybrid spec of version {data.get('version')}; this fmubuilder reads version {VERSION}")
+                f"{source} is a hybrid spec of version {data.get('version')}; this fmubuilder reads version {VERSION}")
         missing = [k for k in ("original_fmu", "original_guid", "channels", "inputs", "onnx") if k not in data]
         if missing:
-            raise FmuBuilderError(f"{path}: the hybrid spec lacks {', '.join(missing)}; add them or re-export the spec")
-        base = path.resolve().parent
+            raise FmuBuilderError(f"{source}: the hybrid spec lacks {', '.join(missing)}; add them or re-export the spec")
         return cls(
             original_fmu=base / data["original_fmu"], original_guid=str(data["original_guid"]),
             channels=list(data["channels"]), inputs=list(data["inputs"]), onnx=base / data["onnx"],

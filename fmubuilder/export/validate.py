@@ -240,17 +240,13 @@ def _read_inputs(data_csv, info) -> dict:
 
 
 def _gate_names_of(spec: HybridSpec) -> dict[str, tuple[int, str]]:
-    """Gate parameter name -> (channel index, 'p_ann' | 'p_fmu'), as the export names them."""
+    """The gates as the export names them (see _gate_index)."""
     from fmubuilder.fmi import read_model_info
     from .hybrid_description import derive_model_description
     info = read_model_info(spec.original_fmu)
     with zipfile.ZipFile(spec.original_fmu) as archive:
         description = derive_model_description(archive.read("modelDescription.xml"), spec, info)
-    names = {}
-    for c, layout in enumerate(description.channels):
-        names[layout.p_ann] = (c, "p_ann")
-        names[layout.p_fmu] = (c, "p_fmu")
-    return names
+    return _gate_index((layout.p_ann, layout.p_fmu) for layout in description.channels)
 
 
 def _embedded_spec(hybrid_fmu: Path, folder: Path) -> tuple[HybridSpec, dict[str, tuple[int, str]]]:
@@ -279,15 +275,13 @@ def _embedded_spec(hybrid_fmu: Path, folder: Path) -> tuple[HybridSpec, dict[str
                 if name.startswith("resources/") and not name.endswith("/") and not name.startswith(prefix) \
                         and name.removeprefix("resources/") not in binaries:
                     out.writestr(name, hybrid.read(name))
-    spec = HybridSpec(original_fmu=original, original_guid=data["original_guid"], channels=data["channels"],
-                      inputs=data["inputs"], onnx=folder / EMBEDDED_ONNX, p_ann=data["p_ann"], p_fmu=data["p_fmu"],
-                      aliases=data.get("aliases", {}), term=data.get("term", "network"),
-                      expression=data.get("expression", ""))
-    gates = {}
-    for c, entry in enumerate(data.get("gates", [])):
-        gates[entry["p_ann"]] = (c, "p_ann")
-        gates[entry["p_fmu"]] = (c, "p_fmu")
-    return spec, gates
+    spec = HybridSpec.from_dict(data, folder, f"{hybrid_fmu}'s embedded spec")
+    return spec, _gate_index((entry["p_ann"], entry["p_fmu"]) for entry in data.get("gates", []))
+
+
+def _gate_index(gates) -> dict[str, tuple[int, str]]:
+    """Gate parameter name -> (channel index, 'p_ann' | 'p_fmu'), from each channel's (p_ann, p_fmu) names."""
+    return {name: (c, which) for c, pair in enumerate(gates) for name, which in zip(pair, ("p_ann", "p_fmu"))}
 
 
 def _model_identifier(xml: bytes) -> str:

@@ -19,6 +19,7 @@ original's resources/ serve both platforms.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -27,16 +28,14 @@ import tempfile
 import zipfile
 from pathlib import Path
 
-import jinja2
-
 from fmubuilder.build import data_path
 from fmubuilder.errors import FmuBuilderError
 from fmubuilder.files import copy_atomically
 
+from .c_text import C_IDENTIFIER, TEMPLATE_DIR, c_double, templates
 from .hybrid_description import HybridDescription, derive_model_description
 from .spec import HybridSpec
 
-TEMPLATE_DIR = data_path("c_templates")
 FMU_CMAKE = data_path("cmake", "fmu.cmake")
 MINGW_TOOLCHAIN = FMU_CMAKE.with_name("mingw-w64-x86_64.cmake")
 MINGW_COMPILER = "x86_64-w64-mingw32-gcc"
@@ -54,7 +53,6 @@ EMBEDDED_ORIGINAL_XML = "original_modelDescription.xml"
 # Folders of the original FMU the hybrid carries unchanged.
 CARRIED_FOLDERS = ("documentation", "extra")
 _INPUT_GROUPS = {"Real": "real", "Integer": "integer", "Enumeration": "integer", "Boolean": "boolean"}
-_C_IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
 _C_KEYWORDS = frozenset(
     "auto break case char const continue default do double else enum extern float for goto if inline int long "
     "register restrict return short signed sizeof static struct switch typedef union unsigned void volatile while "
@@ -70,13 +68,9 @@ def export_hybrid(spec_or_path: HybridSpec | str | os.PathLike, output_fmu: str 
     Refuses to overwrite an existing file unless `force`. Returns the output path.
     """
     spec = spec_or_path if isinstance(spec_or_path, HybridSpec) else HybridSpec.load(spec_or_path)
-    output = Path(output_fmu)
-    if output.suffix.lower() != ".fmu":
-        raise FmuBuilderError(f"{output}: the output file must end in .fmu")
+    output = check_output_fmu(output_fmu, force)
     if not output.parent.is_dir():
         raise FmuBuilderError(f"cannot write {output}: folder {output.parent} does not exist; create it first")
-    if output.exists() and not force:
-        raise FmuBuilderError(f"{output} exists; choose another name or overwrite it with --force (force=True)")
 
     from fmubuilder.fmi import read_model_info
     info = read_model_info(spec.original_fmu)
@@ -86,14 +80,23 @@ def export_hybrid(spec_or_path: HybridSpec | str | os.PathLike, output_fmu: str 
     with tempfile.TemporaryDirectory(prefix="fmubuilder-export-") as scratch:
         scratch = Path(scratch)
         built = _build(spec, info, scratch, with_win64)
-        _check_with_fmpy(built, spec.original_fmu)
+        check_with_fmpy(built, spec.original_fmu)
         copy_atomically(built, output)
+    return output
+
+
+def check_output_fmu(output_fmu, force: bool) -> Path:
+    output = Path(output_fmu)
+    if output.suffix.lower() != ".fmu":
+        raise FmuBuilderError(f"{output}: the output file must end in .fmu")
+    if output.exists() and not force:
+        raise FmuBuilderError(f"{output} exists; choose another name or overwrite it with --force (force=True)")
     return output
 
 
 def check_model_identifier(identifier: str, fmu) -> None:
     """FMI 2.0 requires the modelIdentifier to be a C identifier; the hybrid's is derived from it."""
-    if not _C_IDENTIFIER.match(identifier) or identifier in _C_KEYWORDS:
+    if not C_IDENTIFIER.match(identifier) or identifier in _C_KEYWORDS:
         raise FmuBuilderError(
             f"{fmu}: the modelIdentifier {identifier!r} is not a C identifier (FMI 2.0 requires letters, digits and "
             "'_', not starting with a digit, and no C keyword); re-export the original FMU with a valid one")
@@ -191,9 +194,9 @@ def _add_win64_binaries(project: Path, build_dir: Path, original_fmu: Path, iden
 
 def built_platforms(fmu: Path) -> list[str]:
     """The platforms an FMU carries a binary for (the folders under binaries/)."""
+    from fmubuilder.fmi.archive import binary_platforms
     with zipfile.ZipFile(fmu) as archive:
-        return sorted({name.split("/")[1] for name in archive.namelist()
-                       if name.startswith("binaries/") and name.count("/") >= 2 and name.split("/")[1]})
+        return binary_platforms(archive.namelist())
 
 
 def platform_note(original_fmu: Path, hybrid_fmu: Path) -> str:
@@ -234,7 +237,7 @@ def render_config(spec: HybridSpec, info, description: HybridDescription) -> str
     channels = [{
         "name": c.channel, "der_vr": c.der_vr, "state_index": c.state_index,
         "p_ann_vr": c.p_ann_vr, "p_fmu_vr": c.p_fmu_vr, "ann_vr": c.ann_vr,
-        "p_ann_start": _c_double(spec.p_ann[i]), "p_fmu_start": _c_double(spec.p_fmu[i]),
+        "p_ann_start": c_double(spec.p_ann[i]), "p_fmu_start": c_double(spec.p_fmu[i]),
         "p_ann": c.p_ann, "p_fmu": c.p_fmu, "ann": c.ann,
     } for i, c in enumerate(description.channels)]
     aliases = [{"name": name, "vr": info.variable(name).value_reference, "channel": spec.channels.index(channel)}
@@ -271,34 +274,7 @@ def _declares(fmu: Path, capability: str) -> bool:
 
 
 def _render(template: str, context: dict) -> str:
-    env = jinja2.Environment(loader=jinja2.FileSystemLoader(TEMPLATE_DIR), undefined=jinja2.StrictUndefined,
-                             trim_blocks=True, lstrip_blocks=True, keep_trailing_newline=True)
-    env.filters["c_string"] = c_string
-    env.filters["c_comment"] = c_comment
-    return env.get_template(template).render(context)
-
-
-def c_string(text: str) -> str:
-    """A C string literal for any text: printable ASCII as is, everything else as octal
-    escapes of its UTF-8 bytes (variable names may hold quotes, backslashes, non-ASCII)."""
-    out = []
-    for byte in str(text).encode("utf-8"):
-        char = chr(byte)
-        if char in '"\\?' or not 32 <= byte < 127:
-            out.append(f"\\{byte:03o}")
-        else:
-            out.append(char)
-    return '"' + "".join(out) + '"'
-
-
-def c_comment(text: str) -> str:
-    """Any text made safe inside a C block comment: no comment end, no line breaks."""
-    return "".join(ch if ch.isprintable() else "?" for ch in str(text)).replace("*/", "* /")
-
-
-def _c_double(value: float) -> str:
-    text = repr(float(value))
-    return text if any(ch in text for ch in ".en") else text + ".0"
+    return templates().get_template(template).render(context)
 
 
 def _stage_resources(original: zipfile.ZipFile, info, resources: Path) -> list[str]:
@@ -349,11 +325,8 @@ def _embed_for_validation(spec: HybridSpec, description: HybridDescription, orig
     folder.mkdir(parents=True)
     shutil.copyfile(spec.onnx, folder / EMBEDDED_ONNX)
     (folder / EMBEDDED_ORIGINAL_XML).write_bytes(original_xml)
-    embedded = HybridSpec(original_fmu=Path("original.fmu"), original_guid=spec.original_guid,
-                          channels=spec.channels, inputs=spec.inputs, onnx=Path(EMBEDDED_ONNX),
-                          p_ann=spec.p_ann, p_fmu=spec.p_fmu, aliases=spec.aliases, term=spec.term,
-                          expression=spec.expression)
-    data = embedded.to_dict()
+    # Paths relative to the folder: validation rebuilds the original FMU beside the network.
+    data = dataclasses.replace(spec, original_fmu=Path("original.fmu"), onnx=Path(EMBEDDED_ONNX)).to_dict()
     data["gates"] = [{"channel": c.channel, "p_ann": c.p_ann, "p_fmu": c.p_fmu, "ann": c.ann}
                      for c in description.channels]
     # Which files of resources/ came from the original's binaries folder (to rebuild the original).
@@ -361,7 +334,7 @@ def _embed_for_validation(spec: HybridSpec, description: HybridDescription, orig
     (folder / EMBEDDED_SPEC).write_text(json.dumps(data, indent=2) + "\n")
 
 
-def _check_with_fmpy(fmu: Path, original: Path) -> None:
+def check_with_fmpy(fmu: Path, original: Path) -> None:
     """fmpy's validation of the hybrid, except for problems the original has as well (the hybrid
     keeps the original's variables as they are)."""
     from fmpy.validation import validate_fmu

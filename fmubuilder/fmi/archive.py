@@ -15,7 +15,7 @@ import zipfile
 import zlib
 from pathlib import Path
 
-from ..errors import FmuBuilderError
+from ..errors import FmuBuilderError, first_line
 from .model import ModelInfo, model_info_from_fmpy
 
 PLATFORM = "linux64"
@@ -56,7 +56,7 @@ def read_model_info(path: str | Path) -> ModelInfo:
     _check_kind(path, md)
     binary = binary_entry(md.modelExchange.modelIdentifier)
     if binary not in names and not _ships_sources(names, md):
-        platforms = sorted({n.split("/")[1] for n in names if n.startswith("binaries/") and n.count("/") >= 2})
+        platforms = binary_platforms(names)
         found = f"it has binaries for {', '.join(platforms)}" if platforms else "it has no binaries"
         raise FmuBuilderError(
             f"{path} has no {binary_platform()} binary ({binary}); {found} and no declared C sources: "
@@ -67,6 +67,11 @@ def read_model_info(path: str | Path) -> ModelInfo:
 def binary_entry(model_identifier: str) -> str:
     """The archive entry of the FMU's shared library for this machine."""
     return f"binaries/{binary_platform()}/{model_identifier}.so"
+
+
+def binary_platforms(names) -> list[str]:
+    """The platform folders under binaries/ among an archive's entry names."""
+    return sorted({n.split("/")[1] for n in names if n.startswith("binaries/") and n.count("/") >= 2} - {""})
 
 
 def _ships_sources(names: set[str], md) -> bool:
@@ -82,7 +87,7 @@ def _ships_sources(names: set[str], md) -> bool:
 
 
 def corrupt(path: Path, exc: BaseException, entry: str | None = None) -> FmuBuilderError:
-    detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    detail = first_line(exc)
     where = f" in {entry}" if entry and entry not in detail else ""
     return FmuBuilderError(f"{path} is corrupt ({detail}{where}): the archive is damaged or truncated; "
                            "copy or export the FMU again")
@@ -100,8 +105,7 @@ def _parse_model_description(path: Path):
     except _CORRUPT as exc:
         raise corrupt(path, exc, "modelDescription.xml") from None
     except Exception as exc:  # lxml and fmpy raise many kinds; the message is what matters
-        first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise FmuBuilderError(f"{path}: cannot read modelDescription.xml ({first_line})") from None
+        raise FmuBuilderError(f"{path}: cannot read modelDescription.xml ({first_line(exc)})") from None
 
 
 def _check_version(path: Path) -> None:
@@ -151,7 +155,7 @@ class FmuArchive:
 
     @property
     def library_path(self) -> Path:
-        return self.directory / "binaries" / binary_platform() / f"{self.info.model_identifier}.so"
+        return self.directory / binary_entry(self.info.model_identifier)
 
     @property
     def resources_uri(self) -> str:

@@ -142,9 +142,7 @@ class FmuInstance:
         CALL[0] = code
         status = getattr(self._lib, function)(*args)
         CALL[0] = -code
-        if status > 1:
-            raise FmuCallError(function, status, tuple(self.messages))
-        return status
+        return self._check(status, function)
 
     def _check(self, status: int, function: str) -> int:
         if status > 1:  # fmi2Discard or worse
@@ -330,11 +328,11 @@ class FmuInstance:
         return self._z_view.copy()
 
     def get_nominals_of_continuous_states(self) -> np.ndarray:
-        if not self.info.n_states:
+        if not self._n_states:
             return np.zeros(0)
-        out = ffi.new("double[]", max(self.info.n_states, 1))
-        self._call("fmi2GetNominalsOfContinuousStates", self.component, out, self.info.n_states)
-        return np.frombuffer(ffi.buffer(out), dtype=np.float64)[: self.info.n_states].copy()
+        out = ffi.new("double[]", self._n_states)
+        self._call("fmi2GetNominalsOfContinuousStates", self.component, out, self._n_states)
+        return np.frombuffer(ffi.buffer(out), dtype=np.float64).copy()
 
     def completed_integrator_step(self, no_set_fmu_state_prior: bool = True) -> tuple[bool, bool]:
         """Returns (enter_event_mode, terminate_simulation)."""

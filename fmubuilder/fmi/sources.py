@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..build import CMakeBuildError, build_cmake_project, cache_dir, data_path, file_lock
-from ..errors import FmuBuilderError
+from ..errors import FmuBuilderError, first_line
 from .archive import (BUILD_DESCRIPTION, binary_entry, binary_platform, check_entry_inside, inflate_member,
                       max_extract_bytes, read_model_info)
 
@@ -87,7 +87,7 @@ def declared_build(path: Path) -> SourceBuild:
         configurations = read_build_description(str(path), validate=False) if has_build_description \
             else md.buildConfigurations
     except Exception as exc:  # fmpy raises plain Exceptions for a bad file
-        raise FmuBuilderError(f"{path}: cannot read {BUILD_DESCRIPTION} ({_first_line(exc)})") from None
+        raise FmuBuilderError(f"{path}: cannot read {BUILD_DESCRIPTION} ({first_line(exc)})") from None
     matching = [c for c in configurations if c.modelIdentifier in (identifier, None)] or list(configurations)
     sets = [s for c in matching[:1] for s in c.sourceFileSets]
     files = tuple(f for s in sets for f in s.sourceFiles)
@@ -203,11 +203,6 @@ def _first_error(output: str, unpacked: Path) -> str:
     chosen = next((line for line in lines if re.search(r"\berror:|CMake Error|undefined reference", line)),
                   lines[-1] if lines else "no output")
     return chosen.replace(unpacked.as_posix() + "/", "")
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip()
-    return text.splitlines()[0] if text else type(exc).__name__
 
 
 def _announce(path: Path, compiled: Path) -> None:

@@ -16,7 +16,7 @@ from fmpy.validation import validate_fmu
 from fmubuilder.build import build_cmake_project
 from fmubuilder.errors import FmuBuilderError
 from fmubuilder.export import HybridSpec, validate_hybrid
-from fmubuilder.export.wrapper import c_comment
+from fmubuilder.export.c_text import c_comment
 from fmubuilder.fmi import read_model_info
 
 from .test_wrapper import make_hybrid, make_network
