@@ -278,30 +278,34 @@ def _build_inputs(root: pathlib.Path) -> list[pathlib.Path]:
 
 
 def _built_examples_dir() -> pathlib.Path:
-    """Folder with all example FMUs for the current sources; builds it if missing.
+    """Folder with all example FMUs for the current sources; built once (cached_folder)."""
+    return cached_folder(cache_dir() / "examples", examples_source_hash(), _build_examples)
 
-    Concurrent processes serialize on a lock file; the result appears by an atomic rename,
-    so a reader never sees a half-written folder.
-    """
-    examples_cache = cache_dir() / "examples"
-    examples_cache.mkdir(parents=True, exist_ok=True)
-    key = examples_source_hash()
-    final = examples_cache / key
+
+def _build_examples(staged: pathlib.Path, scratch: pathlib.Path) -> None:
+    build = build_cmake_project(repo_root(), scratch / "build", keep_going=True,
+                                progress_label="building the example FMUs (once; cached)")
+    for fmu in build.fmus():
+        shutil.copy2(fmu, staged / fmu.name)
+    if len(build.fmus()) < len(list_examples()):
+        (staged / _FAILED_BUILD_LOG).write_text(build.output)
+
+
+def cached_folder(cache: pathlib.Path, key: str, fill) -> pathlib.Path:
+    """cache/key, made once by `fill(staged, scratch)` filling the empty folder `staged` (with
+    room to work in `scratch`). Concurrent processes serialize on a lock file and the result
+    appears by an atomic rename, so a reader never sees a half-written folder."""
+    cache.mkdir(parents=True, exist_ok=True)
+    final = cache / key
     if final.is_dir():
         return final
-    with file_lock(examples_cache / f".{key}.lock"):
+    with file_lock(cache / f".{key}.lock"):
         if final.is_dir():  # another process finished it while we waited
             return final
-        with tempfile.TemporaryDirectory(prefix=f".{key}-", dir=examples_cache) as scratch:
-            scratch = pathlib.Path(scratch)
-            build = build_cmake_project(repo_root(), scratch / "build", keep_going=True,
-                                        progress_label="building the example FMUs (once; cached)")
-            staged = scratch / "fmus"
+        with tempfile.TemporaryDirectory(prefix=f".{key}-", dir=cache) as scratch:
+            staged = pathlib.Path(scratch) / "result"
             staged.mkdir()
-            for fmu in build.fmus():
-                shutil.copy2(fmu, staged / fmu.name)
-            if len(build.fmus()) < len(list_examples()):
-                (staged / _FAILED_BUILD_LOG).write_text(build.output)
+            fill(staged, pathlib.Path(scratch))
             os.rename(staged, final)
     return final
 

@@ -26,7 +26,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tempfile
 import time
 import zlib
 from concurrent.futures import ProcessPoolExecutor
@@ -85,8 +84,7 @@ VLDM_VARIANTS = (
 # of 0.2 s, so that successive 10 Hz samples correlate by about exp(-0.5) = 0.6.
 SENSOR_NOISE = dict(noise_model="lowpass", noise_filter_tau=0.2)
 
-# The DC drive (examples/dc_drive): the profile of 30 s, driven `profile_repeats` times.
-DC_DRIVE_PROFILE_SECONDS = 30.0
+# The DC drive (examples/dc_drive): its profile of 30 s, driven `profile_repeats` times.
 DC_DRIVE_RUNS = (
     DrivingCycle("twice", 2, "the drive profile twice (60 s)", "", "train", "profile_repeats", 60.0),
     DrivingCycle("thrice", 3, "the drive profile three times (90 s, the winding hotter)", "", "test",
@@ -312,25 +310,17 @@ def _generator_source_hash() -> str:
 
 
 def _generate(fmu: Path, data_set: DataSet, target: Path) -> None:
-    """Simulate one data set into the cache; the folder appears atomically when complete."""
+    """Simulate one data set into the cache; its folder appears complete or not at all."""
+    from .build import cached_folder
     from .synth import measure, write_measurement
-    folder = target.parent
-    if folder.is_dir():
-        return
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    measurement = measure(fmu, stop_time=data_set.stop_time, start_values=data_set.start_values,
-                          settings=bench_settings(data_set), truth_parameters=data_set.variant.truth_parameters)
-    extra = {"example": {"variant": data_set.variant.key, "effect": data_set.variant.summary,
-                         "cycle": data_set.cycle.title, "role": data_set.cycle.role}}
-    with tempfile.TemporaryDirectory(prefix=".tmp-", dir=folder.parent) as scratch:
-        staged = Path(scratch) / "data"
-        staged.mkdir()
+
+    def simulate_into(staged: Path, scratch: Path) -> None:
+        measurement = measure(fmu, stop_time=data_set.stop_time, start_values=data_set.start_values,
+                              settings=bench_settings(data_set), truth_parameters=data_set.variant.truth_parameters)
+        extra = {"example": {"variant": data_set.variant.key, "effect": data_set.variant.summary,
+                             "cycle": data_set.cycle.title, "role": data_set.cycle.role}}
         write_measurement(measurement, staged / target.name, extra_metadata=extra)
-        try:
-            os.rename(staged, folder)
-        except OSError:
-            if not folder.is_dir():  # not just another process finishing the same set first
-                raise
+    cached_folder(target.parent.parent, target.parent.name, simulate_into)
 
 
 # ---------------------------------------------------------------------------------------

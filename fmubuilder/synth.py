@@ -73,7 +73,7 @@ import numpy as np
 
 from .data import (UNCERTAINTY_SUFFIX, first_order_lag, read_sidecar, sidecar_path,  # noqa: F401
                    split_uncertainty_columns)
-from .errors import FmuBuilderError
+from .errors import FmuBuilderError, suggestion
 from .files import file_sha256, write_atomically
 
 DEFAULT_SIGNALS = ("speed", "power", "energy")
@@ -334,7 +334,7 @@ def _check_signals(info, settings: BenchSettings) -> None:
         var = info.variables.get(name)
         if var is None:
             raise FmuBuilderError(
-                f"unknown signal '{name}' in model '{info.model_name}'{_close_names(name, info.variables)}; "
+                f"unknown signal '{name}' in model '{info.model_name}'{suggestion(name, info.variables)}; "
                 "`fmubuilder inspect` lists the variables")
         if var.type != "Real":
             raise FmuBuilderError(f"signal '{name}' is a {var.type} variable: log Real variables only")
@@ -344,12 +344,6 @@ def _check_signals(info, settings: BenchSettings) -> None:
         settings.noise_of(name)  # fails early for a signal without a noise level
 
 
-def _close_names(name: str, names) -> str:
-    import difflib
-    close = difflib.get_close_matches(name, list(names), n=3)
-    return f" (did you mean {', '.join(repr(c) for c in close)}?)" if close else ""
-
-
 def _typed_start_values(info, start_values: Mapping[str, object]) -> dict[str, object]:
     from .fmi import convert_value
     typed = {}
@@ -357,7 +351,7 @@ def _typed_start_values(info, start_values: Mapping[str, object]) -> dict[str, o
         var = info.variables.get(name)
         if var is None:
             raise FmuBuilderError(
-                f"unknown start value '{name}' in model '{info.model_name}'{_close_names(name, info.variables)}; "
+                f"unknown start value '{name}' in model '{info.model_name}'{suggestion(name, info.variables)}; "
                 "`fmubuilder inspect` lists the variables")
         typed[name] = convert_value(var, value)
     return typed
@@ -374,7 +368,7 @@ def _run_start_values(info, start_values: dict, settings: BenchSettings,
             if var is None or var.type != "Real" or not var.is_parameter:
                 raise FmuBuilderError(
                     f"run variation of '{name}': only Real parameters of the FMU can vary between runs"
-                    f"{_close_names(name, [p.name for p in info.parameters if p.type == 'Real'])}")
+                    f"{suggestion(name, [p.name for p in info.parameters if p.type == 'Real'])}")
             nominal = float(values.get(name, var.start if var.start is not None else 0.0))
             values[name] = nominal * (1.0 + rng.normal(0.0, rel_std))
         runs.append(values)

@@ -118,7 +118,8 @@ class HybridSpec:
                 f"{source} is a hybrid spec of version {data.get('version')}; this fmubuilder reads version {VERSION}")
         missing = [k for k in ("original_fmu", "original_guid", "channels", "inputs", "onnx") if k not in data]
         if missing:
-            raise FmuBuilderError(f"{source}: the hybrid spec lacks {', '.join(missing)}; add them or re-export the spec")
+            raise FmuBuilderError(
+                f"{source}: the hybrid spec lacks {', '.join(missing)}; add them or re-export the spec")
         return cls(
             original_fmu=base / data["original_fmu"], original_guid=str(data["original_guid"]),
             channels=list(data["channels"]), inputs=list(data["inputs"]), onnx=base / data["onnx"],

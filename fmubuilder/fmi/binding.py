@@ -117,12 +117,12 @@ def load_library(path: Path):
     CALL[0] = CODE["dlopen"]  # library constructors run here
     try:
         lib = ffi.dlopen(str(path), ffi.RTLD_NOW | ffi.RTLD_LOCAL)
-        CALL[0] = -CODE["dlopen"]
     except OSError as exc:
-        CALL[0] = -CODE["dlopen"]
         raise FmuBuilderError(f"cannot load the FMU binary {path.name} ({_loader_reason(exc, path)}); the binary is "
                               "broken or not built for Linux x86_64: export the FMU again") from None
-    missing = [name for name in REQUIRED_FUNCTIONS if not _exports(lib, name)]
+    finally:
+        CALL[0] = -CODE["dlopen"]
+    missing = [name for name in REQUIRED_FUNCTIONS if not hasattr(lib, name)]  # cffi: AttributeError when missing
     if missing:
         raise FmuBuilderError(
             f"the FMU binary {path.name} does not export {', '.join(missing)}; it is not an FMI 2.0 Model-Exchange binary")
@@ -133,11 +133,3 @@ def _loader_reason(exc: OSError, path: Path) -> str:
     """The dynamic loader's reason without the paths and cffi's find_library remark."""
     text = str(exc).split(".  Additionally", 1)[0]
     return text.rsplit(f"{path}: ", 1)[-1].strip() or type(exc).__name__
-
-
-def _exports(lib, name: str) -> bool:
-    try:
-        getattr(lib, name)
-        return True
-    except AttributeError:
-        return False

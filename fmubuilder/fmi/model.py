@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from ..errors import FmuBuilderError
+from ..errors import FmuBuilderError, suggestion
 
 # FMI 2.0 types and the C API family that reads/writes them.
 API_TYPE = {"Real": "Real", "Integer": "Integer", "Enumeration": "Integer",
@@ -90,7 +90,7 @@ class ModelInfo:
         except KeyError:
             raise FmuBuilderError(
                 f"unknown variable '{name}' in model '{self.model_name}'"
-                f"{_suggestion(name, self.variables)}; `fmubuilder inspect` lists the variables"
+                f"{suggestion(name, self.variables)}; `fmubuilder inspect` lists the variables"
             ) from None
 
     def state_index(self, name: str) -> int:
@@ -100,12 +100,6 @@ class ModelInfo:
             if var.name in (state.name, der.name):
                 return i
         raise FmuBuilderError(f"'{name}' is not a continuous state or state derivative of '{self.model_name}'")
-
-
-def _suggestion(name: str, names) -> str:
-    import difflib
-    close = difflib.get_close_matches(name, list(names), n=3)
-    return f" (did you mean {', '.join(repr(c) for c in close)}?)" if close else ""
 
 
 def _float(literal) -> float | None:

@@ -9,15 +9,13 @@ FMU's name and bytes and the CMake helper, so an unchanged FMU is compiled once 
 from __future__ import annotations
 
 import hashlib
-import os
 import re
 import sys
-import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..build import CMakeBuildError, build_cmake_project, cache_dir, data_path, file_lock
+from ..build import CMakeBuildError, build_cmake_project, cache_dir, cached_folder, data_path
 from ..errors import FmuBuilderError, first_line
 from .archive import (BUILD_DESCRIPTION, binary_entry, binary_platform, check_entry_inside, inflate_member,
                       max_extract_bytes, read_model_info)
@@ -61,15 +59,10 @@ def _has_platform_binary(path: Path) -> bool:
 def compiled_fmu(path: Path, model_identifier: str) -> Path:
     """The cached copy of the source FMU ``path`` with a binary for this machine (built on demand;
     concurrent processes wait for one build)."""
-    root = cache_dir() / "source_fmus"
-    root.mkdir(parents=True, exist_ok=True)
-    key = _cache_key(path)
-    final = root / key
-    target = final / path.name
-    if not target.is_file():
-        with file_lock(root / f".{key}.lock"):
-            if not target.is_file():
-                _build_into(path, model_identifier, root, final)
+    def build_into(staged: Path, scratch: Path) -> None:
+        library = _compile(path, model_identifier, scratch)
+        _copy_with_binary(path, binary_entry(model_identifier), library, staged / path.name)
+    target = cached_folder(cache_dir() / "source_fmus", _cache_key(path), build_into) / path.name
     _announce(path, target)
     return target
 
@@ -110,17 +103,6 @@ def _cache_key(path: Path) -> str:
         while block := file.read(1 << 20):
             digest.update(block)
     return digest.hexdigest()[:20]
-
-
-def _build_into(path: Path, model_identifier: str, root: Path, final: Path) -> None:
-    """Compile in a scratch folder beside the cache entry and rename the result into place."""
-    with tempfile.TemporaryDirectory(prefix=".build-", dir=root) as scratch:
-        scratch = Path(scratch)
-        library = _compile(path, model_identifier, scratch)
-        staged = scratch / "result"
-        staged.mkdir()
-        _copy_with_binary(path, binary_entry(model_identifier), library, staged / path.name)
-        os.rename(staged, final)
 
 
 def _compile(path: Path, model_identifier: str, scratch: Path) -> bytes:
