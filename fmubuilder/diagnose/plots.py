@@ -109,14 +109,13 @@ def units_of(info) -> dict[str, str]:
 
 
 def _figure(plt, rows: int, columns: int = 1, **options):
-    fig, axes = plt.subplots(rows, columns, figsize=(4.5 * columns + 3, 2.4 * rows + 0.6), squeeze=False,
-                             **options)
-    return fig, axes
+    return plt.subplots(rows, columns, figsize=(4.5 * columns + 3, 2.4 * rows + 0.6), squeeze=False, **options)
 
 
 def _save(plt, fig, path: Path, title: str) -> Path:
     fig.suptitle(title, fontsize=11)
-    fig.tight_layout()
+    if fig.get_layout_engine() is None:     # a constrained layout (room for a colourbar) stays
+        fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
@@ -179,10 +178,5 @@ def _residual_vs_inputs(plt, folder, data, nominal, inputs, shown, left_out, uni
     title = "Diagnosis: residuals against the traced variables"
     if left_out:
         title += f"\n(left out, they accumulate over time: {', '.join(left_out)})"
-    fig.suptitle(title, fontsize=11)
-    bar = fig.colorbar(points, ax=axes, fraction=0.03, pad=0.01)
-    bar.set_label("time [s]")
-    path = folder / "residual_vs_inputs.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    fig.colorbar(points, ax=axes, fraction=0.03, pad=0.01).set_label("time [s]")
+    return _save(plt, fig, folder / "residual_vs_inputs.png", title)

@@ -38,11 +38,9 @@ BASES = {
 
 
 def basis_values(basis: str, u: np.ndarray) -> np.ndarray:
-    """phi(u) for an array (the scalar forms above, vectorised)."""
+    """phi(u) for an array (the scalar forms above work on arrays too; the constant needs its shape)."""
     if basis == "1":
         return np.ones_like(u)
-    if basis == "|w|":
-        return np.abs(u)
     return np.asarray(BASES[basis](u), dtype=float)
 
 

@@ -31,9 +31,7 @@ BINARY_OPS = {"Add": "+", "Sub": "-", "Mul": "*", "Div": "/"}
 # Elementwise unary operations (Abs and Neg appear in fitted symbolic terms such as k*w*|w|).
 ACTIVATIONS = {"Tanh": "tanh", "Sigmoid": "sigmoid", "Relu": "relu", "Abs": "fabs", "Neg": "neg"}
 SHAPE_OPS = ("Identity", "Reshape", "Flatten", "Squeeze", "Unsqueeze")
-SUPPORTED_OPS = tuple(
-    sorted({"Gemm", "MatMul", "Constant", "Shape", *BINARY_OPS, *ACTIVATIONS, *SHAPE_OPS})
-)
+SUPPORTED_OPS = tuple(sorted({"Gemm", "MatMul", "Constant", "Shape", *BINARY_OPS, *ACTIVATIONS, *SHAPE_OPS}))
 
 _DEFAULT_DOMAINS = ("", "ai.onnx")
 
@@ -164,16 +162,10 @@ class _Lowering:
             n_outputs = self._copy_output(output_name)
         steps = _live_steps(self.steps, output_tensor)
         used_arrays = set().union(*(step.arrays for step in steps))
-        return _Program(
-            prefix=self.prefix,
-            n_inputs=math.prod(input_shape),
-            n_outputs=n_outputs,
-            steps=steps,
-            arrays=[(name, values) for name, values in self.arrays if name in used_arrays],
-            input_tensor=input_name,
-            output_tensor=output_tensor,
-            op_types=sorted({node.op_type for node in self.graph.node}),
-        )
+        return _Program(prefix=self.prefix, n_inputs=math.prod(input_shape), n_outputs=n_outputs, steps=steps,
+                        arrays=[(name, values) for name, values in self.arrays if name in used_arrays],
+                        input_tensor=input_name, output_tensor=output_tensor,
+                        op_types=sorted({node.op_type for node in self.graph.node}))
 
     # graph boundary ---------------------------------------------------------------------------
 

@@ -42,14 +42,8 @@ class FrozenNetwork:
     max_abs_diff: float  # largest |onnxruntime - torch| over the check samples
 
 
-def freeze(
-    module: torch.nn.Module,
-    n_inputs: int,
-    path: str | os.PathLike,
-    *,
-    check_samples: int = 256,
-    seed: int = 0,
-) -> FrozenNetwork:
+def freeze(module: torch.nn.Module, n_inputs: int, path: str | os.PathLike, *, check_samples: int = 256,
+           seed: int = 0) -> FrozenNetwork:
     """Export `module` (one sample of `n_inputs` values in, a vector out) to ONNX in float64.
 
     The ONNX model is run with onnxruntime on `check_samples` random inputs (standard normal,
@@ -111,17 +105,8 @@ def _export(network: torch.nn.Module, n_inputs: int) -> bytes:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            torch.onnx.export(
-                network,
-                (dummy,),
-                buffer,
-                dynamo=False,
-                export_params=True,
-                opset_version=OPSET,
-                do_constant_folding=True,
-                input_names=[INPUT_NAME],
-                output_names=[OUTPUT_NAME],
-            )
+            torch.onnx.export(network, (dummy,), buffer, dynamo=False, export_params=True, opset_version=OPSET,
+                              do_constant_folding=True, input_names=[INPUT_NAME], output_names=[OUTPUT_NAME])
     except Exception as exc:  # exporter errors come in many types
         raise FmuBuilderError(
             f"torch could not export the network to ONNX ({exc}); use only standard layers "
