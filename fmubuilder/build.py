@@ -48,14 +48,9 @@ class CMakeBuild:
 # Generic CMake build
 
 
-def build_cmake_project(
-    source_dir: str | os.PathLike,
-    build_dir: str | os.PathLike,
-    target: str | None = None,
-    definitions: dict[str, str] | None = None,
-    keep_going: bool = False,
-    progress_label: str | None = None,
-) -> CMakeBuild:
+def build_cmake_project(source_dir: str | os.PathLike, build_dir: str | os.PathLike, target: str | None = None,
+                        definitions: dict[str, str] | None = None, keep_going: bool = False,
+                        progress_label: str | None = None) -> CMakeBuild:
     """Configure and build ``source_dir`` into ``build_dir`` (Release, all cores).
 
     ``target`` builds one target instead of all; ``definitions`` become ``-D`` cache
@@ -151,11 +146,8 @@ def _run(command: list[str], what: str, source_dir: pathlib.Path, check: bool,
     else:
         code, output = _run_with_progress(command, progress_label)
     if check and code != 0:
-        raise CMakeBuildError(
-            f"{what} {source_dir} with CMake failed (exit code {code}); fix the errors below:\n"
-            + _tail(output),
-            output,
-        )
+        raise CMakeBuildError(f"{what} {source_dir} with CMake failed (exit code {code}); fix the errors below:\n"
+                              + _tail(output), output)
     return output
 
 
@@ -244,8 +236,7 @@ def example_fmu(name: str) -> pathlib.Path:
         output = log.read_text(errors="replace") if log.is_file() else ""
         raise FmuBuilderError(
             f"example FMU '{name}' failed to build; fix its C sources in examples/ (compiler output below):\n"
-            + _tail(_lines_about(output, name))
-        )
+            + _tail(_lines_about(output, name)))
     return fmu
 
 

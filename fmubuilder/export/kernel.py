@@ -508,16 +508,11 @@ def _render(program: _Program) -> GeneratedKernel:
         steps.append(view)
 
     context = {
-        "prefix": program.prefix,
-        "guard": f"{program.prefix.upper()}_H_INCLUDED",
-        "header_name": f"{program.prefix}.h",
-        "n_inputs": program.n_inputs,
-        "n_outputs": program.n_outputs,
+        "prefix": program.prefix, "guard": f"{program.prefix.upper()}_H_INCLUDED",
+        "header_name": f"{program.prefix}.h", "n_inputs": program.n_inputs, "n_outputs": program.n_outputs,
         "op_types": [c_comment(op) for op in program.op_types],
         "arrays": [(name, [c_double(v) for v in values]) for name, values in program.arrays],
-        "buffers": buffers,
-        "buffer_size": buffer_size,
-        "steps": steps,
+        "buffers": buffers, "buffer_size": buffer_size, "steps": steps,
         "uses_input": any(program.input_tensor in s.reads for s in program.steps),
         "uses_sigmoid": any(s.get("function") == "sigmoid" for s in steps),
     }
