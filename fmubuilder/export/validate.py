@@ -281,7 +281,10 @@ def _embedded_spec(hybrid_fmu: Path, folder: Path) -> tuple[HybridSpec, dict[str
 
 def _gate_index(gates) -> dict[str, tuple[int, str]]:
     """Gate parameter name -> (channel index, 'p_ann' | 'p_fmu'), from each channel's (p_ann, p_fmu) names."""
-    return {name: (c, which) for c, pair in enumerate(gates) for name, which in zip(pair, ("p_ann", "p_fmu"))}
+    index = {}
+    for c, (p_ann, p_fmu) in enumerate(gates):
+        index[p_ann], index[p_fmu] = (c, "p_ann"), (c, "p_fmu")
+    return index
 
 
 def _model_identifier(xml: bytes) -> str:
