@@ -15,11 +15,13 @@ candidate was not built (no significant effect, no term). The seconds are the ca
 The work is counted: `--budget` is the NeuralFMU's loss evaluations (each a simulation of all
 training elements with gradient; the diagnosis' work is fixed), so the numbers do not depend on how
 busy the machine is. `--optimizer` trains with another optimizer than hybridize's default, on the
-same budget (`adam`, `lbfgs`, or `adam-lbfgs:N`: L-BFGS after N Adam steps), to compare them.
+same budget (`adam`, `lbfgs`, or `adam-lbfgs:N`: L-BFGS after N Adam steps), to compare them;
+`--elements N` cuts the training data into at least N elements (hybridize: MIN_ELEMENTS).
 `--truth-only` scores the truth FMU alone: a quick check of the scoring.
 
     python benchmarks/bench_effects.py [--cases dc_drive,vldm | dc_drive:stribeck,...] [--budget EVALUATIONS]
-                                       [--optimizer adam|lbfgs|adam-lbfgs:N] [--truth-only]
+                                       [--optimizer adam|lbfgs|adam-lbfgs:N] [--elements N]
+                                       [--truth-only]
 """
 from __future__ import annotations
 
@@ -48,6 +50,8 @@ def main() -> None:
     parser.add_argument("--budget", type=int, default=DEFAULT_BUDGET, help="NeuralFMU loss evaluations per training")
     parser.add_argument("--optimizer", default=None, metavar="adam|lbfgs|adam-lbfgs:N",
                         help="the training's optimizer (default: hybridize's)")
+    parser.add_argument("--elements", type=int, default=None,
+                        help="at least this many training elements (default: hybridize's)")
     parser.add_argument("--truth-only", action="store_true",
                         help="score the truth FMU alone (checks the scoring; no hybridize)")
     args = parser.parse_args()
@@ -55,6 +59,10 @@ def main() -> None:
         cases = _cases(args.cases)
         if args.optimizer:
             workflow.OPTIMIZER, workflow.ADAM_STEPS = _optimizer(args.optimizer)
+        if args.elements is not None:
+            if args.elements < 1:
+                raise ValueError(f"--elements: give 1 or more, got {args.elements}")
+            workflow.MIN_ELEMENTS = args.elements
     except ValueError as exc:
         sys.exit(f"error: {exc}")
     folder = Path(tempfile.mkdtemp(prefix="bench_effects_"))
@@ -72,7 +80,7 @@ def main() -> None:
         print(f"done: {example} {variant} ({seconds:.0f} s), {scoring.describe()}", flush=True)
     optimizer = workflow.OPTIMIZER + (f" after {workflow.ADAM_STEPS} Adam steps" if workflow.ADAM_STEPS else "")
     print(f"\nTest MSE / noise variance of the measured value (1 = noise floor), {args.budget} loss evaluations "
-          f"({optimizer}):\n")
+          f"({optimizer}, at least {workflow.MIN_ELEMENTS} elements):\n")
     print("| case | signal | truth FMU | plain FMU | fitted term | NeuralFMU | ANN on the term | chosen "
           "| NeuralFMU channels and inputs | seconds |")
     print("|---|---|---|---|---|---|---|---|---|---|")

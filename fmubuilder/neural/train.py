@@ -48,7 +48,10 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    lowest loss at the end. Elements in random order, `batch_size` side by side, or sequential (time
    order, one at a time, each continuing the state just computed). Or `optimizer="lbfgs"`: one
    L-BFGS step over all elements per epoch, its line search on fixed element starts, the
-   pre-/post-processing fixed (see network_parameters). With
+   pre-/post-processing fixed (see network_parameters), after `adam_steps` Adam steps if asked. The
+   work is `epochs`, or with `budget` a number of loss evaluations, each a simulation of a batch with
+   its gradient (an Adam step costs one, an L-BFGS step what its line search takes), spent exactly:
+   the way to compare optimizers on equal work. With
    `validation` data the training ends instead with the parameters of the best validation score,
    the start included. Fixed seeds, a time budget, a checkpoint after every epoch, and resume.
 5. Errors before (plain FMU) and after (trained hybrid) over the whole data, simulated with

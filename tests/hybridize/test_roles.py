@@ -88,6 +88,20 @@ def test_train_start_values_belong_to_the_train_file_before_them():
     assert args.budget > 0 and args.time_budget is None
 
 
+HYBRIDIZE = ["hybridize", "m.fmu", "--train", "a.csv", "--test", "t.csv", "-o", "h.fmu", "--report", "r"]
+
+
+def test_the_training_budget_is_a_count_of_loss_evaluations_on_the_command_line(capsys):
+    from fmubuilder.cli import build_parser
+    assert build_parser().parse_args([*HYBRIDIZE, "--budget", "3"]).budget == 3
+    for bad in ("-1", "2.5", "ten"):
+        with pytest.raises(SystemExit) as stopped:
+            build_parser().parse_args([*HYBRIDIZE, "--budget", bad])
+        assert stopped.value.code == 2
+        error = capsys.readouterr().err
+        assert error.startswith("error: argument --budget") and error.count("\n") == 1 and "Traceback" not in error
+
+
 def strip_wall_times(report: dict) -> dict:
     report = json.loads(json.dumps(report))
     for key in ("seconds", "timings", "hybrid_fmu", "model_fmu", "plots"):
