@@ -55,7 +55,8 @@ DEFAULT_BUDGET = 10
 # friction the NeuralFMU's validation score 17.9 against Adam's 59.7, and it is chosen, its worst
 # test signal 190 x the noise where Adam's choice (the ANN on the term) left 961; on the Stribeck
 # friction the term stays the choice (its NeuralFMU: worst test signal 1350 against 2130, validation
-# 87.7 against 65.4). Three Adam steps first landed in between on both.
+# 87.7 against 65.4), and on the speed-current loss (its NeuralFMU: 305 against 1410). Three Adam
+# steps first landed in between on both frictions.
 OPTIMIZER = "lbfgs"
 ADAM_STEPS = 0
 # Seconds of the test data replayed by the round-trip validation (fmpy Euler and CVode).
