@@ -31,7 +31,7 @@ ADDED = "neural on the fitted term"      # not a candidate before
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", default="stribeck,coulomb,speed_current_loss,two_effects")
-    parser.add_argument("--budget", type=int, default=5, help="NeuralFMU epochs per case")
+    parser.add_argument("--budget", type=int, default=5, help="NeuralFMU loss evaluations per training")
     args = parser.parse_args()
     folder = Path(tempfile.mkdtemp(prefix="bench_choice_"))
     info = read_model_info(example_fmu("dc_drive"))
@@ -43,7 +43,7 @@ def main() -> None:
     for variant in variants:
         train, test = _data("dc_drive", variant)
         report = hybridize(example_fmu("dc_drive"), train, test, folder / f"{variant}.fmu", folder / variant,
-                           epochs=args.budget, progress=False).report
+                           budget=args.budget, progress=False).report
         noise = read_data(test, info)
         floors = {s: noise.noise_variance(s) for s in noise.names}
         selection = report["selection"]

@@ -12,11 +12,15 @@ sensor's standard deviation squared over the number of runs averaged); a cell is
 candidate was not built (no significant effect, no term). The seconds are the case's wall time
 (the whole hybridize call; with --truth-only the step check and the truth's run).
 
-The work is counted: `--budget` is the NeuralFMU's epochs (the diagnosis' work is fixed), so the
-numbers do not depend on how busy the machine is. `--truth-only` scores the truth FMU alone: a
-quick check of the scoring.
+The work is counted: `--budget` is the NeuralFMU's loss evaluations (each a simulation of all
+training elements with gradient; the diagnosis' work is fixed), so the numbers do not depend on how
+busy the machine is. `--optimizer` trains with another optimizer than hybridize's default, on the
+same budget (`adam`, `lbfgs`, or `adam-lbfgs:N`: L-BFGS after N Adam steps), to compare them;
+`--elements N` cuts the training data into at least N elements (hybridize: MIN_ELEMENTS).
+`--truth-only` scores the truth FMU alone: a quick check of the scoring.
 
-    python benchmarks/bench_effects.py [--cases dc_drive,vldm | dc_drive:stribeck,...] [--budget EPOCHS]
+    python benchmarks/bench_effects.py [--cases dc_drive,vldm | dc_drive:stribeck,...] [--budget EVALUATIONS]
+                                       [--optimizer adam|lbfgs|adam-lbfgs:N] [--elements N]
                                        [--truth-only]
 """
 from __future__ import annotations
@@ -33,7 +37,8 @@ from fmubuilder.examples_zoo import EXAMPLES, cached_data, example_data_sets
 from fmubuilder.fmi import read_model_info
 from fmubuilder.hybridize import hybridize
 from fmubuilder.hybridize.evaluate import Scoring, evaluate, read_data
-from fmubuilder.hybridize.workflow import VALIDATION_SHARE
+from fmubuilder.hybridize import workflow
+from fmubuilder.hybridize.workflow import DEFAULT_BUDGET, VALIDATION_SHARE
 
 DECLARED = {"dc_drive": "dc_drive", "vldm": "vldm"}
 
@@ -42,12 +47,22 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", default="dc_drive,vldm",
                         help="examples, or example:variant, comma-separated")
-    parser.add_argument("--budget", type=int, default=10, help="NeuralFMU epochs per case")
+    parser.add_argument("--budget", type=int, default=DEFAULT_BUDGET, help="NeuralFMU loss evaluations per training")
+    parser.add_argument("--optimizer", default=None, metavar="adam|lbfgs|adam-lbfgs:N",
+                        help="the training's optimizer (default: hybridize's)")
+    parser.add_argument("--elements", type=int, default=None,
+                        help="at least this many training elements (default: hybridize's)")
     parser.add_argument("--truth-only", action="store_true",
                         help="score the truth FMU alone (checks the scoring; no hybridize)")
     args = parser.parse_args()
     try:
         cases = _cases(args.cases)
+        if args.optimizer:
+            workflow.OPTIMIZER, workflow.ADAM_STEPS = _optimizer(args.optimizer)
+        if args.elements is not None:
+            if args.elements < 1:
+                raise ValueError(f"--elements: give 1 or more, got {args.elements}")
+            workflow.MIN_ELEMENTS = args.elements
     except ValueError as exc:
         sys.exit(f"error: {exc}")
     folder = Path(tempfile.mkdtemp(prefix="bench_effects_"))
@@ -59,11 +74,13 @@ def main() -> None:
         report = None
         if not args.truth_only:
             report = hybridize(example_fmu(DECLARED[example]), train, test, folder / f"{example}_{variant}.fmu",
-                               folder / f"{example}_{variant}", epochs=args.budget, progress=False).report
+                               folder / f"{example}_{variant}", budget=args.budget, progress=False).report
         seconds = time.perf_counter() - started
         rows += _rows(f"{example} {variant}", truth, report, read_sidecar(test), seconds)
         print(f"done: {example} {variant} ({seconds:.0f} s), {scoring.describe()}", flush=True)
-    print(f"\nTest MSE / noise variance of the measured value (1 = noise floor), {args.budget} epochs:\n")
+    optimizer = workflow.OPTIMIZER + (f" after {workflow.ADAM_STEPS} Adam steps" if workflow.ADAM_STEPS else "")
+    print(f"\nTest MSE / noise variance of the measured value (1 = noise floor), {args.budget} loss evaluations "
+          f"({optimizer}, at least {workflow.MIN_ELEMENTS} elements):\n")
     print("| case | signal | truth FMU | plain FMU | fitted term | NeuralFMU | ANN on the term | chosen "
           "| NeuralFMU channels and inputs | seconds |")
     print("|---|---|---|---|---|---|---|---|---|---|")
@@ -82,6 +99,15 @@ def _cases(spec: str) -> list[tuple[str, str]]:
             raise ValueError(f"--cases: {example} has no variant '{variant}'; choose among {', '.join(variants)}")
         cases += [(example, v) for v in variants if not variant or v == variant]
     return cases
+
+
+def _optimizer(spec: str) -> tuple[str, int]:
+    name, _, steps = spec.partition(":")
+    if name in ("adam", "lbfgs") and not steps:
+        return name, 0
+    if name == "adam-lbfgs" and steps.isdigit():
+        return "lbfgs", int(steps)
+    raise ValueError(f"--optimizer: '{spec}' is none of adam, lbfgs, adam-lbfgs:N")
 
 
 def _truth_errors(example: str, variant: str, train: Path, test: Path) -> tuple[Scoring, dict]:

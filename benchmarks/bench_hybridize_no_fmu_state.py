@@ -2,11 +2,11 @@
 
 sampled_plant (a DC motor under a sampled PI controller) and its variant compiled with
 canGetAndSetFMUstate="false", on the same measured data (the friction four times the declared
-one, shaft speed with noise; a set-point input), with the same budget (epochs, seed). Without
+one, shaft speed with noise; a set-point input), with the same budget (loss evaluations, seed). Without
 snapshots the NeuralFMU's element starts are carried over or replayed, which is exact, so the
 two rows should agree. Printed: each candidate's mean MSE relative to the plain FMU per role.
 
-    python benchmarks/bench_hybridize_no_fmu_state.py [--epochs N] [--keep DIR]
+    python benchmarks/bench_hybridize_no_fmu_state.py [--budget N] [--keep DIR]
 """
 from __future__ import annotations
 
@@ -46,7 +46,7 @@ def write_data(fmu: Path, profile, seed: int, path: Path) -> Path:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--epochs", type=int, default=10)
+    parser.add_argument("--budget", type=int, default=10, help="the NeuralFMU's loss evaluations")
     parser.add_argument("--keep", type=Path, help="folder for the data, hybrids and reports (default: temporary)")
     args = parser.parse_args()
     warnings.simplefilter("ignore")
@@ -59,7 +59,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|")
     for label, name in (("snapshots", "sampled_plant"), ("no FMU state", "sampled_plant_no_fmu_state")):
         out = folder / name
-        result = hybridize(example_fmu(name), train, test, out / "hybrid.fmu", out / "report", epochs=args.epochs,
+        result = hybridize(example_fmu(name), train, test, out / "hybrid.fmu", out / "report", budget=args.budget,
                            seed=0, progress=False, force=True)
         for model in result.report["models"]:
             print(f"| {label} | {model['name']}: {model['description']} | {model['train_relative_mse']:.4g} | "

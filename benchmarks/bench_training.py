@@ -5,7 +5,8 @@ logged by the test bench (`synth`: 10 Hz, sensor lag, noise) on 0-15 s for train
 20.5-30 s (a start from rest and a run beyond the training's speeds, another noise seed) held out.
 An ANN (8 tanh units) on der(speed) reads speed. Each method gets the same work: `--passes`
 passes over the training data with gradient through the solver (an Adam epoch is one pass whatever
-its batching; an L-BFGS loss evaluation, line search included, is one pass). Per method: the
+its batching; an L-BFGS loss evaluation, line search included, is one pass), as the training's
+budget of loss evaluations (one per batch), which it spends exactly. Per method: the
 held-out MSE of each measured signal relative to the plain FMU's, averaged (below 1: better), the
 optimizer steps, the passes used, and the wall time relative to the first method, measured in the
 same run. The warm starts (collocation: warm_start.py; Gauss-Newton on the last layer through the
@@ -58,19 +59,15 @@ COMBINATIONS = [("none", name) for name in METHODS] + [
 def run(fmu, train, test, passes: int, warm_start: dict, elements: int, settings: dict) -> dict:
     lbfgs = settings["optimizer"] == "lbfgs"
     length = (train.stop - train.start) / elements * (1 - 1e-9)
-
-    def stop_at_budget(epoch, trainer):   # L-BFGS: the line search decides the evaluations per step
-        return lbfgs and trainer.loss_evaluations >= passes
-
+    batches = elements // settings["batch_size"] if settings.get("batch_size") else 1
     started = time.perf_counter()
     result = train_neural_fmu(fmu, train, targets=["der(speed)"], inputs=["speed"], topology="residual", hidden=[8],
-                              epochs=passes, step_size=0.002, element_length=length, ccpt_window=0.5, **warm_start,
-                              progress=False, test_data=test, on_epoch=stop_at_budget, **settings)
+                              budget=passes * batches, step_size=0.002, element_length=length, ccpt_window=0.5,
+                              **warm_start, progress=False, test_data=test, **settings)
     seconds = time.perf_counter() - started
     errors = result.metrics["test_errors"]
     ratio = float(np.mean([errors["after"][s]["mse"] / errors["before"][s]["mse"] for s in SIGNALS]))
     evaluations = result.metrics["loss_evaluations"]
-    batches = elements // settings["batch_size"] if settings.get("batch_size") else 1
     warm = result.metrics["gauss_newton"] or result.metrics["warm_start"]
     warm_simulations = warm["simulations"] if warm else 0
     result.model.close()

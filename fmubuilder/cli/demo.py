@@ -20,7 +20,7 @@ def add_demo_parser(subparsers, common) -> None:
     p.add_argument("--force", action="store_true",
                    help="replace an existing output folder; it is kept until the new run succeeds")
     p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
-                   help="optional wall-clock cap on the training (default: none; the work is counted in epochs)")
+                   help="optional wall-clock cap on the training (default: none; the work is counted in loss evaluations)")
     p.set_defaults(func=cmd_demo, outputs=lambda args: [args.output])
 
 

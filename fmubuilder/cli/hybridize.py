@@ -26,8 +26,19 @@ class _TrainStart(argparse.Action):
         runs[-1][1].append(value)
 
 
+def _budget(text: str) -> int:
+    """--budget: a whole number of loss evaluations, 0 or more."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number of loss evaluations") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{value}: give 0 or more loss evaluations")
+    return value
+
+
 def add_hybridize_parser(subparsers, common=None) -> None:
-    from ..hybridize.workflow import DEFAULT_EPOCHS, VALIDATION_SHARE
+    from ..hybridize.workflow import DEFAULT_BUDGET, VALIDATION_SHARE
     p = subparsers.add_parser(
         "hybridize", parents=[common] if common else [], help="diagnose, add the missing effect, train, export and validate a hybrid FMU, with a report")
     p.add_argument("fmu", metavar="MODEL.fmu", help="the first-principle FMI 2.0 Model-Exchange FMU")
@@ -45,8 +56,10 @@ def add_hybridize_parser(subparsers, common=None) -> None:
     p.add_argument("--test-start", action="append", metavar="NAME=VALUE", help="start value for the test data")
     p.add_argument("--output", "-o", required=True, metavar="HYBRID.fmu", help="the hybrid FMU to write")
     p.add_argument("--report", required=True, metavar="DIR", help="folder for report.json, report.md and plots")
-    p.add_argument("--epochs", type=int, default=DEFAULT_EPOCHS, metavar="N",
-                   help=f"NeuralFMU training epochs (default {DEFAULT_EPOCHS})")
+    p.add_argument("--budget", type=_budget, default=DEFAULT_BUDGET, metavar="N",
+                   help="the NeuralFMU training's work in loss evaluations, each a simulation of all training "
+                        f"elements with its gradient (default {DEFAULT_BUDGET}); the same number gives the same "
+                        "result on any machine")
     p.add_argument("--seed", type=int, default=0, help="random seed of the training (default 0)")
     p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                    help="optional wall-clock cap on the training; the report says when it cut the training short "
@@ -69,7 +82,7 @@ def cmd_hybridize(args) -> None:
     result = hybridize(args.fmu, train, args.test, args.output, args.report, validation_csv=args.validation,
                        train_start=train_start,
                        validation_start=parse_assignments(args.validation_start, "--validation-start"),
-                       test_start=parse_assignments(args.test_start, "--test-start"), epochs=args.epochs,
+                       test_start=parse_assignments(args.test_start, "--test-start"), budget=args.budget,
                        seed=args.seed, time_budget=args.time_budget, force=args.force,
                        allow_insignificant=args.allow_insignificant, ann_on_term=args.ann_on_term)
     print(summary(result))

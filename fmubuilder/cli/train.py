@@ -26,6 +26,12 @@ def add_train_parser(subparsers, common=None) -> argparse.ArgumentParser:
     p.add_argument("--activation", default="tanh", choices=["tanh", "sigmoid", "relu"])
     p.add_argument("--parameters", metavar="A,B", help="tunable FMU parameters to train as well")
     p.add_argument("--epochs", type=int, default=30, help="default 30")
+    p.add_argument("--budget", type=int, metavar="N",
+                   help="train for N loss evaluations (each a simulation of a batch with its gradient) instead of "
+                        "--epochs")
+    p.add_argument("--optimizer", default="adam", choices=["adam", "lbfgs"],
+                   help="adam: one step per batch; lbfgs: one step over all elements per epoch, its line search "
+                        "up to 10 loss evaluations (default adam)")
     p.add_argument("--time-budget", type=float, metavar="SECONDS", help="stop training after this many seconds")
     p.add_argument("--element-length", type=float, default=100.0, metavar="SECONDS", help="batch element length (default 100)")
     p.add_argument("--batch-size", type=int, default=0, help="elements per optimizer step (default: all)")
@@ -62,7 +68,7 @@ def cmd_train(args) -> None:
     except ValueError:
         raise FmuBuilderError(f"--hidden must be comma-separated integers, got '{args.hidden}'") from None
     settings = TrainSettings(
-        epochs=args.epochs, element_length=args.element_length, order=args.order, batch_size=args.batch_size,
+        epochs=args.epochs, budget=args.budget, optimizer=args.optimizer, element_length=args.element_length, order=args.order, batch_size=args.batch_size,
         step_size=args.step_size, solver=args.solver, learning_rate=args.lr, decay=args.decay,
         nipt_iterations=args.nipt, ccpt_iterations=args.ccpt, time_budget=args.time_budget, seed=args.seed,
         loss_signals=parse_names(args.loss, "--loss"), sensor_lag=args.sensor_lag, resume=args.resume, progress=not args.quiet)
@@ -78,7 +84,8 @@ def cmd_train(args) -> None:
 
 
 def summary(metrics: dict, output) -> str:
-    lines = [f"trained {metrics['epochs']} epoch(s) in {metrics['seconds']:.1f} s; wrote {output}"]
+    lines = [f"trained {metrics['epochs']} epoch(s), {metrics['loss_evaluations']} loss evaluation(s), in "
+             f"{metrics['seconds']:.1f} s; wrote {output}"]
     for key, label in (("errors", "training data"), ("test_errors", "test data")):
         if key not in metrics:
             continue

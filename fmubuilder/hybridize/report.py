@@ -182,8 +182,9 @@ def _diagnosis_section(report: dict) -> list[str]:
     if training:
         cut = (" The wall-clock cap of {:g} s cut it short.".format(training["time_budget"])
                if training["cut_short_by_time_budget"] else "")
-        lines.append(f"\nThe NeuralFMU trained {training['epochs_done']} of {training['epochs']} epochs "
-                     f"(seed {training['seed']}) on `{training['trained_on']}`.{cut}")
+        lines.append(f"\nThe NeuralFMU trained with {training['loss_evaluations']} of {training['budget']} loss "
+                     f"evaluations ({training['optimizer']}, {training['steps']} steps, seed {training['seed']}) on "
+                     f"`{training['trained_on']}`.{cut}")
     return lines
 
 
@@ -216,13 +217,14 @@ def _cell(text: str) -> str:
 def _candidate_note(model: dict, training: dict | None) -> str:
     """Why a row looks the way it does."""
     notes = []
-    if model.get("epochs") is not None:       # a NeuralFMU, plain or on the fitted term
-        done = model.get("epochs")
-        asked = (training or {}).get("epochs")
-        notes.append(f"trained {done} of {asked} epochs" if asked is not None else f"trained {done} epochs")
+    if model.get("loss_evaluations") is not None:       # a NeuralFMU, plain or on the fitted term
+        done = model.get("loss_evaluations")
+        asked = (training or {}).get("budget")
+        notes.append(f"trained with {done} of {asked} loss evaluations" if asked is not None
+                     else f"trained with {done} loss evaluations")
         if done == 0:
-            notes.append("the wall-clock cap ran out before the first epoch ended"
-                         if (training or {}).get("cut_short_by_time_budget") else "no epochs were asked for")
+            notes.append("the wall-clock cap ran out before the first loss evaluation"
+                         if (training or {}).get("cut_short_by_time_budget") else "no training was asked for")
         elif (training or {}).get("cut_short_by_time_budget"):
             notes.append("cut short by the wall-clock cap")
     elif model.get("calibrated"):

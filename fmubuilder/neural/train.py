@@ -48,7 +48,10 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    lowest loss at the end. Elements in random order, `batch_size` side by side, or sequential (time
    order, one at a time, each continuing the state just computed). Or `optimizer="lbfgs"`: one
    L-BFGS step over all elements per epoch, its line search on fixed element starts, the
-   pre-/post-processing fixed (see network_parameters). With
+   pre-/post-processing fixed (see network_parameters), after `adam_steps` Adam steps if asked. The
+   work is `epochs`, or with `budget` a number of loss evaluations, each a simulation of a batch with
+   its gradient (an Adam step costs one, an L-BFGS step what its line search takes), spent exactly:
+   the way to compare optimizers on equal work. With
    `validation` data the training ends instead with the parameters of the best validation score,
    the start included. Fixed seeds, a time budget, a checkpoint after every epoch, and resume.
 5. Errors before (plain FMU) and after (trained hybrid) over the whole data, simulated with
@@ -84,6 +87,7 @@ from .topology import TopologyConfig
 @dataclass
 class TrainSettings:
     epochs: int = 30
+    budget: int | None = None         # loss evaluations instead of epochs: the training's work (see Trainer.fit)
     element_length: float = 100.0     # seconds of data per batch element
     order: str = "random"             # "random" (from reference snapshots) or "sequential" (carry-over)
     batch_size: int = 0               # elements per optimizer step; 0: all elements at once
@@ -91,6 +95,7 @@ class TrainSettings:
     solver: str = "euler"
     learning_rate: float = 3e-3
     optimizer: str = "adam"           # "adam" (one step per batch) or "lbfgs" (full batch, line search)
+    adam_steps: int = 0               # with "lbfgs": Adam steps (one batch each) before the L-BFGS steps
     processing_step_factor: float = 0.1   # step size of the pre-/post-processing relative to the ANN's (0: fixed)
     decay: float = 0.95               # step-size factor per epoch
     backtrack: bool = True            # an epoch worse than the best: back to the best, half the step size
@@ -175,7 +180,8 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
         after = evaluate(model, data, trainer.step, settings.solver, sensor_lag=lag)
         metrics = {"errors": {"before": before, "after": after},
                    "seconds": time.perf_counter() - started, "epochs": trainer.epochs_done,
-                   "epochs_planned": settings.epochs, "cut_short_by_time_budget": trainer.cut_short,
+                   "epochs_planned": settings.epochs if settings.budget is None else None,
+                   "budget": settings.budget, "cut_short_by_time_budget": trainer.cut_short,
                    "loss": trainer.history[-1]["loss"] if trainer.history else None,
                    "settings": asdict(settings), "element_start_replays": dict(model.replays),
                    "loss_evaluations": trainer.loss_evaluations, "warm_start": trainer.warm_start,
@@ -212,6 +218,10 @@ def _settings(settings: TrainSettings | None, overrides: dict) -> TrainSettings:
         raise FmuBuilderError(f"unknown element order '{settings.order}': use random or sequential")
     if settings.epochs < 0:
         raise FmuBuilderError(f"epochs must be >= 0, got {settings.epochs}")
+    if settings.budget is not None and settings.budget < 0:
+        raise FmuBuilderError(f"the budget must be >= 0 loss evaluations, got {settings.budget}")
+    if settings.adam_steps < 0:
+        raise FmuBuilderError(f"adam_steps must be >= 0, got {settings.adam_steps}")
     if not settings.element_length > 0:
         raise FmuBuilderError(f"element length must be positive, got {settings.element_length}")
     if settings.sensor_lag is not None and not settings.sensor_lag >= 0:
@@ -330,7 +340,8 @@ class Trainer:
         self.warm_start: dict | None = None   # what the warm start did (see warm_start.py)
         self.gauss_newton: dict | None = None  # what the Gauss-Newton warm start did (gauss_newton.py)
         self.best_loss, self.best_state, self._best = math.inf, None, None   # see _keep_best
-        self._lbfgs_last = None    # ((parameters, element starts), loss, gradient) of the last L-BFGS evaluation
+        self._lbfgs_seen: list = []   # ((parameters, element starts), loss, gradients) of recent L-BFGS evaluations
+        self._lbfgs_tried: list = []  # (parameters, loss) of the points the current L-BFGS step asked for
 
     def elapsed(self) -> float:
         return time.perf_counter() - self.started
@@ -460,51 +471,98 @@ class Trainer:
 
     # -- the epoch loop -------------------------------------------------------------------------
     def fit(self, checkpoint: Path | None = None, on_epoch=None) -> None:
+        """The epochs, one optimizer step per batch, until `epochs` of them; with a `budget`, until
+        that many loss evaluations instead (an Adam step costs one, an L-BFGS step what its line
+        search takes, at most LBFGS_LINE_SEARCH_EVALUATIONS). The count of work, not of steps, is
+        what makes the optimizers comparable and the result independent of the machine's load."""
         settings, model = self.settings, self.model
         parameters = [p for p in model.topology.parameters() if p.requires_grad]
-        if not parameters or settings.epochs == 0:
+        if not parameters or self._planned_work() == 0:
             self.restore_best()
             return
-        optimizer = self._optimizer(parameters)
-        scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=settings.decay if settings.optimizer == "adam" else 1.0)
-        first_epoch = 0
-        if settings.resume and checkpoint is not None and checkpoint.is_file():
-            first_epoch = self._load_checkpoint(checkpoint, optimizer, scheduler)
+        state = self._read_checkpoint(checkpoint) if settings.resume and checkpoint is not None and checkpoint.is_file() else None
+        first_epoch = self._resume_from(state) if state is not None else 0
+        optimizer = self._optimizer(parameters, lbfgs=self._lbfgs_now())
+        scheduler = self._scheduler(optimizer)
+        if state is not None:
+            optimizer.load_state_dict(state["optimizer"])
+            scheduler.load_state_dict(state["scheduler"])
         batches = self._batches_per_epoch()
-        # counted in batches (known beforehand); a time budget or on_epoch may stop it early, with a note
-        bar = Bar(settings.epochs * batches, "training", "batch", initial=first_epoch * batches,
+        # counted in batches or loss evaluations (known beforehand); a time budget or on_epoch may stop it early, with a note
+        bar = Bar(self._planned_work(), "training", "evaluation" if settings.budget is not None else "batch",
+                  initial=self.loss_evaluations if settings.budget is not None else first_epoch * batches,
                   show=None if settings.progress else False)
         rng = np.random.default_rng(settings.seed + first_epoch)
         try:
-            for epoch in range(first_epoch, settings.epochs):
+            epoch = first_epoch
+            while not self._work_done(epoch):
                 if self.out_of_time():
                     bar.stop("time budget used up")
                     break
+                if isinstance(optimizer, torch.optim.Adam) and self._lbfgs_now():   # the Adam steps are done
+                    optimizer = self._optimizer(parameters, lbfgs=True)
+                    scheduler = self._scheduler(optimizer)
                 before = (_copy_state(model.topology), copy.deepcopy(optimizer.state_dict()),
                           [element.start for element in self.elements])
+                evaluations = self.loss_evaluations
                 losses = self._epoch(rng, optimizer, bar, epoch)
                 if not losses:
                     bar.stop("time budget used up")
                     break
+                converged = self.loss_evaluations == evaluations   # an L-BFGS step that found nothing to try
                 scheduler.step()
                 loss = float(np.mean(losses))
-                rewind = batches == 1 and settings.optimizer == "adam"   # L-BFGS has its line search
+                rewind = batches == 1 and isinstance(optimizer, torch.optim.Adam)   # L-BFGS has its line search
                 backtracked = self._keep_best(loss, before, optimizer, rewind=rewind)
-                self.epochs_done = epoch + 1
-                self.history.append({"epoch": epoch + 1, "loss": loss, "seconds": self.elapsed(),
+                epoch = self.epochs_done = epoch + 1
+                self.history.append({"epoch": epoch, "loss": loss, "seconds": self.elapsed(),
                                      "lr": optimizer.param_groups[0]["lr"], "backtracked": backtracked,
-                                     "validation": self._track_validation(epoch + 1)})
+                                     "loss_evaluations": self.loss_evaluations,
+                                     "validation": self._track_validation(epoch)})
                 if checkpoint is not None:
-                    self._save_checkpoint(checkpoint, optimizer, scheduler, epoch + 1)
-                if on_epoch is not None and on_epoch(epoch + 1, self):
-                    bar.stop(f"ended by the caller after epoch {epoch + 1}")
+                    self._save_checkpoint(checkpoint, optimizer, scheduler, epoch)
+                if on_epoch is not None and on_epoch(epoch, self):
+                    bar.stop(f"ended by the caller after epoch {epoch}")
+                    break
+                if converged and settings.budget is not None:
+                    bar.stop("L-BFGS converged: its gradient vanished")
                     break
         except KeyboardInterrupt:
             bar.stop("interrupted")
             raise
         finally:
             bar.close()
+        if isinstance(optimizer, torch.optim.LBFGS):
+            self._keep_last_lbfgs_point()
         self.restore_best()
+
+    def _planned_work(self) -> int:
+        """The bar's total: loss evaluations with a budget, else batches."""
+        if self.settings.budget is not None:
+            return self.settings.budget
+        return self.settings.epochs * self._batches_per_epoch()
+
+    def _work_done(self, epoch: int) -> bool:
+        if self.settings.budget is not None:
+            return self.loss_evaluations >= self.settings.budget
+        return epoch >= self.settings.epochs
+
+    def _evaluations_left(self) -> float:
+        budget = self.settings.budget
+        return math.inf if budget is None else budget - self.loss_evaluations
+
+    def _lbfgs_now(self) -> bool:
+        """Whether the steps are L-BFGS's: with optimizer="lbfgs", after the first adam_steps loss evaluations."""
+        return self.settings.optimizer == "lbfgs" and self.loss_evaluations >= self.settings.adam_steps
+
+    def _scheduler(self, optimizer):
+        decay = self.settings.decay if isinstance(optimizer, torch.optim.Adam) else 1.0
+        return torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=decay)
+
+    def _status(self, epoch: int) -> str:
+        if self.settings.budget is not None:
+            return f"{self.loss_evaluations}/{self.settings.budget} evaluations"
+        return f"epoch {epoch + 1}/{self.settings.epochs}"
 
     def _epoch(self, rng, optimizer, bar, epoch: int) -> list[float]:
         """One pass over the elements, one optimizer step per batch; the batches' losses."""
@@ -512,7 +570,7 @@ class Trainer:
             return self._lbfgs_step(optimizer, bar, epoch)
         losses = []
         for batch in self._epoch_batches(rng):
-            if self.out_of_time():
+            if self.out_of_time() or self._evaluations_left() <= 0 or (losses and self._lbfgs_now()):
                 break
             optimizer.zero_grad()
             loss = self.batch_loss(batch)
@@ -520,35 +578,70 @@ class Trainer:
             optimizer.step()
             self.loss_evaluations += 1
             losses.append(float(loss.detach()))
-            bar.advance(1, epoch=f"{epoch + 1}/{self.settings.epochs}", loss=f"{losses[-1]:.4g}")
+            bar.advance(1, at=self._status(epoch), loss=f"{losses[-1]:.4g}")
         return losses
 
     def _lbfgs_step(self, optimizer, bar, epoch: int) -> list[float]:
         """One L-BFGS iteration over all elements at once; its line search evaluates the loss a few
         times on the same element starts (no carry-over: the loss must be one function). Returns
-        the loss at the parameters the step started from."""
-        loss = float(optimizer.step(self._lbfgs_closure(optimizer)))
+        the loss at the parameters the step started from. With a budget the line search gets what
+        is left of it; should it ask for more, the step ends at the lowest loss it has evaluated."""
+        parameters = optimizer.param_groups[0]["params"]
+        start_is_known = self._lbfgs_known(_flat(parameters)) is not None
+        left = self._evaluations_left()
+        optimizer.param_groups[0]["max_eval"] = int(min(LBFGS_LINE_SEARCH_EVALUATIONS,
+                                                        max(left - (0 if start_is_known else 1), 1)))
+        spent = self.loss_evaluations
+        self._lbfgs_tried = []
+        try:
+            loss = float(optimizer.step(self._lbfgs_closure(optimizer)))
+        except _BudgetSpent:
+            loss = float(self._lbfgs_tried[0][1])
+            best = min(self._lbfgs_tried, key=lambda tried: float(tried[1]))
+            torch.nn.utils.vector_to_parameters(best[0], parameters)
         if bar is not None:
-            bar.advance(1, epoch=f"{epoch + 1}/{self.settings.epochs}", loss=f"{loss:.4g}")
+            bar.advance(self.loss_evaluations - spent if self.settings.budget is not None else 1,
+                        at=self._status(epoch), loss=f"{loss:.4g}")
         return [loss] if math.isfinite(loss) else []
 
+    def _lbfgs_known(self, parameters: torch.Tensor):
+        """The remembered evaluation (point, loss, gradients) at these parameters and the current element starts."""
+        point = (parameters, [e.start for e in self.elements])
+        return next((seen for seen in reversed(self._lbfgs_seen) if _same_point(seen[0], point)), None)
+
+    def _keep_last_lbfgs_point(self) -> None:
+        """The epoch losses are measured at each step's start, so the point the last step reached
+        would be lost; its loss is known from its line search: keep it if it is the lowest."""
+        if not self.settings.keep_best or self.best_state is None:
+            return
+        parameters = network_parameters(self.model.topology, [p for p in self.model.topology.parameters()
+                                                              if p.requires_grad])
+        seen = self._lbfgs_known(_flat(parameters))
+        if seen is not None and float(seen[1]) < self.best_loss:
+            self.best_loss, self.best_state = float(seen[1]), _copy_state(self.model.topology)
+
     def _lbfgs_closure(self, optimizer):
-        """The loss and its gradient for torch's L-BFGS, with two guards:
-        * each step() starts by evaluating the point where the previous step's line search ended;
-          that evaluation is remembered and given back instead of simulated again (a whole pass),
-          as long as the parameters and the element starts are the same objects' same values;
+        """The loss and its gradient for torch's L-BFGS, with three guards:
+        * an evaluation at a point evaluated before (the point where the previous step's line search
+          ended, with which each step() starts, or a point its zoom went back to) is given back
+          instead of simulated again (a whole pass), as long as the parameters and the element
+          starts are the same objects' same values;
         * a trial point whose simulation diverged (loss inf or nan) reports an infinite loss and a
           nan gradient: the strong Wolfe search then brackets it and bisects back towards the
-          start. A nan loss compares false with everything and was accepted as the step."""
+          start. A nan loss compares false with everything and was accepted as the step;
+        * an evaluation beyond the budget raises _BudgetSpent (see _lbfgs_step)."""
         parameters = optimizer.param_groups[0]["params"]
 
         def closure():
-            point = (torch.cat([p.detach().flatten() for p in parameters]), [e.start for e in self.elements])
-            remembered = self._lbfgs_last
-            if remembered is not None and _same_point(remembered[0], point):
+            point = (_flat(parameters), [e.start for e in self.elements])
+            remembered = self._lbfgs_known(point[0])
+            if remembered is not None:
                 for p, gradient in zip(parameters, remembered[2]):
                     p.grad = gradient.clone()
+                self._lbfgs_tried.append((point[0], remembered[1]))
                 return remembered[1].clone()
+            if self._evaluations_left() <= 0:
+                raise _BudgetSpent
             optimizer.zero_grad()
             loss = self.batch_loss(self.elements, carry=False)
             self.loss_evaluations += 1
@@ -559,17 +652,19 @@ class Trainer:
                 for p in parameters:
                     p.grad = torch.full_like(p, math.nan)
             loss = loss.detach()
-            self._lbfgs_last = (point, loss, [p.grad.detach().clone() if p.grad is not None else torch.zeros_like(p)
-                                              for p in parameters])
+            self._lbfgs_tried.append((point[0], loss))
+            self._lbfgs_seen.append((point, loss, [p.grad.detach().clone() if p.grad is not None else torch.zeros_like(p)
+                                                   for p in parameters]))
+            del self._lbfgs_seen[:-2 * LBFGS_LINE_SEARCH_EVALUATIONS]
             return loss
         return closure
 
-    def _optimizer(self, parameters):
+    def _optimizer(self, parameters, lbfgs: bool):
         """Adam; the pre-/post-processing at processing_step_factor times the step size. Adam moves
         every parameter by about the step size whatever its units, and a shift in the channel's
         units (m/s² for a speed) moved by 3e-3 per epoch outruns the network: the correction turns
         into a constant offset, wrong at standstill, before the network has shaped it."""
-        if self.settings.optimizer == "lbfgs":
+        if lbfgs:
             parameters = network_parameters(self.model.topology, parameters)
             # max_eval: torch's default (max_iter * 5 // 4 = 1) leaves its line search no evaluation
             # beyond the first trial, so a step that overshot was taken back to t = 0 and the
@@ -737,24 +832,27 @@ class Trainer:
                  "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
                  "history": self.history, "torch_rng": torch.get_rng_state(),
                  "best_loss": self.best_loss, "best_state": self.best_state,
-                 "config": self.model.config.to_dict()}
+                 "loss_evaluations": self.loss_evaluations, "config": self.model.config.to_dict()}
         buffer = io.BytesIO()
         torch.save(state, buffer)
         write_atomically(path, buffer.getvalue())
 
-    def _load_checkpoint(self, path: Path, optimizer, scheduler) -> int:
+    def _read_checkpoint(self, path: Path) -> dict:
         try:
             state = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as exc:
             raise FmuBuilderError(f"cannot read the checkpoint {path} ({type(exc).__name__}); delete it to start over") from None
         if state.get("config") != self.model.config.to_dict():
             raise FmuBuilderError(f"the checkpoint {path} belongs to another topology; delete it or train without --resume")
+        return state
+
+    def _resume_from(self, state: dict) -> int:
+        """The training's state from a checkpoint, but the optimizer's (see fit); returns the epochs done."""
         self.model.topology.load_state_dict(state["topology"])
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
         self.history = list(state["history"])
         self.best_loss, self.best_state = float(state.get("best_loss", math.inf)), state.get("best_state")
         torch.set_rng_state(state["torch_rng"])
+        self.loss_evaluations = int(state.get("loss_evaluations", 0))
         self.epochs_done = int(state["epoch"])
         return self.epochs_done
 
@@ -810,6 +908,14 @@ def network_parameters(topology, parameters) -> list:
     spent 10 loss evaluations on a step that lowered the loss by 0.3 %."""
     processing = {id(p) for p in topology.processing_parameters()}
     return [p for p in parameters if id(p) not in processing]
+
+
+class _BudgetSpent(Exception):
+    """The line search asked for a loss evaluation beyond the training's budget."""
+
+
+def _flat(parameters) -> torch.Tensor:
+    return torch.cat([p.detach().flatten() for p in parameters])
 
 
 def _same_point(a: tuple, b: tuple) -> bool:

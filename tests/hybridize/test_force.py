@@ -71,7 +71,7 @@ def test_allow_insignificant_builds_candidates_that_force_does_not(no_effect, tm
     plain = hybridize(example_fmu("dc_drive"), train, test, tmp_path / "a.fmu", tmp_path / "a", force=True,
                       progress=False)
     assert not plain.report["diagnosis"]["significant"] and plain.report["models"] == []
-    allowed = hybridize(example_fmu("dc_drive"), train, test, tmp_path / "b.fmu", tmp_path / "b", epochs=1,
+    allowed = hybridize(example_fmu("dc_drive"), train, test, tmp_path / "b.fmu", tmp_path / "b", budget=1,
                         allow_insignificant=True, progress=False)
     report = allowed.report
     assert not report["diagnosis"]["significant"]           # still said plainly

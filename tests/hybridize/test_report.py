@@ -52,7 +52,7 @@ def published(files, tmp_path_factory):
     """A small hybridize run (one epoch): the fitted term is published."""
     folder = tmp_path_factory.mktemp("report")
     result = hybridize(example_fmu("dc_drive"), files["train"], files["test"], folder / "windage_hybrid.fmu",
-                       folder / "report", epochs=1, progress=False)
+                       folder / "report", budget=1, progress=False)
     assert result.hybrid_fmu is not None, "the windage must be found and published for these tests"
     return result
 
@@ -95,15 +95,15 @@ def test_the_round_trip_names_the_published_fmu_not_a_temporary_file(published):
 def test_the_candidate_table_explains_each_row(published):
     candidates = section((published.report_dir / "report.md").read_text(), "Candidates")
     neural = next(line for line in candidates.splitlines() if line.startswith("| neural |"))
-    assert "trained 1 of 1 epochs" in neural
+    assert "trained with 1 of 1 loss evaluations" in neural
     fitted = next(line for line in candidates.splitlines() if line.startswith("| fitted term |"))
     assert "speed*\\|speed\\|" in fitted and fitted.count(" | ") == 7   # the term's bars do not split the row
 
 
 def test_a_network_that_trained_zero_epochs_says_why():
-    row = {"name": "neural", "epochs": 0, **{f"{r}_relative_mse": 1.0 for r in ("train", "validation", "test")}}
-    note = _candidate_note(row, {"epochs": 10, "cut_short_by_time_budget": True})
-    assert "trained 0 of 10 epochs" in note and "cap ran out before the first epoch" in note
+    row = {"name": "neural", "loss_evaluations": 0, **{f"{r}_relative_mse": 1.0 for r in ("train", "validation", "test")}}
+    note = _candidate_note(row, {"budget": 10, "cut_short_by_time_budget": True})
+    assert "trained with 0 of 10 loss evaluations" in note and "cap ran out before the first loss evaluation" in note
     assert "adds nothing" in note
 
 
@@ -195,7 +195,7 @@ def test_candidate_notes_say_how_each_kind_was_made():
     term = _candidate_note({"name": "fitted term", "fitted_on": "a.csv", **scores}, None)
     calibrated = _candidate_note({"name": "calibrated mass", "calibrated": {"mass": 1.0}, "simulations": 7,
                                   "fitted_on": "a.csv", **scores}, None)
-    on_term = _candidate_note({"name": "neural on the fitted term", "epochs": 4, **scores}, {"epochs": 10})
+    on_term = _candidate_note({"name": "neural on the fitted term", "loss_evaluations": 4, **scores}, {"budget": 10})
     assert term.startswith("fitted by the diagnosis on `a.csv`")
     refinement = {"kept": True, "coefficients_before": "-0.000298", "coefficients_after": "-0.0003", "simulations": 5}
     refined = _candidate_note({"name": "fitted term", "fitted_on": "a.csv", "refinement": refinement, **scores}, None)
@@ -204,4 +204,4 @@ def test_candidate_notes_say_how_each_kind_was_made():
                                  "refinement": {**refinement, "kept": False}}, None)
     assert "coefficient kept" in unrefined and "->" not in unrefined
     assert calibrated.startswith("calibrated by Gauss-Newton on `a.csv` in 7 simulations")
-    assert on_term.startswith("trained 4 of 10 epochs")
+    assert on_term.startswith("trained with 4 of 10 loss evaluations")

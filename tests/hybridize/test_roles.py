@@ -85,7 +85,21 @@ def test_train_start_values_belong_to_the_train_file_before_them():
                               "--train", "b.csv", "--train-start", "x=3", "--test", "t.csv", "-o", "h.fmu",
                               "--report", "r"])
     assert args.train == [("a.csv", ["x=1", "y=2"]), ("b.csv", ["x=3"])]
-    assert args.epochs > 0 and args.time_budget is None
+    assert args.budget > 0 and args.time_budget is None
+
+
+HYBRIDIZE = ["hybridize", "m.fmu", "--train", "a.csv", "--test", "t.csv", "-o", "h.fmu", "--report", "r"]
+
+
+def test_the_training_budget_is_a_count_of_loss_evaluations_on_the_command_line(capsys):
+    from fmubuilder.cli import build_parser
+    assert build_parser().parse_args([*HYBRIDIZE, "--budget", "3"]).budget == 3
+    for bad in ("-1", "2.5", "ten"):
+        with pytest.raises(SystemExit) as stopped:
+            build_parser().parse_args([*HYBRIDIZE, "--budget", bad])
+        assert stopped.value.code == 2
+        error = capsys.readouterr().err
+        assert error.startswith("error: argument --budget") and error.count("\n") == 1 and "Traceback" not in error
 
 
 def strip_wall_times(report: dict) -> dict:
@@ -99,7 +113,7 @@ def strip_wall_times(report: dict) -> dict:
 
 def run_small(files, folder):
     return hybridize(example_fmu("dc_drive"), files["train"], files["test"], folder / "hybrid.fmu",
-                     folder / "report", epochs=2, time_budget=600.0, progress=False)
+                     folder / "report", budget=2, time_budget=600.0, progress=False)
 
 
 @pytest.fixture
@@ -120,7 +134,7 @@ def idle_report(files, tmp_path):
 
 def test_the_same_command_gives_the_same_numbers_on_a_busy_machine(files, tmp_path, idle_report, busy_cores):
     busy = run_small(files, tmp_path / "busy").report
-    assert busy["training"]["epochs_done"] == idle_report["training"]["epochs_done"] == 2
+    assert busy["training"]["loss_evaluations"] == idle_report["training"]["loss_evaluations"] == 2
     assert not busy["training"]["cut_short_by_time_budget"]
     assert strip_wall_times(busy) == strip_wall_times(idle_report)
     # the report says which numbers chose and which were touched once
@@ -134,7 +148,7 @@ def test_the_same_command_gives_the_same_numbers_on_a_busy_machine(files, tmp_pa
 
 def test_a_time_cap_that_cuts_the_training_short_is_reported(files, tmp_path):
     report = hybridize(example_fmu("dc_drive"), files["train"], files["test"], tmp_path / "h.fmu", tmp_path / "r",
-                       epochs=1000, time_budget=1.0, progress=False).report
+                       budget=1000, time_budget=1.0, progress=False).report
     assert report["training"]["cut_short_by_time_budget"]
-    assert report["training"]["epochs_done"] < 1000
+    assert report["training"]["loss_evaluations"] < 1000
     assert "cut it short" in (tmp_path / "r" / "report.md").read_text()

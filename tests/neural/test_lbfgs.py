@@ -95,7 +95,7 @@ def test_lbfgs_does_not_accept_a_diverged_trial(trainer):
     and the finite-difference Jacobians at the diverged states stay silent."""
     start, gradient = loss_and_gradient(trainer)
     params = parameters(trainer)
-    optimizer = trainer._optimizer(params)
+    optimizer = trainer._optimizer(params, lbfgs=True)
     optimizer.param_groups[0]["lr"] = 32.0
     first_trial = -32.0 * gradient / float(gradient.abs().sum())
     assert not math.isfinite(loss_at(trainer, first_trial))

@@ -1,0 +1,94 @@
+"""The training's work counted in loss evaluations (TrainSettings.budget): every optimizer spends
+exactly the budget, counted here by wrapping the loss itself, and L-BFGS set up as hybridize sets
+it up lowers the training loss from where the warm start left it."""
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from fmubuilder.errors import FmuBuilderError
+from fmubuilder.hybridize import workflow
+from fmubuilder.neural.model import NeuralFMU
+from fmubuilder.neural.topology import TopologyConfig
+from fmubuilder.neural.train import Trainer, TrainSettings, train_neural_fmu
+
+from .conftest import plant_data
+
+COMMON = dict(targets=["der(w)"], inputs=["w"], topology="residual", hidden=[8], element_length=1.0,
+              step_size=0.002, progress=False)
+
+
+@pytest.fixture(scope="module")
+def plant_train(plant_fmu):
+    train, _ = plant_data(plant_fmu, [0, 1, 1.001, 2.5, 2.501, 4], [1, 1, 2, 2, 0.5, 0.5], 4.0, seed=0)
+    return train
+
+
+@pytest.fixture
+def counted_losses(monkeypatch):
+    """The number of times the training loss (a simulation of a batch of elements) is computed."""
+    calls = []
+    original = Trainer.batch_loss
+
+    def batch_loss(self, batch, carry=True):
+        calls.append(len(batch))
+        return original(self, batch, carry)
+
+    monkeypatch.setattr(Trainer, "batch_loss", batch_loss)
+    return calls
+
+
+@pytest.mark.parametrize("optimizer, adam_steps", [("adam", 0), ("lbfgs", 0), ("lbfgs", 2), ("lbfgs", 4)])
+def test_the_budget_is_spent_exactly(plant_fmu, plant_train, counted_losses, optimizer, adam_steps):
+    """5 loss evaluations whatever the optimizer: Adam's steps, L-BFGS's line searches (the last one
+    given what is left), and with 4 Adam steps first an L-BFGS step left one evaluation: its start,
+    its line search cut before the first trial."""
+    result = train_neural_fmu(plant_fmu, plant_train, budget=5, optimizer=optimizer, adam_steps=adam_steps,
+                              **COMMON)
+    result.model.close()
+    assert len(counted_losses) == 5 == result.metrics["loss_evaluations"]
+    assert len(set(counted_losses)) == 1          # each a pass over all elements (one batch)
+    steps = [h["loss_evaluations"] for h in result.history]
+    if optimizer == "adam":
+        assert steps == [1, 2, 3, 4, 5]
+    else:                                        # Adam's steps first, then L-BFGS's of several evaluations
+        assert steps[:adam_steps] == list(range(1, adam_steps + 1)) and steps[-1] == 5
+        assert len(steps) < 5 or adam_steps == 4
+
+
+def test_epochs_still_count_steps_without_a_budget(plant_fmu, plant_train, counted_losses):
+    result = train_neural_fmu(plant_fmu, plant_train, epochs=2, optimizer="lbfgs", **COMMON)
+    result.model.close()
+    assert result.metrics["epochs"] == 2 and len(counted_losses) == result.metrics["loss_evaluations"] > 2
+
+
+def test_a_negative_budget_is_refused(plant_fmu, plant_train):
+    with pytest.raises(FmuBuilderError, match="budget must be >= 0"):
+        train_neural_fmu(plant_fmu, plant_train, budget=-1, **COMMON)
+
+
+def test_lbfgs_as_hybridize_sets_it_up_lowers_the_training_loss(plant_fmu, plant_train, monkeypatch):
+    """The workflow's training settings (collocation warm start, L-BFGS after its Adam steps),
+    RK4 as hybridize trains: the loss over all elements, simulated again without gradient on the
+    same element starts, is lower after 6 loss evaluations than after the warm start."""
+    monkeypatch.setattr(workflow, "OPTIMIZER", "lbfgs")
+    diagnosis = SimpleNamespace(errors=[SimpleNamespace(signal="w", significant=True)])
+    settings = workflow._training_settings(plant_train, diagnosis)
+    assert settings["optimizer"] == "lbfgs" and settings["warm_start"]
+    settings = TrainSettings(**{**settings, "element_length": 1.0}, budget=6, solver="rk4", step_size=0.002,
+                             progress=False, sensor_lag=0.0)
+    config = TopologyConfig(channels=["der(w)"], inputs=["w"], hidden=[8], kind="residual")
+    torch.manual_seed(0)
+    with NeuralFMU(plant_fmu, config) as model:
+        trainer = Trainer(model, plant_train, settings, 0.0)
+        trainer.prepare()
+        with torch.no_grad():
+            start = float(trainer.batch_loss(trainer.elements, carry=False))
+        lbfgs_starts = [e.start for e in trainer.elements]
+        trainer.fit()
+        assert trainer.loss_evaluations == 6
+        if settings.adam_steps == 0:       # L-BFGS keeps the element starts fixed
+            assert [e.start for e in trainer.elements] == lbfgs_starts
+        with torch.no_grad():
+            end = float(trainer.batch_loss(trainer.elements, carry=False))
+    assert end < 0.9 * start
