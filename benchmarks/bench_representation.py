@@ -15,7 +15,7 @@ all samples and those within NEAR_ZERO rad/s of speed 0), and the train / test M
 floor per signal.
 
     python benchmarks/bench_representation.py [--cases stribeck,coulomb,speed_current_loss]
-        [--hidden 16,16] [--activation tanh] [--iterations N] [--input-scale std|maxabs|F]
+        [--hidden 16,16] [--activation tanh] [--iterations N] [--weight-decay D] [--input-scale std|maxabs|F]
         [--inputs speed,current] [--collocation]
 """
 from __future__ import annotations
@@ -36,7 +36,7 @@ from fmubuilder.neural.model import NeuralFMU
 from fmubuilder.neural.system import simulate_hybrid
 from fmubuilder.neural.topology import TopologyConfig
 from fmubuilder.neural.train import TrainSettings, measured_initial_states
-from fmubuilder.neural.warm_start import fit_full_batch, scale_output_to_effect
+from fmubuilder.neural.warm_start import WEIGHT_DECAY, fit_full_batch, scale_output_to_effect
 from fmubuilder.simulation import simulate
 
 STEP = 0.01
@@ -91,7 +91,7 @@ def run_case(variant: str, args) -> list[list[str]]:
         x, target, speed = samples(model, variant, data_set, train, args.collocation)
         initialise(model, train, args.input_scale, x)
         scale_output_to_effect(model.topology, target)
-        fit_full_batch(model.topology, x, target, args.iterations)
+        fit_full_batch(model.topology, x, target, args.iterations, weight_decay=args.weight_decay)
         with torch.no_grad():
             fitted = model.topology.correction(x)
         truth_x, truth_target, truth_speed = samples(model, variant, data_set, train, False)
@@ -191,6 +191,8 @@ def main() -> None:
     parser.add_argument("--hidden", default=",".join(str(h) for h in TopologyConfig().hidden))
     parser.add_argument("--activation", default=TopologyConfig().activation)
     parser.add_argument("--iterations", type=int, default=TrainSettings().warm_start_iterations)
+    parser.add_argument("--weight-decay", type=float, default=WEIGHT_DECAY,
+                        help="the fit's L2 penalty on the ANN's weights (warm_start.WEIGHT_DECAY; 0: none)")
     parser.add_argument("--input-scale", default="std", help="std (default), maxabs or a factor on the std's")
     parser.add_argument("--inputs", default="", help="override the workflow's inputs, comma-separated")
     parser.add_argument("--collocation", action="store_true",
@@ -201,7 +203,7 @@ def main() -> None:
         rows += run_case(variant.strip(), args)
     source = "collocation estimate" if args.collocation else "true effect"
     print(f"\nANN {args.hidden} {args.activation}, input scale {args.input_scale}, {args.iterations} L-BFGS "
-          f"iterations, fitted to the {source}; MSE / noise variance (1 = floor):\n")
+          f"iterations, weight decay {args.weight_decay:g}, fitted to the {source}; MSE / noise variance (1 = floor):\n")
     print("| case | channels <- inputs | signal | fit error on the true effect (rel. MSE) | train | test |")
     print("|---|---|---|---|---|---|")
     for row in rows:

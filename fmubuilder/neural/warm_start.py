@@ -22,6 +22,10 @@ from .collocation import collocation_samples
 # target's samples at either end left out of its range (single outliers of the estimate).
 RANGE_POINTS = 1024
 RANGE_QUANTILE = 0.001
+# The fit's L2 penalty on the ANN's weights and biases, against the target's variance as 1
+# (benchmarks/bench_representation.py --collocation: on the DC drive's Stribeck and Coulomb
+# estimates the whole-run temperature error of the warm-started hybrid fell about 10-fold with it).
+WEIGHT_DECAY = 1e-4
 
 
 def collocation_targets(trainer):
@@ -48,7 +52,8 @@ def collocation_targets(trainer):
     return torch.from_numpy(np.ascontiguousarray(inputs))[rows], target[rows]
 
 
-def fit_full_batch(topology, x: torch.Tensor, target: torch.Tensor, iterations: int, bounded: bool = True) -> float:
+def fit_full_batch(topology, x: torch.Tensor, target: torch.Tensor, iterations: int, bounded: bool = True,
+                   weight_decay: float = WEIGHT_DECAY) -> float:
     """Least-squares fit of topology.correction(x) to target with L-BFGS over all samples at once
     (the ANN's weights only; the pre-/post-processing stays). Returns the final mean squared error
     relative to the target's variance; a line search that made it worse leaves the start.
@@ -57,7 +62,10 @@ def fit_full_batch(topology, x: torch.Tensor, target: torch.Tensor, iterations: 
     uniformly over the inputs' range (`range_penalty`): the samples leave gaps (a speed that
     crosses 0 within a window the collocation drops), and across a steep change at the gap's edge
     an unconstrained fit swings far out inside it (on the DC drive's Stribeck estimate to 10 times
-    the friction's peak), which the simulation then passes through."""
+    the friction's peak), which the simulation then passes through. `weight_decay` times the sum of
+    the ANN's squared weights and biases is added: the estimate is noisy where the effect changes
+    steeply (at standstill the measured speed is mostly noise), and a steep fit to that noise puts
+    wrong turns into the correction between the samples."""
     scale = target.var(dim=0, unbiased=False).clamp_min(1e-12) if len(target) > 1 else torch.ones(target.shape[1])
     parameters = list(topology.ann.parameters())
     penalty = range_penalty(x, target, scale) if bounded else (lambda _: 0.0)
@@ -66,7 +74,8 @@ def fit_full_batch(topology, x: torch.Tensor, target: torch.Tensor, iterations: 
                                   line_search_fn="strong_wolfe")
 
     def objective():
-        return (((topology.correction(x) - target) ** 2) / scale).mean() + penalty(topology)
+        decay = weight_decay * sum((p ** 2).sum() for p in parameters) if weight_decay else 0.0
+        return (((topology.correction(x) - target) ** 2) / scale).mean() + penalty(topology) + decay
 
     def closure():
         optimizer.zero_grad()

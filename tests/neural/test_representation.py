@@ -38,7 +38,8 @@ def test_the_default_ann_fits_a_smoothed_sign_of_the_speed(dc_drive_fmu):
     speeds = np.linspace(-150.0, 200.0, 3501)       # 10 samples per rad/s, the DC drive's speed range
     topology = default_topology(read_model_info(dc_drive_fmu), speeds)
     target = torch.from_numpy(friction(speeds)[:, None])
-    fit_full_batch(topology, torch.from_numpy(speeds[:, None]), target, TrainSettings().warm_start_iterations)
+    fit_full_batch(topology, torch.from_numpy(speeds[:, None]), target, TrainSettings().warm_start_iterations,
+                   weight_decay=0.0)   # the representation itself: the warm start's decay is for noisy estimates
     dense = np.linspace(-150.0, 200.0, 35001)
     error = correction(topology, dense) - friction(dense)
     assert np.sqrt(np.mean(error ** 2)) < 0.01 * AMPLITUDE
@@ -58,7 +59,7 @@ def test_the_bounded_fit_stays_within_the_range_of_the_samples_across_a_gap(dc_d
     swing = {}
     for bounded in (False, True):
         topology = default_topology(read_model_info(dc_drive_fmu), speeds)
-        fit_full_batch(topology, torch.from_numpy(speeds[:, None]), target, 300, bounded=bounded)
+        fit_full_batch(topology, torch.from_numpy(speeds[:, None]), target, 300, bounded=bounded, weight_decay=0.0)
         swing[bounded] = np.max(np.abs(correction(topology, gap)))
     high = float(np.quantile(target.numpy(), 0.999))
     assert swing[False] > 2.0 * AMPLITUDE           # the case the bound is for
