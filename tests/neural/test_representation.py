@@ -1,6 +1,7 @@
 """What the default ANN can represent, fitted supervised (no solver) with the warm start's full-batch
 fit: a smoothed sign of the speed as the DC drive's Coulomb friction has it (examples/dc_drive/model.c),
-checked against the analytic function; and the bounded fit across a gap in the samples."""
+checked against the analytic function; the bounded fit across a gap in the samples and the weight
+decay against noise at standstill."""
 import numpy as np
 import pytest
 import torch
@@ -8,7 +9,7 @@ import torch
 from fmubuilder.fmi import read_model_info
 from fmubuilder.neural.topology import Topology, TopologyConfig
 from fmubuilder.neural.train import TrainSettings
-from fmubuilder.neural.warm_start import fit_full_batch, range_penalty
+from fmubuilder.neural.warm_start import WEIGHT_DECAY, fit_full_batch, range_penalty
 
 AMPLITUDE = 5.0     # rad/s2: 0.05 N.m of Coulomb friction on 0.01 kg.m2
 SMOOTHING = 1.0     # rad/s
@@ -79,3 +80,27 @@ def test_the_range_penalty_is_the_mean_square_excess_over_the_range():
 
     low = float(np.quantile(target.numpy(), 0.001))
     assert float(range_penalty(x, target, scale)(Zero)) == pytest.approx(low ** 2 / 0.5, rel=1e-12)
+
+
+def test_the_weight_decay_keeps_the_friction_s_sign_between_noisy_standstill_and_the_far_samples(dc_drive_fmu):
+    """At standstill the estimate is noise (the measured speed is mostly sensor noise there); the
+    friction is known only beyond 20 rad/s. Without the warm start's weight decay the fit turns
+    steeply on that noise and the correction between 2 and 20 rad/s takes the wrong sign over much of
+    it; with it the correction keeps the friction's sign there."""
+    rng = np.random.default_rng(0)
+    speeds = np.concatenate([rng.uniform(-0.7, 0.7, 100), rng.uniform(-150.0, -20.0, 1200),
+                             rng.uniform(20.0, 200.0, 1200)])
+    noisy = friction(speeds) + 0.3 * rng.standard_normal(speeds.size)
+    noisy[:100] = 3.0 * rng.standard_normal(100)
+    gap = np.concatenate([np.linspace(-20.0, -2.0, 500), np.linspace(2.0, 20.0, 500)])
+    errors, wrong_sign = {}, {}
+    for decay in (0.0, WEIGHT_DECAY):
+        topology = default_topology(read_model_info(dc_drive_fmu), speeds)
+        fit_full_batch(topology, torch.from_numpy(speeds[:, None]), torch.from_numpy(noisy[:, None]), 300,
+                       weight_decay=decay)
+        fitted = correction(topology, gap)
+        errors[decay] = np.sqrt(np.mean((fitted - friction(gap)) ** 2))
+        wrong_sign[decay] = np.mean(np.sign(fitted) != np.sign(friction(gap)))
+    assert wrong_sign[0.0] > 0.2 and errors[0.0] > 0.8 * AMPLITUDE     # the case the decay is for
+    assert wrong_sign[WEIGHT_DECAY] == 0.0
+    assert errors[WEIGHT_DECAY] < 0.6 * AMPLITUDE
