@@ -18,6 +18,15 @@ import torch
 
 from .collocation import collocation_samples
 
+# The bounded fit (fit_full_batch): grid points over the inputs' range, and the share of the
+# target's samples at either end left out of its range (single outliers of the estimate).
+RANGE_POINTS = 1024
+RANGE_QUANTILE = 0.001
+# The fit's L2 penalty on the ANN's weights and biases, against the target's variance as 1
+# (benchmarks/bench_representation.py --collocation: on the DC drive's Stribeck and Coulomb
+# estimates the whole-run temperature error of the warm-started hybrid fell about 10-fold with it).
+WEIGHT_DECAY = 1e-4
+
 
 def collocation_targets(trainer):
     """(raw ANN inputs [N, n_in], target of the ANN part [N, C]) along the measured trajectory, or
@@ -43,34 +52,65 @@ def collocation_targets(trainer):
     return torch.from_numpy(np.ascontiguousarray(inputs))[rows], target[rows]
 
 
-def fit_full_batch(topology, x: torch.Tensor, target: torch.Tensor, iterations: int) -> float:
+def fit_full_batch(topology, x: torch.Tensor, target: torch.Tensor, iterations: int, bounded: bool = True,
+                   weight_decay: float = WEIGHT_DECAY) -> float:
     """Least-squares fit of topology.correction(x) to target with L-BFGS over all samples at once
     (the ANN's weights only; the pre-/post-processing stays). Returns the final mean squared error
-    relative to the target's variance; a line search that made it worse leaves the start."""
+    relative to the target's variance; a line search that made it worse leaves the start.
+
+    With `bounded`, the fit also pays for the ANN leaving the target's range on a grid spread
+    uniformly over the inputs' range (`range_penalty`): the samples leave gaps (a speed that
+    crosses 0 within a window the collocation drops), and across a steep change at the gap's edge
+    an unconstrained fit swings far out inside it (on the DC drive's Stribeck estimate to 10 times
+    the friction's peak), which the simulation then passes through. `weight_decay` times the sum of
+    the ANN's squared weights and biases is added: the estimate is noisy where the effect changes
+    steeply (at standstill the measured speed is mostly noise), and a steep fit to that noise puts
+    wrong turns into the correction between the samples."""
     scale = target.var(dim=0, unbiased=False).clamp_min(1e-12) if len(target) > 1 else torch.ones(target.shape[1])
     parameters = list(topology.ann.parameters())
+    penalty = range_penalty(x, target, scale) if bounded else (lambda _: 0.0)
     optimizer = torch.optim.LBFGS(parameters, lr=1.0, max_iter=iterations, max_eval=int(iterations * 1.25) + 1,
                                   history_size=20, tolerance_grad=1e-10, tolerance_change=1e-14,
                                   line_search_fn="strong_wolfe")
 
+    def objective():
+        decay = weight_decay * sum((p ** 2).sum() for p in parameters) if weight_decay else 0.0
+        return (((topology.correction(x) - target) ** 2) / scale).mean() + penalty(topology) + decay
+
     def closure():
         optimizer.zero_grad()
-        loss = (((topology.correction(x) - target) ** 2) / scale).mean()
+        loss = objective()
         loss.backward()
         return loss
 
     best = _copy(parameters)
     with torch.no_grad():
-        start_loss = float((((topology.correction(x) - target) ** 2) / scale).mean())
+        start_loss = float(objective())
     optimizer.step(closure)
     optimizer.zero_grad(set_to_none=True)
     with torch.no_grad():
-        loss = float((((topology.correction(x) - target) ** 2) / scale).mean())
+        loss = float(objective())
         if not math.isfinite(loss) or loss > start_loss:     # a diverged line search: keep the start
             for p, saved in zip(parameters, best):
                 p.copy_(saved)
-            loss = start_loss
-    return loss
+        return float((((topology.correction(x) - target) ** 2) / scale).mean())
+
+
+def range_penalty(x: torch.Tensor, target: torch.Tensor, scale: torch.Tensor, points: int = RANGE_POINTS):
+    """topology -> the mean square (relative to `scale`) by which the correction leaves the
+    target's [RANGE_QUANTILE, 1 - RANGE_QUANTILE] range per channel, on `points` inputs spread
+    uniformly over the box of the samples' inputs (a fixed low-discrepancy set: the fit stays
+    deterministic). Zero for a correction that stays within the range the samples show."""
+    low_in, high_in = x.min(dim=0).values, x.max(dim=0).values
+    grid = torch.quasirandom.SobolEngine(x.shape[1], scramble=False).draw(points, dtype=x.dtype)
+    grid = low_in + grid * (high_in - low_in)
+    low, high = (torch.quantile(target, q, dim=0) for q in (RANGE_QUANTILE, 1.0 - RANGE_QUANTILE))
+
+    def penalty(topology):
+        out = topology.correction(grid)
+        beyond = torch.relu(out - high) + torch.relu(low - out)
+        return ((beyond ** 2) / scale).mean()
+    return penalty
 
 
 def warm_start(trainer) -> dict:
