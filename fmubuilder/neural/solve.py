@@ -71,7 +71,7 @@ import numpy as np
 import torch
 
 from ..errors import FmuBuilderError
-from ..simulation.engine import MAX_EVENTS_AT_ONE_TIME
+from ..simulation.events import MAX_EVENTS_AT_ONE_TIME
 from ..simulation.events import any_crossed, event_mode, locate
 from ..simulation.inputs import InputSignals
 from ..simulation.solvers import hermite, rk4_step

@@ -31,7 +31,100 @@ from typing import Callable
 
 import numpy as np
 
+from ..errors import FmuBuilderError
 from ..fmi.instance import EventInfo
+
+# Time events at one instant beyond this many mean the model never lets time advance; steps cut at
+# a state event in a row beyond this many, that it chatters (Zeno behaviour).
+MAX_EVENTS_AT_ONE_TIME = 1000
+MAX_CUT_STEPS_IN_A_ROW = 100
+STEP, EVENT = "step", "event"     # what the sequence asks its driver for
+
+
+class EventSequence:
+    """Where one instance stands in the event sequence (t, next time event, indicators as the
+    reference of the next step's sign changes, terminated), and the sequence itself, written once:
+    `towards(limit, driver)` is a generator that walks the instance to `limit` and yields what it
+    needs done:
+
+        (STEP, end)     the driver steps from self.t towards `end` and sends back the time reached
+                        (an adaptive solver may stop short)
+        (EVENT, kind)   the driver runs event mode at self.t (kind "time", "state" or "step") and
+                        sets next_event, z (the indicators after it) and terminated
+
+    On the way it calls the driver's hooks: `step_limit(seq, limit)` (how far a step may go before
+    the time event), `indicators_at_end(seq, t)`, `cut_at_state_event(seq, t0, t1, z1, tolerance)`
+    -> (t, z), `completed_step(seq, state_event)` -> (step_event, terminate), `stepped_on(seq)`
+    (a step with no event after it). The engine drives one instance with its solver; the batched
+    torch solver drives one per element and steps those that ask to step together.
+
+    Times within `tolerance(t)` = relative_tolerance * max(time_scale, |t|) are one instant."""
+
+    def __init__(self, t: float, next_event: float, z, counts: dict, relative_tolerance: float,
+                 time_scale: float):
+        self.t, self.next_event, self.z = t, next_event, z
+        self.counts = counts                # time_events, state_events, step_events (shared by a batch)
+        self.relative_tolerance, self.time_scale = relative_tolerance, time_scale
+        self.terminated = False
+        self.pending_step = False           # step once more even at the limit (set by a driver)
+        self.events_here = 0                # time events since the last step
+        self.cuts_in_a_row = 0
+
+    def tolerance(self, t: float) -> float:
+        return self.relative_tolerance * max(self.time_scale, abs(t))
+
+    def towards(self, limit: float, driver):
+        while not self.terminated:
+            t = self.t
+            if self.next_event <= t + self.tolerance(t):
+                self.t = max(t, self.next_event)      # a time event a rounding error ahead is now
+                self.events_here += 1
+                if self.events_here > MAX_EVENTS_AT_ONE_TIME:
+                    raise FmuBuilderError(
+                        f"more than {MAX_EVENTS_AT_ONE_TIME} events at t={self.t:.17g}: the model keeps "
+                        "scheduling events without letting time advance; check its time events")
+                self.counts["time_events"] += 1
+                yield EVENT, "time"
+                continue
+            if t >= limit - self.tolerance(limit) and not self.pending_step:
+                return
+            t_end = yield STEP, min(self.next_event, driver.step_limit(self, limit))
+            self.pending_step = False
+            state_event = False
+            if self.z is not None:
+                t_end, state_event = self._cut(t, t_end, driver)
+            self.t = t_end
+            self.events_here = 0
+            step_event = False
+            if self.t != t:    # not a step of length zero (which only carries an event time's gradient)
+                step_event, self.terminated = driver.completed_step(self, state_event)
+                if self.terminated:
+                    return
+            if self.next_event <= self.t + self.tolerance(self.t):
+                continue    # a time event is due now: the next pass handles it, and any crossing with it
+            if state_event or step_event:
+                self.counts["state_events"] += state_event
+                self.counts["step_events"] += step_event
+                yield EVENT, "state" if state_event else "step"
+            else:
+                driver.stepped_on(self)
+
+    def _cut(self, t_start: float, t_end: float, driver):
+        """The step's end, cut at its earliest state event if an indicator fired: (end, fired)."""
+        z_end = driver.indicators_at_end(self, t_end)
+        fired = any_crossed(self.z, z_end)
+        if fired:
+            self.cuts_in_a_row += 1
+            if self.cuts_in_a_row > MAX_CUT_STEPS_IN_A_ROW:
+                raise FmuBuilderError(
+                    f"more than {MAX_CUT_STEPS_IN_A_ROW} state events in a row at t={t_end:.6g} (chattering "
+                    "or Zeno behaviour); reduce the step size or fix the model")
+            tolerance = max(self.tolerance(t_end), 1e-12 * (t_end - t_start))
+            t_end, z_end = driver.cut_at_state_event(self, t_start, t_end, z_end, tolerance)
+        else:
+            self.cuts_in_a_row = 0
+        self.z = z_end
+        return t_end, fired
 
 
 def event_mode(instance, *, entered: bool = False, before_iteration: Callable[[], None] | None = None,
