@@ -1,19 +1,8 @@
-"""The hybrid simulation loop with FMI 2.0 Model-Exchange event semantics (the event sequence
-of events.py, driven for one instance with any solver of solvers.py and an output grid).
-
-    initialise (the system runs its initial event iteration)
-    loop:
-        time events due now (at t0, in the past, or just reached) -> event mode
-        record the output times reached (after the events at that time)
-        stop at the stop time
-        one solver step towards min(next time event, input kink, stop[, next output for
-            fixed-step solvers])
-        a sign change of an event indicator -> locate the earliest one on the dense output,
-            cut the step there
-        record the output times inside the step (dense output)
-        completed-integrator-step -> maybe a step event or termination
-        state or step event -> event mode; every event restarts the solver on the
-            states the event left (they may have been reset)
+"""The hybrid simulation loop: the event sequence of events.py (EventSequence) driven for one
+instance with any solver of solvers.py, recording the outputs on the way: the output times reached
+(after the events at that time) before each step and at the stop, those inside a step from the
+solver's dense output. A fixed-step solver also ends a step at each output time, every solver at
+each input kink (a breakpoint, where it restarts).
 
 Time comparisons use a tolerance of 1e-12 times the experiment's scale, so output times,
 time events and the stop time that differ only by rounding are the same instant.
@@ -27,7 +16,7 @@ from bisect import bisect_left, bisect_right
 import numpy as np
 
 from ..errors import FmuBuilderError
-from .events import STEP, EventSequence, locate
+from .events import EventSequence, locate
 from .results import SimulationResult, SimulationStats
 from .solvers import Solver
 from .system import HybridSystem
@@ -84,20 +73,9 @@ class _Loop:
         self.solver.reset(self.system.derivatives, self.start, x)
         counts = {"time_events": 0, "state_events": 0, "step_events": 0}
         seq = EventSequence(self.start, next_event, self._indicators(self.start, x), counts, 1e-12, self.scale)
-        walk = seq.towards(self.stop, self)
-        try:
-            request = next(walk)
-            while True:
-                if request[0] is STEP:
-                    request = walk.send(self.solver.step(request[1]))
-                else:
-                    self._event(seq, request[1])
-                    request = next(walk)
-        except StopIteration:
-            pass
-        finally:
-            for key, value in counts.items():
-                setattr(self.stats, key, value)
+        seq.drive(self.stop, self)
+        for key, value in counts.items():
+            setattr(self.stats, key, value)
         if not seq.terminated:
             self._record_reached(seq.t)
         self._finish(seq.t, self.x, seq.terminated)
@@ -144,7 +122,10 @@ class _Loop:
         if self.i_bp < len(self.breakpoints) and seq.t >= self.breakpoints[self.i_bp] - self.eps:
             self.solver.restart(seq.t, self.x)        # the inputs' slope changes here
 
-    def _event(self, seq, kind):
+    def step(self, seq, end):
+        return self.solver.step(end)
+
+    def event(self, seq, kind):
         """Event mode at the sequence's point, recording the values around it if asked; the solver
         restarts on the states it left (a time event keeps the solver's step size)."""
         t = seq.t

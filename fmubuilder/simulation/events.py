@@ -1,16 +1,7 @@
-"""The event sequence of FMI 2.0 Model Exchange, shared by the engine (engine.py: numpy, one
-instance, any solver) and the NeuralFMU's differentiable solver (neural/solve.py: torch, a batch of
-instances on a fixed step grid). Each drives it with its own state representation:
-
-    1. step to the earliest of: the next time event, the next grid/output/input limit, the stop
-    2. a time event due at the step's end (within the time tolerance) is that instant exactly
-    3. event indicators at the step's end; a sign change (`crossed`) is located on the step's
-       dense output (`cut_at_state_event`) and the step ends there
-    4. fmi2CompletedIntegratorStep after every accepted step (the step cut at a state event is
-       one) may request a step event or termination
-    5. time, state or step event: `event_mode` (fmi2NewDiscreteStates until the discrete states
-       settle), the continuous states re-read if the FMU reset them, the indicators re-read as the
-       reference of the next step's sign changes; the solver restarts from there
+"""The event sequence of FMI 2.0 Model Exchange, written once (`EventSequence`) and driven by the
+engine (engine.py: numpy, one instance, any solver, output grid) and the NeuralFMU's differentiable
+solver (neural/solve.py: torch, a batch of instances on a fixed step grid), and its shared pieces:
+`event_mode` (the event iteration), the crossing test and the one root finder (`locate`).
 
 Crossing convention (the one of fmpy and FMUSDK-style importers): indicator i fires
 between z0 (at the step start) and z1 when
@@ -42,33 +33,51 @@ STEP, EVENT = "step", "event"     # what the sequence asks its driver for
 
 
 class EventSequence:
-    """Where one instance stands in the event sequence (t, next time event, indicators as the
-    reference of the next step's sign changes, terminated), and the sequence itself, written once:
-    `towards(limit, driver)` is a generator that walks the instance to `limit` and yields what it
-    needs done:
+    """Where one instance stands in the event sequence (t, its next time event, the indicators as
+    the reference of the next step's sign changes, terminated), and the sequence, written once:
+    `towards(limit, driver)` walks the instance to `limit`, yielding what its driver does:
 
-        (STEP, end)     the driver steps from self.t towards `end` and sends back the time reached
-                        (an adaptive solver may stop short)
-        (EVENT, kind)   the driver runs event mode at self.t (kind "time", "state" or "step") and
-                        sets next_event, z (the indicators after it) and terminated
+        (EVENT, "time")  a time event due (within the tolerance: that instant exactly), first
+        (STEP, end)      a step from t towards end = min(next time event, driver.step_limit(seq,
+                         limit)); the driver sends back the time reached (DOPRI5 may stop short)
+                         and sequence goes on:
+            the indicators at the step's end (driver.indicators_at_end); a sign change cuts the
+                step at its earliest crossing (driver.cut_at_state_event, by `locate`)
+            fmi2CompletedIntegratorStep after every step, the cut one included, not after a step of
+                length zero (driver.completed_step -> step event, terminate)
+            a time event due now takes a crossing or a step event there with it; else
+        (EVENT, "state" | "step")  or, with no event, driver.stepped_on(seq)
 
-    On the way it calls the driver's hooks: `step_limit(seq, limit)` (how far a step may go before
-    the time event), `indicators_at_end(seq, t)`, `cut_at_state_event(seq, t0, t1, z1, tolerance)`
-    -> (t, z), `completed_step(seq, state_event)` -> (step_event, terminate), `stepped_on(seq)`
-    (a step with no event after it). The engine drives one instance with its solver; the batched
-    torch solver drives one per element and steps those that ask to step together.
-
+    For an event the driver runs event mode (`event_mode`), re-reads the states it may have reset,
+    restarts its solver and sets next_event, z and terminated. The engine drives one sequence; the
+    batched solver one per element, and steps the elements that ask to step together.
     Times within `tolerance(t)` = relative_tolerance * max(time_scale, |t|) are one instant."""
 
     def __init__(self, t: float, next_event: float, z, counts: dict, relative_tolerance: float,
-                 time_scale: float):
+                 time_scale: float, index: int = 0):
         self.t, self.next_event, self.z = t, next_event, z
+        self.index = index                  # which instance of the driver's (a batch element)
         self.counts = counts                # time_events, state_events, step_events (shared by a batch)
         self.relative_tolerance, self.time_scale = relative_tolerance, time_scale
         self.terminated = False
         self.pending_step = False           # step once more even at the limit (set by a driver)
         self.events_here = 0                # time events since the last step
         self.cuts_in_a_row = 0
+
+    def drive(self, limit: float, driver) -> None:
+        """`towards` for a driver of one instance, which does each request at once:
+        driver.step(seq, end) -> the time reached, driver.event(seq, kind)."""
+        walk = self.towards(limit, driver)
+        try:
+            kind, what = next(walk)
+            while True:
+                if kind is STEP:
+                    kind, what = walk.send(driver.step(self, what))
+                else:
+                    driver.event(self, what)
+                    kind, what = next(walk)
+        except StopIteration:
+            pass
 
     def tolerance(self, t: float) -> float:
         return self.relative_tolerance * max(self.time_scale, abs(t))
@@ -162,15 +171,6 @@ def any_crossed(z0: np.ndarray, z1: np.ndarray) -> bool:
     """Whether any indicator fires; cheap when none does (the usual step)."""
     # A crossing needs z0 * z1 <= 0, so that product rules out almost every step at once.
     return bool((z0 * z1 <= 0.0).any()) and bool(crossed(z0, z1).any())
-
-
-def cut_at_state_event(indicators_at: Callable[[float], np.ndarray], t0: float, z0: np.ndarray,
-                       t1: float, z1: np.ndarray, tolerance: float):
-    """Where a step from t0 (indicators z0) to t1 (indicators z1) ends: (t, z, fired, evaluations)
-    at its earliest state event (see `locate`), or (t1, z1, None, 0) when no indicator fired."""
-    if not any_crossed(z0, z1):
-        return t1, z1, None, 0
-    return locate(indicators_at, t0, z0, t1, z1, tolerance)
 
 
 def locate(indicators_at: Callable[[float], np.ndarray], t0: float, z0: np.ndarray,
