@@ -96,8 +96,12 @@ class _Loop:
             target = self.outputs[self.i_out]
         return target
 
-    def indicators_at_end(self, seq, t):
+    def step(self, seq, end):
+        t = self.solver.step(end)
         self.x = self.solver.x
+        return t
+
+    def indicators_at_end(self, seq, t):
         self.stats.indicator_evaluations += 1
         return self.system.indicators(t, self.x)
 
@@ -110,8 +114,6 @@ class _Loop:
 
     def completed_step(self, seq, state_event):
         t, outputs = seq.t, self.outputs
-        if not self.system.n_indicators:
-            self.x = self.solver.x
         i_next = bisect_left(outputs, t - self.eps, self.i_out)      # the output times inside the step
         if i_next > self.i_out:
             times, self.i_out = outputs[self.i_out:i_next], i_next
@@ -121,9 +123,6 @@ class _Loop:
     def stepped_on(self, seq):
         if self.i_bp < len(self.breakpoints) and seq.t >= self.breakpoints[self.i_bp] - self.eps:
             self.solver.restart(seq.t, self.x)        # the inputs' slope changes here
-
-    def step(self, seq, end):
-        return self.solver.step(end)
 
     def event(self, seq, kind):
         """Event mode at the sequence's point, recording the values around it if asked; the solver
