@@ -15,7 +15,6 @@ from bisect import bisect_left, bisect_right
 
 import numpy as np
 
-from ..errors import FmuBuilderError
 from .events import EventSequence, locate
 from .results import SimulationResult, SimulationStats
 from .solvers import Solver

@@ -37,21 +37,17 @@ class EventSequence:
     the reference of the next step's sign changes, terminated), and the sequence, written once:
     `towards(limit, driver)` walks the instance to `limit`, yielding what its driver does:
 
-        (EVENT, "time")  a time event due (within the tolerance: that instant exactly), first
-        (STEP, end)      a step from t towards end = min(next time event, driver.step_limit(seq,
-                         limit)); the driver sends back the time reached (DOPRI5 may stop short)
-                         and sequence goes on:
-            the indicators at the step's end (driver.indicators_at_end); a sign change cuts the
-                step at its earliest crossing (driver.cut_at_state_event, by `locate`)
-            fmi2CompletedIntegratorStep after every step, the cut one included, not after a step of
-                length zero (driver.completed_step -> step event, terminate)
-            a time event due now takes a crossing or a step event there with it; else
-        (EVENT, "state" | "step")  or, with no event, driver.stepped_on(seq)
+        (EVENT, "time")   a time event due (within the tolerance: that instant exactly), first
+        (STEP, end)       a step towards end = min(next time event, driver.step_limit(seq, limit));
+                          the driver sends back the time reached (DOPRI5 may stop short). Then: the
+                          indicators at its end; a sign change cuts it at the earliest crossing
+                          (driver.cut_at_state_event, by `locate`); fmi2CompletedIntegratorStep
+                          (driver.completed_step) unless the step had length zero; a time event due
+                          then takes a crossing or step event with it, else
+        (EVENT, "state" | "step"), or with no event driver.stepped_on(seq)
 
-    For an event the driver runs event mode (`event_mode`), re-reads the states it may have reset,
-    restarts its solver and sets next_event, z and terminated. The engine drives one sequence; the
-    batched solver one per element, and steps the elements that ask to step together.
-    Times within `tolerance(t)` = relative_tolerance * max(time_scale, |t|) are one instant."""
+    For an event the driver runs event mode, restarts its solver on the states it left and sets
+    next_event, z and terminated. Times within `tolerance(t)` are one instant."""
 
     def __init__(self, t: float, next_event: float, z, counts: dict, relative_tolerance: float,
                  time_scale: float, index: int = 0):
