@@ -54,7 +54,7 @@ class _Loop:
         self.scale = max(abs(self.start), abs(self.stop), self.stop - self.start)
         self.eps = 1e-12 * self.scale
         self.outputs = output_times.tolist()
-        self.i_out = 0
+        self.i_out, self.n_out = 0, len(self.outputs)
         self.recorder, self.stats, self.record_events = recorder, stats, record_events
         self.breakpoints = [float(b) for b in sorted(system.breakpoints)
                             if self.start + self.eps < b < self.stop - self.eps]
@@ -84,14 +84,16 @@ class _Loop:
         """The stop, the next input kink, the next output time for a fixed-step solver (once the
         output times reached are recorded: the sequence asks before each step)."""
         t, target = seq.t, stop
-        self._record_reached(t)
-        breakpoints, i_bp = self.breakpoints, self.i_bp
-        while i_bp < len(breakpoints) and breakpoints[i_bp] <= t + self.eps:
-            i_bp += 1
-        self.i_bp = i_bp
-        if i_bp < len(breakpoints) and breakpoints[i_bp] < target:
-            target = breakpoints[i_bp]
-        if self.stop_at_outputs and self.i_out < len(self.outputs) and self.outputs[self.i_out] < target:
+        if self.i_out < self.n_out and self.outputs[self.i_out] <= t + self.eps:
+            self._record_reached(t)
+        if self.breakpoints:
+            breakpoints, i_bp = self.breakpoints, self.i_bp
+            while i_bp < len(breakpoints) and breakpoints[i_bp] <= t + self.eps:
+                i_bp += 1
+            self.i_bp = i_bp
+            if i_bp < len(breakpoints) and breakpoints[i_bp] < target:
+                target = breakpoints[i_bp]
+        if self.stop_at_outputs and self.i_out < self.n_out and self.outputs[self.i_out] < target:
             target = self.outputs[self.i_out]
         return target
 

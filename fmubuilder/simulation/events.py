@@ -79,9 +79,13 @@ class EventSequence:
         return self.relative_tolerance * max(self.time_scale, abs(t))
 
     def towards(self, limit: float, driver):
+        rel, scale = self.relative_tolerance, self.time_scale     # tolerance(t), inline: the hot loop
+        at_limit = limit - rel * max(scale, abs(limit))
+        step_limit, completed_step = driver.step_limit, driver.completed_step
+        indicators_at_end = driver.indicators_at_end
         while not self.terminated:
             t = self.t
-            if self.next_event <= t + self.tolerance(t):
+            if self.next_event <= t + rel * max(scale, abs(t)):
                 self.t = max(t, self.next_event)      # a time event a rounding error ahead is now
                 self.events_here += 1
                 if self.events_here > MAX_EVENTS_AT_ONE_TIME:
@@ -91,21 +95,27 @@ class EventSequence:
                 self.counts["time_events"] += 1
                 yield EVENT, "time"
                 continue
-            if t >= limit - self.tolerance(limit) and not self.pending_step:
+            if t >= at_limit and not self.pending_step:
                 return
-            t_end = yield STEP, min(self.next_event, driver.step_limit(self, limit))
+            t_end = yield STEP, min(self.next_event, step_limit(self, limit))
             self.pending_step = False
             state_event = False
-            if self.z is not None:
-                t_end, state_event = self._cut(t, t_end, driver)
+            if self.z is not None:      # the indicators at the step's end: a sign change cuts it
+                z_end = indicators_at_end(self, t_end)
+                state_event = any_crossed(self.z, z_end)
+                if state_event:
+                    t_end, z_end = self._cut(t, t_end, z_end, driver)
+                else:
+                    self.cuts_in_a_row = 0
+                self.z = z_end
             self.t = t_end
             self.events_here = 0
             step_event = False
-            if self.t != t:    # not a step of length zero (which only carries an event time's gradient)
-                step_event, self.terminated = driver.completed_step(self, state_event)
+            if t_end != t:    # not a step of length zero (which only carries an event time's gradient)
+                step_event, self.terminated = completed_step(self, state_event)
                 if self.terminated:
                     return
-            if self.next_event <= self.t + self.tolerance(self.t):
+            if self.next_event <= t_end + rel * max(scale, abs(t_end)):
                 continue    # a time event is due now: the next pass handles it, and any crossing with it
             if state_event or step_event:
                 self.counts["state_events"] += state_event
@@ -114,22 +124,15 @@ class EventSequence:
             else:
                 driver.stepped_on(self)
 
-    def _cut(self, t_start: float, t_end: float, driver):
-        """The step's end, cut at its earliest state event if an indicator fired: (end, fired)."""
-        z_end = driver.indicators_at_end(self, t_end)
-        fired = any_crossed(self.z, z_end)
-        if fired:
-            self.cuts_in_a_row += 1
-            if self.cuts_in_a_row > MAX_CUT_STEPS_IN_A_ROW:
-                raise FmuBuilderError(
-                    f"more than {MAX_CUT_STEPS_IN_A_ROW} state events in a row at t={t_end:.6g} (chattering "
-                    "or Zeno behaviour); reduce the step size or fix the model")
-            tolerance = max(self.tolerance(t_end), 1e-12 * (t_end - t_start))
-            t_end, z_end = driver.cut_at_state_event(self, t_start, t_end, z_end, tolerance)
-        else:
-            self.cuts_in_a_row = 0
-        self.z = z_end
-        return t_end, fired
+    def _cut(self, t_start: float, t_end: float, z_end, driver):
+        """The step cut at its earliest state event: (its end, the indicators there)."""
+        self.cuts_in_a_row += 1
+        if self.cuts_in_a_row > MAX_CUT_STEPS_IN_A_ROW:
+            raise FmuBuilderError(
+                f"more than {MAX_CUT_STEPS_IN_A_ROW} state events in a row at t={t_end:.6g} (chattering "
+                "or Zeno behaviour); reduce the step size or fix the model")
+        tolerance = max(self.tolerance(t_end), 1e-12 * (t_end - t_start))
+        return driver.cut_at_state_event(self, t_start, t_end, z_end, tolerance)
 
 
 def event_mode(instance, *, entered: bool = False, before_iteration: Callable[[], None] | None = None,
