@@ -616,8 +616,7 @@ class _Run:
             self.ev.set_point(b, element.t, x_end, self._u(b, element.t))
         return self.instances[b].completed_integrator_step()
 
-    def stepped_on(self, element):
-        pass
+    stepped_on = None
 
     # -- events ------------------------------------------------------------------------------
     def _event_mode(self, b, t, x_minus: np.ndarray, grad: bool, signs=None):

@@ -59,6 +59,8 @@ class _Loop:
         self.breakpoints = [float(b) for b in sorted(system.breakpoints)
                             if self.start + self.eps < b < self.stop - self.eps]
         self.i_bp = 0
+        if not self.breakpoints:
+            self.stepped_on = None      # nothing to do after a step without an event
         self.stop_at_outputs = not solver.adaptive
         self.events: list[tuple[float, str]] = []
         self.terminated = False

@@ -44,7 +44,7 @@ class EventSequence:
                           (driver.cut_at_state_event, by `locate`); fmi2CompletedIntegratorStep
                           (driver.completed_step) unless the step had length zero; a time event due
                           then takes a crossing or step event with it, else
-        (EVENT, "state" | "step"), or with no event driver.stepped_on(seq)
+        (EVENT, "state" | "step"), or with no event driver.stepped_on(seq) (if not None)
 
     For an event the driver runs event mode, restarts its solver on the states it left and sets
     next_event, z and terminated. Times within `tolerance(t)` are one instant."""
@@ -79,13 +79,15 @@ class EventSequence:
         return self.relative_tolerance * max(self.time_scale, abs(t))
 
     def towards(self, limit: float, driver):
-        rel, scale = self.relative_tolerance, self.time_scale     # tolerance(t), inline: the hot loop
+        # tolerance(t) inline (the hot loop): rel * scale while |t| <= scale, which it stays in the engine
+        rel, scale = self.relative_tolerance, self.time_scale
+        floor = rel * scale
         at_limit = limit - rel * max(scale, abs(limit))
         step_limit, completed_step = driver.step_limit, driver.completed_step
-        indicators_at_end = driver.indicators_at_end
+        indicators_at_end, stepped_on = driver.indicators_at_end, driver.stepped_on
         while not self.terminated:
             t = self.t
-            if self.next_event <= t + rel * max(scale, abs(t)):
+            if self.next_event <= t + (floor if -scale <= t <= scale else rel * abs(t)):
                 self.t = max(t, self.next_event)      # a time event a rounding error ahead is now
                 self.events_here += 1
                 if self.events_here > MAX_EVENTS_AT_ONE_TIME:
@@ -97,7 +99,8 @@ class EventSequence:
                 continue
             if t >= at_limit and not self.pending_step:
                 return
-            t_end = yield STEP, min(self.next_event, step_limit(self, limit))
+            end = step_limit(self, limit)
+            t_end = yield STEP, (self.next_event if self.next_event < end else end)
             self.pending_step = False
             state_event = False
             if self.z is not None:      # the indicators at the step's end: a sign change cuts it
@@ -115,14 +118,14 @@ class EventSequence:
                 step_event, self.terminated = completed_step(self, state_event)
                 if self.terminated:
                     return
-            if self.next_event <= t_end + rel * max(scale, abs(t_end)):
+            if self.next_event <= t_end + (floor if -scale <= t_end <= scale else rel * abs(t_end)):
                 continue    # a time event is due now: the next pass handles it, and any crossing with it
             if state_event or step_event:
                 self.counts["state_events"] += state_event
                 self.counts["step_events"] += step_event
                 yield EVENT, "state" if state_event else "step"
-            else:
-                driver.stepped_on(self)
+            elif stepped_on is not None:
+                stepped_on(self)
 
     def _cut(self, t_start: float, t_end: float, z_end, driver):
         """The step cut at its earliest state event: (its end, the indicators there)."""
