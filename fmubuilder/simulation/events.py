@@ -141,7 +141,7 @@ class EventSequence:
 def event_mode(instance, *, entered: bool = False, before_iteration: Callable[[], None] | None = None,
                after_iteration: Callable[[], None] | None = None,
                resume_on_terminate: bool = False) -> EventInfo:
-    """Step 5 for one FMI 2.0 Model-Exchange instance standing at the event's (t, x):
+    """Event mode for one FMI 2.0 Model-Exchange instance standing at the event's (t, x):
     fmi2EnterEventMode (not when `entered`: fmi2ExitInitializationMode leaves the instance in event
     mode), `before_iteration()` (what may change in event mode only: discrete inputs, tunable
     parameters), the event iteration (fmi2NewDiscreteStates until no new discrete states are
