@@ -2,19 +2,14 @@
 
 Batch elements run side by side: B FMU instances, states as a [B, n] tensor, the ANN evaluated once
 per solver stage for the elements that step. Fixed-step explicit Euler or classical RK4 on a fixed
-grid (t0_b + k h). Each element has its own time and follows the engine's event sequence
-(simulation/engine.py, simulation/events.py; one call of the FMU's own event iteration,
-FmuInstance.update_discrete_states, per event): time events due now, a step to its next limit (the
-next grid point, or its next time event, the FMU's nextEventTime, if earlier), the indicators at the
-step's end, a sign change located without gradients on the step's dense output (Euler: linear; RK4:
-cubic Hermite) by the engine's root finder (simulation/events.locate, to the side beyond the crossing
-and the engine's convention: reaching zero fires, leaving it does not) and the step cut there,
-fmi2CompletedIntegratorStep after every step (the cut one included), state and step events; then on
-towards the same limit. The elements that reach their grid point first wait there, so grid times
-never depend on event times, and an element's steps never depend on the other elements' events.
-(The engine also ends a step at each sample of a continuous input; this solver steps over them.)
-The first step from a grid point starts every element there: its first stage is the record. Under
-torch.no_grad() nothing below the "gradients" items is done (the forward-only path).
+grid (t0_b + k h). Each element has its own time and its own event sequence, the engine's
+(simulation/events.EventSequence), towards its next grid point, where the elements that arrive
+first wait: grid times never depend on event times, and an element's steps never on the other
+elements' events. The elements that ask to step take one batched step; a state event is located
+without gradients on the step's dense output (Euler: linear; RK4: cubic Hermite) by the engine's
+root finder. (The engine also ends a step at each sample of a continuous input; this solver steps
+over them.) The first step from a grid point starts every element there: its first stage is the
+record. Under torch.no_grad() nothing below the "gradients" items is done (the forward-only path).
 
 Gradients across events:
 1. Event time. With t* the located time and z the crossing indicator,
@@ -64,6 +59,7 @@ from __future__ import annotations
 import math
 import time as _time
 import warnings
+from collections import namedtuple
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -71,8 +67,7 @@ import numpy as np
 import torch
 
 from ..errors import FmuBuilderError
-from ..simulation.engine import MAX_EVENTS_AT_ONE_TIME
-from ..simulation.events import any_crossed, event_mode, locate
+from ..simulation.events import EVENT, EventSequence, event_mode, locate
 from ..simulation.inputs import InputSignals
 from ..simulation.solvers import hermite, rk4_step
 from .layer import EventSensitivity, FmuEvaluator, fd_steps, fmu_call
@@ -80,12 +75,11 @@ from .model import NeuralFMU
 from .system import NumpyTopology
 
 SOLVERS = ("euler", "rk4")
-MAX_EVENTS_PER_STEP = 100
-
-
-def time_tolerance(t):
-    """Times closer than this are the same instant (rounding of event and grid times); per element."""
-    return 1e-11 * np.maximum(1.0, np.abs(t))
+# The batched step whose ends the elements' sequences are sent: the elements' rows in it, the states
+# before (every element's), its first stages, the states after (tensor and numpy), the corrections.
+_Stepping = namedtuple("_Stepping", "position x dx1 x_new x_np c")
+# Times within this much times max(1, |t|) are the same instant (rounding of event and grid times).
+RELATIVE_TIME_TOLERANCE = 1e-11
 
 
 @dataclass
@@ -285,9 +279,8 @@ class _Run:
                           "states as constants at events and its state resets as constant", stacklevel=3)
         self.sens = sensitivity or model.event_sensitivity
         self.sens.start_run()
-        self.done = np.zeros(self.B, dtype=bool)
-        self.next_event = np.full(self.B, math.inf)
-        self.z = None
+        self.first_events = np.full(self.B, math.inf)   # each element's next time event at its start
+        self.elements: list[EventSequence] = []          # where each element stands in the event sequence
         self.counts = {"steps": 0, "time_events": 0, "state_events": 0, "step_events": 0}
         self.step_events = not self.info.capabilities.completed_integrator_step_not_needed
         self.t_grad = {}   # element -> its time, a located event time that carries a gradient
@@ -319,7 +312,7 @@ class _Run:
             if start.fmu_state is None and start.replay is not None:
                 x[b] = self._continue(b, start, overrides)
             elif start.fmu_state is None:
-                x[b], self.next_event[b] = self._fresh_init(b, overrides)
+                x[b], self.first_events[b] = self._fresh_init(b, overrides)
                 if init_sens:
                     init_outcomes[b] = self._init_sensitivity(b, overrides, x[b])
             else:
@@ -399,7 +392,7 @@ class _Run:
         inst = self.instances[b]
         if self.ev.P:
             self._set_parameters(b, self.ev.param_vrs, self.p.detach().tolist())
-        self.next_event[b] = start.next_event_time
+        self.first_events[b] = start.next_event_time
         x = inst.get_continuous_states()
         if overrides:
             names = self.model.state_names()
@@ -458,25 +451,27 @@ class _Run:
         elif active:
             self.kernel = NumpyTopology(self.topology)
         x, dd, c = self.initialise()
-        self.t = self.t0.copy()
         if self.forcing is not None:
-            x = self._forced(self.t, x)
-        if self.info.n_event_indicators:   # the reference of the first step's sign changes
-            x_np = x.detach().numpy()
-            self.z = np.stack([self.ev.indicators(b, self.t[b], x_np[b], self._u(b, self.t[b])) for b in self.rows])
+            x = self._forced(self.t0, x)
+        x_np = x.detach().numpy()
+        for b in self.rows:   # the indicators: the reference of the first step's sign changes
+            z = (self.ev.indicators(b, self.t0[b], x_np[b], self._u(b, self.t0[b]))
+                 if self.info.n_event_indicators else None)
+            self.elements.append(EventSequence(float(self.t0[b]), float(self.first_events[b]), z, self.counts,
+                                               RELATIVE_TIME_TOLERANCE, 1.0, index=b))
         records, captured = [], {}
-        x, dd, c = self._time_events(x, dd, c)   # later ones are handled where a step ends
+        x, dd, c, _ = self._walk(self.t0, x, dd, c, record=False)   # the time events due at the start
         for k in range(self.K):
             if k in self.capture:
-                captured[k] = self._save_states(self.t, x, self.grid[k])
-            x, dd, c, record = self._grid_step(self.t0 + self.grid[k + 1], x, dd, c)
+                captured[k] = self._save_states(x, self.grid[k])
+            x, dd, c, record = self._walk(self.t0 + self.grid[k + 1], x, dd, c)
             records.append(record)
         tau = self.grid[self.K]
         if self.K in self.capture:
-            captured[self.K] = self._save_states(self.t, x, tau)
-        dx, out = self.rhs(self.rows, self.t, x, c)
+            captured[self.K] = self._save_states(x, tau)
+        dx, out = self.rhs(self.rows, self._times(), x, c)
         records.append(self._record(x, dx, out))
-        final_starts = self._save_states(self.t, x, tau, final=True) if self.keep_final_state else None
+        final_starts = self._save_states(x, tau, final=True) if self.keep_final_state else None
         stats = dict(self.counts, seconds=_time.perf_counter() - started,
                      fmu_evaluations=self.ev.n_evaluations, jacobian_columns=self.ev.n_jacobian_columns)
         if self.event_grad:
@@ -484,45 +479,75 @@ class _Run:
         values = torch.stack(records) if records else torch.zeros(0, self.B, 0)
         return Trajectory(self.grid.copy(), self.t0, self.record_names, values, x, final_starts, captured, stats)
 
-    def _grid_step(self, grid_end: np.ndarray, x, dd, c):
-        """Every element from its grid point to the next one (grid_end [B]) by the engine's sequence:
-        a step to its next limit (that grid point or its next time event), cut at the earliest state
-        event, events, on again; the elements that arrive first wait there. The first step starts
-        every element at its grid point (a finished one stands still): its first stage is the record.
-        Returns (x, dd, c, record)."""
-        rows, record, tolerance = self.rows, None, time_tolerance(grid_end)
-        state_events = np.zeros(self.B, dtype=int)
-        while rows:
-            end = self._next_limit(rows, grid_end, tolerance)
-            x_new, dx1, out1 = (self.step(rows, self.t.copy(), x, self._step_lengths(rows, end), c) if record is None
-                                else self.step(rows, self.t[rows], x[rows], self._step_lengths(rows, end),
-                                               None if c is None else c[rows]))
-            if self.forcing is not None:
-                x_new = self._forced(end, x_new)
-            if record is None:
-                record = self._record(x, dx1, out1)
-            self.counts["steps"] += 1
-            x, dd, c = self._end_of_step(rows, x, dx1, end, x_new, dd, c, state_events)
-            x, dd, c = self._time_events(x, dd, c)
-            moving = (self.t < grid_end - tolerance) & ~self.done
-            moving[[b for b in self.t_grad if not self.done[b]]] = True   # a zero step carries the gradient
-            rows = np.flatnonzero(moving).tolist()
-        return x, dd, c, record
+    def _times(self) -> np.ndarray:
+        return np.array([element.t for element in self.elements])
 
-    def _next_limit(self, rows, grid_end: np.ndarray, tolerance: np.ndarray) -> np.ndarray:
-        """Where the step of each element in `rows` ends: the grid point or its next time event if
-        earlier (a time event a rounding error from the grid point is there, at its own time)."""
-        limit, event, tolerance = grid_end[rows], self.next_event[rows], tolerance[rows]
-        end = np.where(event >= limit - tolerance, limit, event)
-        end = np.where(np.abs(event - end) <= tolerance, event, end)
-        return np.where(self.done[rows], self.t[rows], end)
+    def _walk(self, limits: np.ndarray, x, dd, c, record: bool = True):
+        """Every element towards its limit (limits [B]) by the event sequence (EventSequence): the
+        elements that ask to step take one batched step, the events of a kind are one batched event
+        mode (state and step events before time events, the order of each element's sequence), and
+        steps wait until no event is pending. With `record`, the first step is taken by every
+        element (a finished one stands still): its first stage is the record. Returns
+        (x, dd, c, record or None)."""
+        walks, requests = {}, {}
+        for b, element in enumerate(self.elements):
+            if not element.terminated:
+                walks[b] = element.towards(limits[b], self)
+                self._resume(walks, requests, b, None)
+        first_stage = None
+        while requests or (record and first_stage is None):
+            if any(kind is EVENT for kind, _ in requests.values()):
+                rows = sorted(b for b, (kind, what) in requests.items() if kind is EVENT and what != "time")
+                state = bool(rows)
+                rows = rows or sorted(b for b, (kind, _) in requests.items() if kind is EVENT)
+                x, dd, c = self._events(rows, x, dd, c, self.signs if state else None)
+                for b in rows:
+                    self._resume(walks, requests, b, None)
+                continue
+            x, recorded = self._step(walks, requests, x, c, every=record and first_stage is None)
+            if first_stage is None:
+                first_stage = recorded
+        return x, dd, c, first_stage
+
+    def _resume(self, walks, requests, b, value) -> None:
+        """Element b's sequence on, with `value` (the time its step reached), to its next request."""
+        try:
+            requests[b] = walks[b].send(value)
+        except StopIteration:
+            requests.pop(b, None)
+
+    def _step(self, walks, requests, x, c, every: bool):
+        """One batched step of the elements asking to step (with `every`, of all: the others by zero),
+        each sequence sent where its step ended; returns (x, the record of the first stage or None)."""
+        asking = sorted(requests)
+        rows = self.rows if every else asking
+        t = self._times()[rows]
+        end = t.copy()
+        position = {b: i for i, b in enumerate(rows)}
+        for b in asking:
+            end[position[b]] = requests[b][1]
+        x_rows, c_rows = (x, c) if every else (x[rows], None if c is None else c[rows])
+        x_new, dx1, out1 = self.step(rows, t, x_rows, self._step_lengths(rows, end), c_rows)
+        if self.forcing is not None:
+            x_new = self._forced(end, x_new)
+        self.counts["steps"] += 1
+        self.stepping = _Stepping(position, x, dx1, x_new, x_new.detach().numpy(), c)
+        self.cuts, self.signs = {}, {}
+        for b in asking:
+            self.t_grad.pop(b, None)
+            self._resume(walks, requests, b, float(end[position[b]]))
+        if self.cuts:
+            index = torch.tensor(list(self.cuts))
+            x_new = x_new.index_put((index,), torch.stack(list(self.cuts.values())))
+        x = x_new if len(rows) == self.B else x.index_put((torch.tensor(rows),), x_new)
+        return x, self._record(x_rows, dx1, out1) if every else None
 
     def _step_lengths(self, rows, end: np.ndarray):
         """end - t per row: numpy, or a tensor [R, 1] where a located event time carries a gradient."""
         if not any(b in self.t_grad for b in rows):
-            return end - self.t[rows]
+            return end - self._times()[rows]
         return torch.stack([end[i] - self.t_grad[b] if b in self.t_grad else
-                            torch.tensor(end[i] - self.t[b], dtype=torch.float64)
+                            torch.tensor(end[i] - self.elements[b].t, dtype=torch.float64)
                             for i, b in enumerate(rows)]).reshape(-1, 1)
 
     def _forced(self, t: np.ndarray, x: torch.Tensor) -> torch.Tensor:
@@ -534,10 +559,11 @@ class _Run:
     def _record(self, x, dx, out) -> torch.Tensor:
         return torch.cat([x, dx, out[:, self.n:]], dim=1).index_select(1, self.record_index)
 
-    def _save_states(self, t: np.ndarray, x: torch.Tensor, tau: float, final: bool = False) -> list[ElementStart]:
+    def _save_states(self, x: torch.Tensor, tau: float, final: bool = False) -> list[ElementStart]:
         """Every element's start at its current point, tau seconds into the run."""
+        t, next_events = self._times(), [element.next_event for element in self.elements]
         if not self.snapshots:
-            return self._replayable_states(t, x, tau, final)
+            return self._replayable_states(t, next_events, x, tau, final)
         saved = []
         x_np = x.detach().numpy()
         for b, inst in enumerate(self.instances):
@@ -547,10 +573,11 @@ class _Run:
                 data = inst.serialize_fmu_state(state)
             finally:
                 inst.free_fmu_state(state)
-            saved.append(ElementStart(float(t[b]), data, float(self.next_event[b])))
+            saved.append(ElementStart(float(t[b]), data, float(next_events[b])))
         return saved
 
-    def _replayable_states(self, t: np.ndarray, x: torch.Tensor, tau: float, final: bool) -> list[ElementStart]:
+    def _replayable_states(self, t: np.ndarray, next_events, x: torch.Tensor, tau: float,
+                           final: bool) -> list[ElementStart]:
         """Starts at the elements' current points for an FMU without saved states (see Replay); at
         the end of the run each keeps its element's instance, which the run leaves there."""
         parameters = {name: value.detach().clone() for name, value in self.topology.state_dict().items()}
@@ -559,91 +586,48 @@ class _Run:
         for b, origin in enumerate(self.starts):
             recipe = Replay(origin, float(tau), parameters, self.h, "rk4" if self.rk4 else "euler",
                             self.inputs)
-            start = ElementStart(float(t[b]), next_event_time=float(self.next_event[b]), replay=recipe)
+            start = ElementStart(float(t[b]), next_event_time=float(next_events[b]), replay=recipe)
             if final:
                 self.ev.set_point(b, t[b], x_np[b], self._u(b, t[b]))
                 self.model.hold(self.instances[b], start)
             saved.append(start)
         return saved
 
+    # -- what each element's event sequence asks of the batch (see EventSequence) -------------
+    def step_limit(self, element, limit):
+        """The grid point, or a time event a rounding error past it: the element steps to the event's
+        own time (and waits there) rather than jump from the grid point to it without a step."""
+        if limit < element.next_event <= limit + element.tolerance(limit):
+            return element.next_event
+        return limit
+
+    def indicators_at_end(self, element, t):
+        b = element.index
+        return self.ev.indicators(b, t, self.stepping.x_np[self.stepping.position[b]], self._u(b, t))
+
+    def completed_step(self, element, state_event):
+        """fmi2CompletedIntegratorStep of the element at the end of its step: (step event, terminate)."""
+        if not self.step_events:
+            return False, False
+        b = element.index
+        if element.z is None or state_event:   # else the indicators left the instance there
+            x_end = self.cuts[self.stepping.position[b]].detach().numpy() if state_event else \
+                self.stepping.x_np[self.stepping.position[b]]
+            self.ev.set_point(b, element.t, x_end, self._u(b, element.t))
+        return self.instances[b].completed_integrator_step()
+
+    stepped_on = None
+
     # -- events ------------------------------------------------------------------------------
-    def _end_of_step(self, rows, x, dx1, end, x_new, dd, c, state_events):
-        """The engine's sequence after a step of `rows` to `end`: the indicators there, the step cut
-        at the earliest state event, fmi2CompletedIntegratorStep (not after a step of length zero,
-        which carries an event time's gradient only), state and step events. A time event due at
-        the new point is left to `_time_events`, which takes any crossing there with it."""
-        x_np = x_new.detach().numpy()
-        cuts, events, signs = {}, [], {}
-        for i, b in enumerate(rows):
-            if self.done[b]:
-                continue
-            t_start, t_end, crossing = self.t[b], end[i], False
-            if self.z is not None:
-                z_new = self.ev.indicators(b, t_end, x_np[i], self._u(b, t_end))
-                crossing = any_crossed(self.z[b], z_new)
-                if not crossing:
-                    self.z[b] = z_new
-            self.t_grad.pop(b, None)
-            if crossing:
-                state_events[b] += 1
-                if state_events[b] > MAX_EVENTS_PER_STEP:
-                    raise FmuBuilderError(f"more than {MAX_EVENTS_PER_STEP} state events in one step at t={t_end:.6g} "
-                                          "(chattering or Zeno behaviour); reduce the step size or fix the model")
-                self.counts["state_events"] += 1
-                cuts[i], t_end, t_event, signs[b] = self._cut_at_state_event(
-                    b, x[b], dx1[i], end[i], x_new[i], z_new, None if c is None else c[b:b + 1])
-                if isinstance(t_event, torch.Tensor):
-                    self.t_grad[b] = t_event
-            self.t[b] = t_end
-            step_event = False
-            if self.step_events and t_end != t_start:
-                if self.z is None or crossing:   # else the indicators left the instance there
-                    self.ev.set_point(b, t_end, x_np[i] if not crossing else cuts[i].detach().numpy(),
-                                      self._u(b, t_end))
-                step_event = self._completed_step(b)
-            if crossing or step_event:
-                events.append(b)
-        if cuts:
-            index = torch.tensor(list(cuts))
-            x_new = x_new.index_put((index,), torch.stack(list(cuts.values())))
-        x = x_new if len(rows) == self.B else x.index_put((torch.tensor(rows),), x_new)
-        if not events:
-            return x, dd, c
-        waiting = self.done | self._time_events_due()
-        return self._events([b for b in events if not waiting[b]], x, dd, c, signs)
-
-    def _time_events_due(self) -> np.ndarray:
-        return ~self.done & (self.next_event <= self.t + time_tolerance(self.t))
-
-    def _time_events(self, x, dd, c):
-        """Event mode for the elements whose time event is due at their current point (within the
-        time tolerance), until no element has one due there."""
-        for _ in range(MAX_EVENTS_AT_ONE_TIME):
-            due = np.flatnonzero(self._time_events_due())
-            if not due.size:
-                return x, dd, c
-            self.t[due] = np.maximum(self.t[due], self.next_event[due])
-            self.counts["time_events"] += due.size
-            x, dd, c = self._events(due, x, dd, c)
-        raise FmuBuilderError(f"more than {MAX_EVENTS_AT_ONE_TIME} events at one time: the model keeps "
-                              "scheduling events without letting time advance; check its time events")
-
-    def _completed_step(self, b) -> bool:
-        """fmi2CompletedIntegratorStep of element b, whose instance stands at the end of its step:
-        whether it requests a step event (counted); a request to terminate ends the element."""
-        enter, terminate = self.instances[b].completed_integrator_step()
-        self.counts["step_events"] += int(enter)
-        self.done[b] |= terminate
-        return enter
-
     def _event_mode(self, b, t, x_minus: np.ndarray, grad: bool, signs=None):
         """Event mode of element b at (t, x_minus) (with its linearisation if `grad`): its next time
         event, whether it terminates, and its indicators after the event as the next reference."""
         outcome = self.ev.handle_event(b, t, x_minus, self._u(b, t), self.sens if grad else None, signs)
-        self.next_event[b] = outcome.next_event_time
-        self.done[b] |= outcome.terminate
-        if self.z is not None:
-            self.z[b] = self.instances[b].get_event_indicators()
+        element = self.elements[b]
+        element.next_event = outcome.next_event_time
+        element.terminated |= outcome.terminate
+        if element.z is not None:
+            element.z = self.instances[b].get_event_indicators()
         return outcome
 
     def _events(self, rows, x, dd, c, signs=None):
@@ -652,7 +636,7 @@ class _Run:
         x_np = x.detach().numpy()
         grad = self.event_grad and self.ev.can_snapshot and x.requires_grad
         signs = signs or {}
-        outcomes = {b: self._event_mode(b, self.t[b], x_np[b], grad, signs.get(b)) for b in rows}
+        outcomes = {b: self._event_mode(b, self.elements[b].t, x_np[b], grad, signs.get(b)) for b in rows}
         if not grad:
             changed = [b for b, o in outcomes.items() if o.values_changed]
             if changed:  # a constant jump; x + 0 keeps the exact post-event values
@@ -718,14 +702,16 @@ class _Run:
             dd = dd.masked_fill(keep, 0.0)
         return x, dd, c
 
-    def _cut_at_state_event(self, b, x_k, dx1, t_new, x_new, z_new, c_row):
-        """The step of element b from its point (t_k, x_k) to (t_new, x_new) cut at its earliest state
-        event, located by the engine's root finder on the step's dense output (Euler: linear; RK4:
-        cubic Hermite), beyond the crossing: (the state there [n], the located time, the event time
-        with its gradient, perturbation signs)."""
-        t_k, z_k, h = self.t[b], self.z[b], t_new - self.t[b]
+    def cut_at_state_event(self, element, t_k, t_new, z_new, tolerance):
+        """The element's step from t_k to t_new cut at its earliest state event, located by the
+        engine's root finder on the step's dense output (Euler: linear; RK4: cubic Hermite), beyond
+        the crossing: (the located time, the indicators there). The state there, with the event
+        time's gradient, becomes the step's end, and the perturbation signs are kept for the event."""
+        b, step = element.index, self.stepping
+        i, z_k = step.position[b], element.z
+        x_k, dx1, x_new, h = step.x[b], step.dx1[i], step.x_new[i], t_new - t_k
         if self.rk4:
-            f_new = self.rhs([b], np.array([t_new]), x_new[None], c_row)[0][0]
+            f_new = self.rhs([b], np.array([t_new]), x_new[None], None if step.c is None else step.c[b:b + 1])[0][0]
 
         def dense(theta):
             return hermite(theta, h, x_k, dx1, x_new, f_new) if self.rk4 else x_k + theta * (x_new - x_k)
@@ -734,13 +720,16 @@ class _Run:
             return self.ev.indicators(b, t, dense((t - t_k) / h).detach().numpy(), self._u(b, t))
 
         with torch.no_grad():
-            t_hi, z_hi, fired, _ = locate(indicators_at, t_k, z_k, t_new, z_new, max(time_tolerance(t_new), 1e-12 * h))
+            t_hi, z_hi, fired, _ = locate(indicators_at, t_k, z_k, t_new, z_new, tolerance)
         # of several indicators firing at once, the steepest over the step carries the event time
         which = int(np.flatnonzero(fired)[np.argmax(np.abs(z_hi[fired] - z_k[fired]))])
         theta = (t_hi - t_k) / h
         t_star = t_k + theta * h
-        x_minus, t_e, signs = self._pre_event_state(b, dense, theta, t_k, t_new, t_star, z_k, z_hi, which)
-        return x_minus, t_star, t_e, signs
+        self.cuts[i], t_e, self.signs[b] = self._pre_event_state(b, dense, theta, t_k, t_new, t_star, z_k, z_hi, which)
+        if isinstance(t_e, torch.Tensor):
+            self.t_grad[b] = t_e
+            element.pending_step = True     # a step, of length zero at the limit, carries its gradient
+        return t_star, z_hi
 
     def _pre_event_state(self, b, dense, theta, t_k, t_new, t_star, z_k, z_hi, j):
         """x(t_e) with t_e differentiable through the implicit-function correction (see module doc)."""
@@ -765,3 +754,4 @@ class _Run:
         signs = np.ones(self.n + self.ev.P)
         signs[: self.n] = np.where(gz != 0, side * np.sign(gz), 1.0)
         return x_minus, t_e, signs
+

@@ -1,19 +1,8 @@
-"""The hybrid simulation loop with FMI 2.0 Model-Exchange event semantics (the event sequence
-of events.py, driven for one instance with any solver of solvers.py and an output grid).
-
-    initialise (the system runs its initial event iteration)
-    loop:
-        time events due now (at t0, in the past, or just reached) -> event mode
-        record the output times reached (after the events at that time)
-        stop at the stop time
-        one solver step towards min(next time event, input kink, stop[, next output for
-            fixed-step solvers])
-        a sign change of an event indicator -> locate the earliest one on the dense output,
-            cut the step there
-        record the output times inside the step (dense output)
-        completed-integrator-step -> maybe a step event or termination
-        state or step event -> event mode; every event restarts the solver on the
-            states the event left (they may have been reset)
+"""The hybrid simulation loop: the event sequence of events.py (EventSequence) driven for one
+instance with any solver of solvers.py, recording the outputs on the way: the output times reached
+(after the events at that time) before each step and at the stop, those inside a step from the
+solver's dense output. A fixed-step solver also ends a step at each output time, every solver at
+each input kink (a breakpoint, where it restarts).
 
 Time comparisons use a tolerance of 1e-12 times the experiment's scale, so output times,
 time events and the stop time that differ only by rounding are the same instant.
@@ -26,14 +15,10 @@ from bisect import bisect_left, bisect_right
 
 import numpy as np
 
-from ..errors import FmuBuilderError
-from .events import cut_at_state_event
+from .events import EventSequence, locate
 from .results import SimulationResult, SimulationStats
 from .solvers import Solver
 from .system import HybridSystem
-
-# Events at one instant beyond this many mean the model never lets time advance.
-MAX_EVENTS_AT_ONE_TIME = 1000
 
 
 def run(system: HybridSystem, solver: Solver, *, start_time: float, stop_time: float,
@@ -60,106 +45,111 @@ def run(system: HybridSystem, solver: Solver, *, start_time: float, stop_time: f
 
 
 class _Loop:
-    """State of one simulation run; `run` is the loop of the module docstring."""
+    """One simulation run: the event sequence (events.EventSequence) driven for one instance with
+    `solver`, recording the outputs on the way."""
 
     def __init__(self, system, solver, start_time, stop_time, output_times, recorder, stats, record_events):
         self.system, self.solver = system, solver
         self.start, self.stop = float(start_time), float(stop_time)
-        self.eps = 1e-12 * max(abs(self.start), abs(self.stop), self.stop - self.start)
+        self.scale = max(abs(self.start), abs(self.stop), self.stop - self.start)
+        self.eps = 1e-12 * self.scale
         self.outputs = output_times.tolist()
+        self.i_out, self.n_out = 0, len(self.outputs)
         self.recorder, self.stats, self.record_events = recorder, stats, record_events
         self.breakpoints = [float(b) for b in sorted(system.breakpoints)
                             if self.start + self.eps < b < self.stop - self.eps]
+        self.i_bp = 0
+        if not self.breakpoints:
+            self.stepped_on = None      # nothing to do after a step without an event
+        self.stop_at_outputs = not solver.adaptive
         self.events: list[tuple[float, str]] = []
         self.terminated = False
         self.t = self.start
 
     def run(self) -> None:
-        system, solver, stats = self.system, self.solver, self.stats
-        eps, stop = self.eps, self.stop
-        outputs, n_out = self.outputs, len(self.outputs)
-        breakpoints, n_bp = self.breakpoints, len(self.breakpoints)
-        f = system.derivatives
-        n_z = system.n_indicators
-        indicators = system.indicators
-        record = self.recorder.add
-        outputs_at = system.outputs
-        stop_at_outputs = not solver.adaptive
-
-        x, next_event, terminate = system.initialize(self.start, stop)
-        t = self.t
-        i_out = i_bp = 0
-        events_here = 0
+        x, next_event, terminate = self.system.initialize(self.start, self.stop)
         if terminate:
-            return self._finish(t, x, terminated=True)
-        solver.reset(f, t, x)
-        z = self._indicators(t, x)
-        while True:
-            if next_event <= t + eps:
-                t = max(t, next_event)      # a time event a rounding error ahead is now
-                events_here += 1
-                if events_here > MAX_EVENTS_AT_ONE_TIME:
-                    raise FmuBuilderError(
-                        f"more than {MAX_EVENTS_AT_ONE_TIME} events at t={t:.17g}: the model keeps "
-                        "scheduling events without letting time advance; check its time events")
-                stats.time_events += 1
-                x, next_event, terminate = self._event(t, x, "time")
-                if terminate:
-                    return self._finish(t, x, terminated=True)
-                solver.restart(t, x, keep_step=True)
-                z = self._indicators(t, x)
-                continue
-            i_next = bisect_right(outputs, t + eps, i_out)     # the output times reached
-            if i_next > i_out:
-                table = outputs_at((t,), x[None, :])
-                count, i_out = i_next - i_out, i_next
-                record(outputs[i_out - count:i_out], table if count == 1 else np.repeat(table, count, axis=0))
-            if t >= stop - eps:
-                return self._finish(t, x, terminated=False)
+            return self._finish(self.start, x, terminated=True)
+        self.x = x
+        self.solver.reset(self.system.derivatives, self.start, x)
+        counts = {"time_events": 0, "state_events": 0, "step_events": 0}
+        seq = EventSequence(self.start, next_event, self._indicators(self.start, x), counts, 1e-12, self.scale)
+        seq.drive(self.stop, self)
+        for key, value in counts.items():
+            setattr(self.stats, key, value)
+        if not seq.terminated:
+            self._record_reached(seq.t)
+        self._finish(seq.t, self.x, seq.terminated)
 
-            target = stop if next_event > stop else next_event
-            while i_bp < n_bp and breakpoints[i_bp] <= t + eps:
+    # -- what the sequence asks of its driver (see EventSequence) ------------------------------
+    def step_limit(self, seq, stop):
+        """The stop, the next input kink, the next output time for a fixed-step solver (once the
+        output times reached are recorded: the sequence asks before each step)."""
+        t, target = seq.t, stop
+        if self.i_out < self.n_out and self.outputs[self.i_out] <= t + self.eps:
+            self._record_reached(t)
+        if self.breakpoints:
+            breakpoints, i_bp = self.breakpoints, self.i_bp
+            while i_bp < len(breakpoints) and breakpoints[i_bp] <= t + self.eps:
                 i_bp += 1
-            if i_bp < n_bp and breakpoints[i_bp] < target:
+            self.i_bp = i_bp
+            if i_bp < len(breakpoints) and breakpoints[i_bp] < target:
                 target = breakpoints[i_bp]
-            if stop_at_outputs and i_out < n_out and outputs[i_out] < target:
-                target = outputs[i_out]
+        if self.stop_at_outputs and self.i_out < self.n_out and self.outputs[self.i_out] < target:
+            target = self.outputs[self.i_out]
+        return target
 
-            t_start = t
-            t = solver.step(target)
-            x = solver.x
-            state_event = False
-            if n_z:
-                t_end = t
-                stats.indicator_evaluations += 1
-                t, z, fired, evaluations = cut_at_state_event(
-                    self._indicators_on_step, t_start, z, t_end, indicators(t_end, x), eps)
-                if fired is not None:
-                    stats.indicator_evaluations += evaluations
-                    state_event = True
-                    if t != t_end:
-                        x = solver.interpolate(t)
-            i_next = bisect_left(outputs, t - eps, i_out)      # the output times inside the step
-            if i_next > i_out:
-                times, i_out = outputs[i_out:i_next], i_next
-                record(times, outputs_at(np.array(times), solver.interpolate_many(times)))
-            events_here = 0
+    def step(self, seq, end):
+        t = self.solver.step(end)
+        self.x = self.solver.x
+        return t
 
-            step_event, terminate = system.completed_step(t, x)
-            if terminate:
-                return self._finish(t, x, terminated=True)
-            if next_event <= t + eps:
-                continue    # a time event is due now: the next pass handles it, and any crossing with it
-            if state_event or step_event:
-                stats.state_events += state_event
-                stats.step_events += step_event
-                x, next_event, terminate = self._event(t, x, "state" if state_event else "step")
-                if terminate:
-                    return self._finish(t, x, terminated=True)
-                solver.restart(t, x)
-                z = self._indicators(t, x)
-            elif i_bp < n_bp and t >= breakpoints[i_bp] - eps:
-                solver.restart(t, x)        # the inputs' slope changes here
+    def indicators_at_end(self, seq, t):
+        self.stats.indicator_evaluations += 1
+        return self.system.indicators(t, self.x)
+
+    def cut_at_state_event(self, seq, t0, t1, z1, tolerance):
+        t, z, _, evaluations = locate(self._indicators_on_step, t0, seq.z, t1, z1, tolerance)
+        self.stats.indicator_evaluations += evaluations
+        if t != t1:
+            self.x = self.solver.interpolate(t)
+        return t, z
+
+    def completed_step(self, seq, state_event):
+        t, outputs = seq.t, self.outputs
+        i_next = bisect_left(outputs, t - self.eps, self.i_out)      # the output times inside the step
+        if i_next > self.i_out:
+            times, self.i_out = outputs[self.i_out:i_next], i_next
+            self.recorder.add(times, self.system.outputs(np.array(times), self.solver.interpolate_many(times)))
+        return self.system.completed_step(t, self.x)
+
+    def stepped_on(self, seq):
+        if self.i_bp < len(self.breakpoints) and seq.t >= self.breakpoints[self.i_bp] - self.eps:
+            self.solver.restart(seq.t, self.x)        # the inputs' slope changes here
+
+    def event(self, seq, kind):
+        """Event mode at the sequence's point, recording the values around it if asked; the solver
+        restarts on the states it left (a time event keeps the solver's step size)."""
+        t = seq.t
+        self.events.append((t, kind))
+        if self.record_events:
+            self._record_now(t, self.x)
+        self.x, seq.next_event, seq.terminated = self.system.handle_event(t, self.x)
+        if self.record_events:
+            self._record_now(t, self.x)
+        if not seq.terminated:
+            self.solver.restart(t, self.x, keep_step=kind == "time")
+            seq.z = self._indicators(t, self.x)
+
+    # ------------------------------------------------------------------------------------------
+    def _record_reached(self, t) -> None:
+        """The output times reached (after the events at that time)."""
+        i_next = bisect_right(self.outputs, t + self.eps, self.i_out)
+        if i_next > self.i_out:
+            table = self.system.outputs((t,), self.x[None, :])
+            count, self.i_out = i_next - self.i_out, i_next
+            self.recorder.add(self.outputs[self.i_out - count:self.i_out],
+                              table if count == 1 else np.repeat(table, count, axis=0))
 
     def _indicators(self, t, x):
         """Indicators at a (re)start, the reference for the next step's sign changes."""
@@ -171,16 +161,6 @@ class _Loop:
     def _indicators_on_step(self, t):
         """Indicators on the last step's dense output (where a state event is located)."""
         return self.system.indicators(t, self.solver.interpolate(t))
-
-    def _event(self, t, x, kind):
-        """Event mode at (t, x), recording the values around it if asked."""
-        self.events.append((t, kind))
-        if self.record_events:
-            self._record_now(t, x)
-        x, next_event, terminate = self.system.handle_event(t, x)
-        if self.record_events:
-            self._record_now(t, x)
-        return x, next_event, terminate
 
     def _record_now(self, t, x) -> None:
         self.recorder.add([t], self.system.outputs(np.array([t]), np.reshape(x, (1, -1))))

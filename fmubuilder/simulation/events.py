@@ -1,16 +1,7 @@
-"""The event sequence of FMI 2.0 Model Exchange, shared by the engine (engine.py: numpy, one
-instance, any solver) and the NeuralFMU's differentiable solver (neural/solve.py: torch, a batch of
-instances on a fixed step grid). Each drives it with its own state representation:
-
-    1. step to the earliest of: the next time event, the next grid/output/input limit, the stop
-    2. a time event due at the step's end (within the time tolerance) is that instant exactly
-    3. event indicators at the step's end; a sign change (`crossed`) is located on the step's
-       dense output (`cut_at_state_event`) and the step ends there
-    4. fmi2CompletedIntegratorStep after every accepted step (the step cut at a state event is
-       one) may request a step event or termination
-    5. time, state or step event: `event_mode` (fmi2NewDiscreteStates until the discrete states
-       settle), the continuous states re-read if the FMU reset them, the indicators re-read as the
-       reference of the next step's sign changes; the solver restarts from there
+"""The event sequence of FMI 2.0 Model Exchange, written once (`EventSequence`) and driven by the
+engine (engine.py: numpy, one instance, any solver, output grid) and the NeuralFMU's differentiable
+solver (neural/solve.py: torch, a batch of instances on a fixed step grid), and its shared pieces:
+`event_mode` (the event iteration), the crossing test and the one root finder (`locate`).
 
 Crossing convention (the one of fmpy and FMUSDK-style importers): indicator i fires
 between z0 (at the step start) and z1 when
@@ -31,13 +22,126 @@ from typing import Callable
 
 import numpy as np
 
+from ..errors import FmuBuilderError
 from ..fmi.instance import EventInfo
+
+# Time events at one instant beyond this many mean the model never lets time advance; steps cut at
+# a state event in a row beyond this many, that it chatters (Zeno behaviour).
+MAX_EVENTS_AT_ONE_TIME = 1000
+MAX_CUT_STEPS_IN_A_ROW = 100
+STEP, EVENT = "step", "event"     # what the sequence asks its driver for
+
+
+class EventSequence:
+    """Where one instance stands in the event sequence (t, its next time event, the indicators as
+    the reference of the next step's sign changes, terminated), and the sequence, written once:
+    `towards(limit, driver)` walks the instance to `limit`, yielding what its driver does:
+
+        (EVENT, "time")   a time event due (within the tolerance: that instant exactly), first
+        (STEP, end)       a step towards end = min(next time event, driver.step_limit(seq, limit));
+                          the driver sends back the time reached (DOPRI5 may stop short). Then: the
+                          indicators at its end; a sign change cuts it at the earliest crossing
+                          (driver.cut_at_state_event, by `locate`); fmi2CompletedIntegratorStep
+                          (driver.completed_step) unless the step had length zero; a time event due
+                          then takes a crossing or step event with it, else
+        (EVENT, "state" | "step"), or with no event driver.stepped_on(seq) (if not None)
+
+    For an event the driver runs event mode, restarts its solver on the states it left and sets
+    next_event, z and terminated. Times within `tolerance(t)` are one instant."""
+
+    def __init__(self, t: float, next_event: float, z, counts: dict, relative_tolerance: float,
+                 time_scale: float, index: int = 0):
+        self.t, self.next_event, self.z = t, next_event, z
+        self.index = index                  # which instance of the driver's (a batch element)
+        self.counts = counts                # time_events, state_events, step_events (shared by a batch)
+        self.relative_tolerance, self.time_scale = relative_tolerance, time_scale
+        self.terminated = False
+        self.pending_step = False           # step once more even at the limit (set by a driver)
+        self.events_here = 0                # time events since the last step
+        self.cuts_in_a_row = 0
+
+    def drive(self, limit: float, driver) -> None:
+        """`towards` for a driver of one instance, which does each request at once:
+        driver.step(seq, end) -> the time reached, driver.event(seq, kind)."""
+        walk = self.towards(limit, driver)
+        try:
+            kind, what = next(walk)
+            while True:
+                if kind is STEP:
+                    kind, what = walk.send(driver.step(self, what))
+                else:
+                    driver.event(self, what)
+                    kind, what = next(walk)
+        except StopIteration:
+            pass
+
+    def tolerance(self, t: float) -> float:
+        return self.relative_tolerance * max(self.time_scale, abs(t))
+
+    def towards(self, limit: float, driver):
+        # tolerance(t) inline (the hot loop): rel * scale while |t| <= scale, which it stays in the engine
+        rel, scale = self.relative_tolerance, self.time_scale
+        floor = rel * scale
+        at_limit = limit - rel * max(scale, abs(limit))
+        step_limit, completed_step = driver.step_limit, driver.completed_step
+        indicators_at_end, stepped_on = driver.indicators_at_end, driver.stepped_on
+        while not self.terminated:
+            t = self.t
+            if self.next_event <= t + (floor if -scale <= t <= scale else rel * abs(t)):
+                self.t = max(t, self.next_event)      # a time event a rounding error ahead is now
+                self.events_here += 1
+                if self.events_here > MAX_EVENTS_AT_ONE_TIME:
+                    raise FmuBuilderError(
+                        f"more than {MAX_EVENTS_AT_ONE_TIME} events at t={self.t:.17g}: the model keeps "
+                        "scheduling events without letting time advance; check its time events")
+                self.counts["time_events"] += 1
+                yield EVENT, "time"
+                continue
+            if t >= at_limit and not self.pending_step:
+                return
+            end = step_limit(self, limit)
+            t_end = yield STEP, (self.next_event if self.next_event < end else end)
+            self.pending_step = False
+            state_event = False
+            if self.z is not None:      # the indicators at the step's end: a sign change cuts it
+                z_end = indicators_at_end(self, t_end)
+                state_event = any_crossed(self.z, z_end)
+                if state_event:
+                    t_end, z_end = self._cut(t, t_end, z_end, driver)
+                else:
+                    self.cuts_in_a_row = 0
+                self.z = z_end
+            self.t = t_end
+            self.events_here = 0
+            step_event = False
+            if t_end != t:    # not a step of length zero (which only carries an event time's gradient)
+                step_event, self.terminated = completed_step(self, state_event)
+                if self.terminated:
+                    return
+            if self.next_event <= t_end + (floor if -scale <= t_end <= scale else rel * abs(t_end)):
+                continue    # a time event is due now: the next pass handles it, and any crossing with it
+            if state_event or step_event:
+                self.counts["state_events"] += state_event
+                self.counts["step_events"] += step_event
+                yield EVENT, "state" if state_event else "step"
+            elif stepped_on is not None:
+                stepped_on(self)
+
+    def _cut(self, t_start: float, t_end: float, z_end, driver):
+        """The step cut at its earliest state event: (its end, the indicators there)."""
+        self.cuts_in_a_row += 1
+        if self.cuts_in_a_row > MAX_CUT_STEPS_IN_A_ROW:
+            raise FmuBuilderError(
+                f"more than {MAX_CUT_STEPS_IN_A_ROW} state events in a row at t={t_end:.6g} (chattering "
+                "or Zeno behaviour); reduce the step size or fix the model")
+        tolerance = max(self.tolerance(t_end), 1e-12 * (t_end - t_start))
+        return driver.cut_at_state_event(self, t_start, t_end, z_end, tolerance)
 
 
 def event_mode(instance, *, entered: bool = False, before_iteration: Callable[[], None] | None = None,
                after_iteration: Callable[[], None] | None = None,
                resume_on_terminate: bool = False) -> EventInfo:
-    """Step 5 for one FMI 2.0 Model-Exchange instance standing at the event's (t, x):
+    """Event mode for one FMI 2.0 Model-Exchange instance standing at the event's (t, x):
     fmi2EnterEventMode (not when `entered`: fmi2ExitInitializationMode leaves the instance in event
     mode), `before_iteration()` (what may change in event mode only: discrete inputs, tunable
     parameters), the event iteration (fmi2NewDiscreteStates until no new discrete states are
@@ -69,15 +173,6 @@ def any_crossed(z0: np.ndarray, z1: np.ndarray) -> bool:
     """Whether any indicator fires; cheap when none does (the usual step)."""
     # A crossing needs z0 * z1 <= 0, so that product rules out almost every step at once.
     return bool((z0 * z1 <= 0.0).any()) and bool(crossed(z0, z1).any())
-
-
-def cut_at_state_event(indicators_at: Callable[[float], np.ndarray], t0: float, z0: np.ndarray,
-                       t1: float, z1: np.ndarray, tolerance: float):
-    """Where a step from t0 (indicators z0) to t1 (indicators z1) ends: (t, z, fired, evaluations)
-    at its earliest state event (see `locate`), or (t1, z1, None, 0) when no indicator fired."""
-    if not any_crossed(z0, z1):
-        return t1, z1, None, 0
-    return locate(indicators_at, t0, z0, t1, z1, tolerance)
 
 
 def locate(indicators_at: Callable[[float], np.ndarray], t0: float, z0: np.ndarray,

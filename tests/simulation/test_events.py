@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from fmubuilder.simulation.events import any_crossed, crossed, cut_at_state_event, locate
+from fmubuilder.simulation.events import EVENT, STEP, EventSequence, any_crossed, crossed, locate
 
 
 @pytest.mark.parametrize("z0, z1, fires", [
@@ -63,15 +63,63 @@ def test_flat_indicators_still_converge_by_bisection():
     assert evaluations < 120
 
 
-def test_a_step_without_a_crossing_ends_where_it_ended_without_evaluations():
-    calls = []
-    g = evaluate([lambda t: calls.append(t) or t + 1.0])
-    t, z, fired, evaluations = cut_at_state_event(g, 0.0, np.array([1.0]), 0.5, np.array([1.5]), 1e-12)
-    assert (t, z.tolist(), fired, evaluations, calls) == (0.5, [1.5], None, 0, [])
+class _Clock:
+    """A driver of EventSequence for x(t) = t with the indicator x - crossing and time events at
+    `times`: it records what the sequence asks, in order."""
+
+    def __init__(self, crossing, times, step):
+        self.crossing, self.times, self.h = crossing, list(times), step
+        self.log = []
+
+    def step_limit(self, seq, limit):
+        return min(limit, seq.t + self.h)
+
+    def indicators_at_end(self, seq, t):
+        return np.array([t - self.crossing])
+
+    def cut_at_state_event(self, seq, t0, t1, z1, tolerance):
+        t, z, _, _ = locate(lambda t: np.array([t - self.crossing]), t0, seq.z, t1, z1, tolerance)
+        self.log.append(("cut", t))
+        return t, z
+
+    def completed_step(self, seq, state_event):
+        self.log.append(("completed", seq.t))
+        return False, False
+
+    def stepped_on(self, seq):
+        pass
+
+    def step(self, seq, end):
+        self.log.append((STEP, end))
+        return end
+
+    def event(self, seq, kind):
+        self.log.append((EVENT, kind))
+        if kind == "time":
+            seq.next_event = self.times.pop(0) if self.times else math.inf
+        seq.z = np.array([seq.t - self.crossing])
+
+    def run(self, seq, limit):
+        seq.drive(limit, self)
+        return self.log
 
 
-def test_a_step_with_a_crossing_is_cut_just_after_the_root():
-    g = evaluate([lambda t: math.cos(t) - 0.5, lambda t: 2.0])
-    t, z, fired, evaluations = cut_at_state_event(g, 0.0, g(0.0), 2.0, g(2.0), 1e-12)
-    assert math.pi / 3 <= t <= math.pi / 3 + 1e-12
-    assert z[0] <= 0.0 and fired.tolist() == [True, False] and evaluations > 0
+def test_the_sequence_cuts_a_step_at_a_crossing_and_steps_on_to_the_limit():
+    clock = _Clock(crossing=0.35, times=[], step=0.2)
+    counts = {"time_events": 0, "state_events": 0, "step_events": 0}
+    seq = EventSequence(0.0, 0.5, np.array([-0.35]), counts, 1e-12, 1.0)
+    log = clock.run(seq, 0.6)
+    assert log[:3] == [(STEP, 0.2), ("completed", 0.2), (STEP, 0.4)]
+    assert log[3][0] == "cut" and 0.35 <= log[3][1] <= 0.35 + 1e-12
+    assert log[4] == ("completed", log[3][1]) and log[5] == (EVENT, "state")
+    assert log[6:] == [(STEP, 0.5), ("completed", 0.5), (EVENT, "time"), (STEP, 0.6), ("completed", 0.6)]
+    assert counts == {"time_events": 1, "state_events": 1, "step_events": 0} and seq.t == 0.6
+
+
+def test_a_time_event_at_the_end_of_a_step_takes_a_crossing_there_with_it():
+    clock = _Clock(crossing=0.5, times=[], step=1.0)
+    counts = {"time_events": 0, "state_events": 0, "step_events": 0}
+    seq = EventSequence(0.0, 0.5, np.array([-0.5]), counts, 1e-12, 1.0)
+    log = clock.run(seq, 1.0)
+    assert log == [(STEP, 0.5), ("cut", 0.5), ("completed", 0.5), (EVENT, "time"), (STEP, 1.0), ("completed", 1.0)]
+    assert counts == {"time_events": 1, "state_events": 0, "step_events": 0}
