@@ -39,6 +39,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .evaluate import sample_settled
+
 # Share of held-out samples outside the training range (widened by RANGE_MARGIN of its width) above
 # which a variable is not offered to the ANN.
 OUT_OF_RANGE_SHARE = 0.1
@@ -175,13 +177,24 @@ class MissingTermRun:
 
     def _plain_run(self, channels: list[str]) -> dict:
         if self._plain is None or any(c not in self._plain for c in channels):
-            grid = self._forced[0]
             wanted = [c for c in self.measured_channels if not _reads_measured_only(self.info, c, self.data)]
             recorded = list(dict.fromkeys([*channels, *wanted]))
-            plain_grid, plain = _forced_run(self.model_fmu, self.info, self.data, self.start_values, {}, recorded,
-                                            self.step, self.solver)
-            self._plain = {c: np.interp(grid, plain_grid, self._seen(plain_grid, plain[c])) for c in recorded}
+            time, values = _plain_run(self.model_fmu, self.data, self.start_values, recorded, self.step, self.solver)
+            grid = self._forced[0]
+            self._plain = {c: sample_settled(time, self._seen(time, values[c]), grid) for c in recorded}
         return {c: self._plain[c] for c in channels}
+
+
+def _plain_run(model_fmu, data, start_values: dict, names: list[str], step: float, solver: str):
+    """(time, {name: values}) of the plain FMU over the run, by the engine (the batch solver's
+    steps, a sixth of its time: nothing is forced), recorded every step and on both sides of events."""
+    from ..simulation import simulate
+    inputs = {"time": data.time, **data.inputs} if data.inputs else None
+    with np.errstate(all="ignore"):
+        result = simulate(model_fmu, start_time=data.start, stop_time=data.stop, start_values=start_values,
+                          inputs=inputs, variables=list(names), solver=solver, step_size=step, output_interval=step,
+                          record_events=True)
+    return result.time, {n: np.asarray(result[n], dtype=float) for n in names}
 
 
 def _reads_measured_only(info, channel: str, data) -> bool:

@@ -21,7 +21,7 @@ from scipy.signal import lfilter
 from scipy.spatial import cKDTree
 
 from fmubuilder.build import example_fmu
-from fmubuilder.data import load_data
+from fmubuilder.data import first_order_lag, load_data
 from fmubuilder.diagnose.trace import candidate_variables
 from fmubuilder.examples_zoo import cached_data, dc_drive_data_sets
 from fmubuilder.fmi import read_model_info
@@ -85,7 +85,8 @@ def test_a_friction_of_speed_gets_speed_alone_and_no_cumulative_variable(terms):
 def test_a_second_set_of_channels_reuses_the_runs_and_equals_a_fresh_estimate(monkeypatch):
     """The loop's second estimate (the measured derivatives besides the channel) costs no
     simulation once the first needed the plain run (der(energy) reads the controller's unmeasured
-    integrator), and equals an estimate of its own, which simulates both runs again."""
+    integrator), and equals an estimate of its own, which simulates both runs again. The plain run
+    (the engine's) agrees with the batch solver's at the same step."""
     data_set = next(s for s in dc_drive_data_sets() if s.cycle.role == "train" and s.variant.key == "windage")
     path, = cached_data([data_set])[0]
     fmu = example_fmu("dc_drive")
@@ -94,11 +95,12 @@ def test_a_second_set_of_channels_reuses_the_runs_and_equals_a_fresh_estimate(mo
     data = data.window(data.start, data.start + 5.0)
     step = info.default_experiment.step_size
     simulations = []
-    real = inputs._forced_run
-    monkeypatch.setattr(inputs, "_forced_run", lambda *a, **k: simulations.append(a[4]) or real(*a, **k))
+    for name in ("_forced_run", "_plain_run"):
+        real = getattr(inputs, name)
+        monkeypatch.setattr(inputs, name, lambda *a, _real=real, _name=name, **k: simulations.append(_name) or _real(*a, **k))
     run = MissingTermRun(fmu, info, data, data.start_values, candidate_variables(info), step)
     run.estimate(["der(energy)"])
-    assert len(simulations) == 2 and simulations[1] == {}         # forced, then plain
+    assert simulations == ["_forced_run", "_plain_run"]
     channels = ["der(speed)", "der(energy)", "der(current)"]
     shared = run.estimate(channels)
     assert len(simulations) == 2
@@ -111,6 +113,10 @@ def test_a_second_set_of_channels_reuses_the_runs_and_equals_a_fresh_estimate(mo
     for name in fresh.variables:
         np.testing.assert_array_equal(shared.variables[name], fresh.variables[name])
     assert shared.aliases == fresh.aliases and shared.kinds == fresh.kinds and shared.measured == fresh.measured
+    grid, batch = inputs._forced_run(fmu, info, data, data.start_values, {}, ["der(energy)"], step, "euler")
+    lagged = first_order_lag(grid, batch["der(energy)"], data.sensor_lag)
+    engine = run._plain["der(energy)"]
+    assert np.max(np.abs(engine - lagged)) <= 1e-6 * np.max(np.abs(lagged))
 
 
 # -- synthetic samples: the truth is known ----------------------------------------------------------
