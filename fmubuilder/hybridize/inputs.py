@@ -39,6 +39,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .evaluate import sample_settled
+
 # Share of held-out samples outside the training range (widened by RANGE_MARGIN of its width) above
 # which a variable is not offered to the ANN.
 OUT_OF_RANGE_SHARE = 0.1
@@ -108,41 +110,91 @@ def estimate_missing_terms(model_fmu, info, data, start_values: dict, channels: 
     """The FMU forced to the measured states over the whole run `data`; None when no channel's
     state is measured. The sensors' lag (the data's `sensor_lag`) is undone on the forced states
     and applied to the FMU's variables, so that both sides are compared as the sensors saw them."""
-    from ..data import first_order_lag
-    from ..diagnose.trace import variable_kind
-    from ..neural.collocation import local_slope
-    states = [v.name for v in info.states]
-    derivatives = [v.name for v in info.derivatives]
-    channel_states = {c: states[derivatives.index(c)] for c in channels}
-    channels = [c for c in channels if channel_states[c] in data.signals]
-    if not channels:
-        return None
-    candidates = list(dict.fromkeys([*candidates, *channels]))
-    lag = float(data.sensor_lag or 0.0)
-    forced = {s: _undo_lag(data.time, data.signals[s], lag) for s in states if s in data.signals}
-    grid, values = _forced_run(model_fmu, info, data, start_values, forced, candidates, step, solver)
-    seen = {n: first_order_lag(grid, v, lag) if lag > 0 else v for n, v in values.items()}
-    # A channel whose derivative reads an unmeasured state (a controller's integrator) is compared
-    # with the plain model's run instead: the forced run's unmeasured states drift away from the
-    # truth's, the plain run's are right as long as the effect does not feed back into them.
-    unforced = [c for c in channels if not _reads_measured_only(info, c, data)]
-    if unforced:
-        plain_grid, plain = _forced_run(model_fmu, info, data, start_values, {}, unforced, step, solver)
-        for c in unforced:
-            seen[c] = np.interp(grid, plain_grid, first_order_lag(plain_grid, plain[c], lag) if lag > 0 else plain[c])
-    at = data.time
-    missing = {}
-    for c in channels:
-        # The same local fit on the measured state and on the integral of the model's derivative:
-        # one linear operator on both, so that steps at events cancel instead of leaving spikes.
-        slope, valid = local_slope(at, data.signals[channel_states[c]], at, SLOPE_WINDOW)
-        model_slope, _ = local_slope(at, np.interp(at, grid, _integral(grid, seen[c])), at, SLOPE_WINDOW)
-        missing[c] = np.where(valid, slope - model_slope, np.nan)
-    sampled = {n: np.interp(at, grid, v) for n, v in values.items()}
-    aliases = {c: equal_to(sampled, c) for c in channels}
-    sampled = {n: np.interp(at, grid, seen[n]) for n in candidates}
-    return MissingTerm(at, missing, sampled, {n: variable_kind(info, n) for n in candidates},
-                       {n for n in candidates if n in data.signals}, aliases)
+    return MissingTermRun(model_fmu, info, data, start_values, candidates, step, solver).estimate(channels)
+
+
+class MissingTermRun:
+    """estimate_missing_terms of one run for any channels asked for, its simulations done once: the
+    forced run records the candidates and every measured channel, the plain run (needed by a channel
+    that reads an unmeasured state) every such channel. A second set of channels (the loop's
+    measured derivatives) then costs no simulation."""
+
+    def __init__(self, model_fmu, info, data, start_values: dict, candidates: list[str], step: float,
+                 solver: str = "euler"):
+        self.model_fmu, self.info, self.data, self.start_values = model_fmu, info, data, start_values
+        self.candidates, self.step, self.solver = list(candidates), step, solver
+        self.measured_channels = _measured_channels(info, data)
+        self.lag = float(data.sensor_lag or 0.0)
+        self._forced = None       # (grid, {name: values}, {name: values seen through the lag})
+        self._plain = None        # {channel: plain run seen through the lag, on the forced grid}
+
+    def estimate(self, channels: list[str]) -> MissingTerm | None:
+        from ..diagnose.trace import variable_kind
+        from ..neural.collocation import local_slope
+        info, data = self.info, self.data
+        states = [v.name for v in info.states]
+        derivatives = [v.name for v in info.derivatives]
+        channel_states = {c: states[derivatives.index(c)] for c in channels}
+        channels = [c for c in channels if channel_states[c] in data.signals]
+        if not channels:
+            return None
+        candidates = list(dict.fromkeys([*self.candidates, *channels]))
+        grid, values, seen = self._forced_run(candidates)
+        seen = dict(seen)
+        # A channel whose derivative reads an unmeasured state (a controller's integrator) is compared
+        # with the plain model's run instead: the forced run's unmeasured states drift away from the
+        # truth's, the plain run's are right as long as the effect does not feed back into them.
+        unforced = [c for c in channels if not _reads_measured_only(info, c, data)]
+        if unforced:
+            seen.update(self._plain_run(unforced))
+        at = data.time
+        missing = {}
+        for c in channels:
+            # The same local fit on the measured state and on the integral of the model's derivative:
+            # one linear operator on both, so that steps at events cancel instead of leaving spikes.
+            slope, valid = local_slope(at, data.signals[channel_states[c]], at, SLOPE_WINDOW)
+            model_slope, _ = local_slope(at, np.interp(at, grid, _integral(grid, seen[c])), at, SLOPE_WINDOW)
+            missing[c] = np.where(valid, slope - model_slope, np.nan)
+        sampled = {n: np.interp(at, grid, values[n]) for n in candidates}
+        aliases = {c: equal_to(sampled, c) for c in channels}
+        sampled = {n: np.interp(at, grid, seen[n]) for n in candidates}
+        return MissingTerm(at, missing, sampled, {n: variable_kind(info, n) for n in candidates},
+                           {n for n in candidates if n in data.signals}, aliases)
+
+    def _seen(self, grid: np.ndarray, values: np.ndarray) -> np.ndarray:
+        from ..data import first_order_lag
+        return first_order_lag(grid, values, self.lag) if self.lag > 0 else values
+
+    def _forced_run(self, names: list[str]):
+        if self._forced is None or any(n not in self._forced[1] for n in names):
+            data, states = self.data, [v.name for v in self.info.states]
+            forced = {s: _undo_lag(data.time, data.signals[s], self.lag) for s in states if s in data.signals}
+            recorded = list(dict.fromkeys([*names, *self.measured_channels]))
+            grid, values = _forced_run(self.model_fmu, self.info, data, self.start_values, forced, recorded,
+                                       self.step, self.solver)
+            self._forced = grid, values, {n: self._seen(grid, v) for n, v in values.items()}
+        return self._forced
+
+    def _plain_run(self, channels: list[str]) -> dict:
+        if self._plain is None or any(c not in self._plain for c in channels):
+            wanted = [c for c in self.measured_channels if not _reads_measured_only(self.info, c, self.data)]
+            recorded = list(dict.fromkeys([*channels, *wanted]))
+            time, values = _plain_run(self.model_fmu, self.data, self.start_values, recorded, self.step, self.solver)
+            grid = self._forced[0]
+            self._plain = {c: sample_settled(time, self._seen(time, values[c]), grid) for c in recorded}
+        return {c: self._plain[c] for c in channels}
+
+
+def _plain_run(model_fmu, data, start_values: dict, names: list[str], step: float, solver: str):
+    """(time, {name: values}) of the plain FMU over the run, by the engine (the batch solver's
+    steps, a sixth of its time: nothing is forced), recorded every step and on both sides of events."""
+    from ..simulation import simulate
+    inputs = {"time": data.time, **data.inputs} if data.inputs else None
+    with np.errstate(all="ignore"):
+        result = simulate(model_fmu, start_time=data.start, stop_time=data.stop, start_values=start_values,
+                          inputs=inputs, variables=list(names), solver=solver, step_size=step, output_interval=step,
+                          record_events=True)
+    return result.time, {n: np.asarray(result[n], dtype=float) for n in names}
 
 
 def _reads_measured_only(info, channel: str, data) -> bool:
@@ -381,13 +433,15 @@ def choose_ann(model_fmu, info, train_parts, validation_parts, channel: str, fur
     `start_values` and `window` (the workflow's roles). None when the channel's state is not
     measured or no variable predicts its missing term: the caller falls back to the diagnosis."""
     from ..diagnose.trace import candidate_variables
+    runs, estimators = [], []
+    for part in [*train_parts[:1], *validation_parts]:     # each run once, its simulations shared by both estimates
+        if all(part.data is not run.data for run in runs):
+            runs.append(part)
+            estimators.append(MissingTermRun(model_fmu, info, part.data, part.start_values,
+                                             candidate_variables(info), step, solver))
+
     def estimated(channels):
-        runs, terms = [], []
-        for part in [*train_parts[:1], *validation_parts]:     # each run once
-            if all(part.data is not run.data for run in runs):
-                runs.append(part)
-                terms.append(estimate_missing_terms(model_fmu, info, part.data, part.start_values, channels,
-                                                    candidate_variables(info), step, solver))
+        terms = [estimator.estimate(channels) for estimator in estimators]
         if any(t is None or channel not in t.missing for t in terms):
             return None, None, None
         train = np.concatenate([_in_windows(t, r.data, train_parts[:1]) for t, r in zip(terms, runs)])

@@ -201,7 +201,7 @@ def test_an_existing_output_needs_force(calibrated):
 def test_hybridize_chooses_and_publishes_the_calibration_when_it_is_best_on_validation(plant_files, tmp_path):
     train, test = plant_files
     result = hybridize(example_fmu("sampled_plant"), train, test, tmp_path / "out.fmu", tmp_path / "report",
-                       budget=1, progress=False)
+                       budget=1, ann_on_term=False, progress=False)
     report = result.report
     scores = report["selection"]["scores"]
     assert "calibrated b" in scores and "neural" in scores

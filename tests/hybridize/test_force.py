@@ -72,7 +72,7 @@ def test_allow_insignificant_builds_candidates_that_force_does_not(no_effect, tm
                       progress=False)
     assert not plain.report["diagnosis"]["significant"] and plain.report["models"] == []
     allowed = hybridize(example_fmu("dc_drive"), train, test, tmp_path / "b.fmu", tmp_path / "b", budget=1,
-                        allow_insignificant=True, progress=False)
+                        allow_insignificant=True, ann_on_term=False, progress=False)
     report = allowed.report
     assert not report["diagnosis"]["significant"]           # still said plainly
     assert report["models"] and "neural" in {m["name"] for m in report["models"]}

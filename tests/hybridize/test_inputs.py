@@ -21,11 +21,12 @@ from scipy.signal import lfilter
 from scipy.spatial import cKDTree
 
 from fmubuilder.build import example_fmu
-from fmubuilder.data import load_data
+from fmubuilder.data import first_order_lag, load_data
 from fmubuilder.diagnose.trace import candidate_variables
 from fmubuilder.examples_zoo import cached_data, dc_drive_data_sets
 from fmubuilder.fmi import read_model_info
-from fmubuilder.hybridize.inputs import (choose_inputs, contiguous_folds, cross_validated_squared_errors,
+from fmubuilder.hybridize import inputs
+from fmubuilder.hybridize.inputs import (MissingTermRun, choose_inputs, contiguous_folds, cross_validated_squared_errors,
                                          distinct_variables, estimate_missing_terms, forward_selection, outside_share,
                                          paired_t, time_blocks)
 
@@ -79,6 +80,43 @@ def test_a_friction_of_speed_gets_speed_alone_and_no_cumulative_variable(terms):
     standardised = (energy - np.mean(energy)) / np.std(energy)
     assert (np.mean(cross_validated_squared_errors(standardised[:, None], missing))
             >= np.mean(cross_validated_squared_errors(None, missing)))
+
+
+def test_a_second_set_of_channels_reuses_the_runs_and_equals_a_fresh_estimate(monkeypatch):
+    """The loop's second estimate (the measured derivatives besides the channel) costs no
+    simulation once the first needed the plain run (der(energy) reads the controller's unmeasured
+    integrator), and equals an estimate of its own, which simulates both runs again. The plain run
+    (the engine's) agrees with the batch solver's at the same step."""
+    data_set = next(s for s in dc_drive_data_sets() if s.cycle.role == "train" and s.variant.key == "windage")
+    path, = cached_data([data_set])[0]
+    fmu = example_fmu("dc_drive")
+    info = read_model_info(fmu)
+    data = load_data(path, info)
+    data = data.window(data.start, data.start + 5.0)
+    step = info.default_experiment.step_size
+    simulations = []
+    for name in ("_forced_run", "_plain_run"):
+        real = getattr(inputs, name)
+        monkeypatch.setattr(inputs, name, lambda *a, _real=real, _name=name, **k: simulations.append(_name) or _real(*a, **k))
+    run = MissingTermRun(fmu, info, data, data.start_values, candidate_variables(info), step)
+    run.estimate(["der(energy)"])
+    assert simulations == ["_forced_run", "_plain_run"]
+    channels = ["der(speed)", "der(energy)", "der(current)"]
+    shared = run.estimate(channels)
+    assert len(simulations) == 2
+    fresh = estimate_missing_terms(fmu, info, data, data.start_values, channels, candidate_variables(info), step)
+    assert len(simulations) == 4
+    assert list(shared.missing) == list(fresh.missing) == channels
+    for c in channels:
+        np.testing.assert_array_equal(shared.missing[c], fresh.missing[c])
+    assert list(shared.variables) == list(fresh.variables)
+    for name in fresh.variables:
+        np.testing.assert_array_equal(shared.variables[name], fresh.variables[name])
+    assert shared.aliases == fresh.aliases and shared.kinds == fresh.kinds and shared.measured == fresh.measured
+    grid, batch = inputs._forced_run(fmu, info, data, data.start_values, {}, ["der(energy)"], step, "euler")
+    lagged = first_order_lag(grid, batch["der(energy)"], data.sensor_lag)
+    engine = run._plain["der(energy)"]
+    assert np.max(np.abs(engine - lagged)) <= 1e-6 * np.max(np.abs(lagged))
 
 
 # -- synthetic samples: the truth is known ----------------------------------------------------------

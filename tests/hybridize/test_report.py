@@ -49,10 +49,11 @@ def files(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def published(files, tmp_path_factory):
-    """A small hybridize run (one epoch): the fitted term is published."""
+    """A small hybridize run (one epoch, no ANN on the term: tests/hybridize/test_hybridize.py's
+    runs report it): the fitted term is published."""
     folder = tmp_path_factory.mktemp("report")
     result = hybridize(example_fmu("dc_drive"), files["train"], files["test"], folder / "windage_hybrid.fmu",
-                       folder / "report", budget=1, progress=False)
+                       folder / "report", budget=1, ann_on_term=False, progress=False)
     assert result.hybrid_fmu is not None, "the windage must be found and published for these tests"
     return result
 

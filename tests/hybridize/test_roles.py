@@ -113,7 +113,7 @@ def strip_wall_times(report: dict) -> dict:
 
 def run_small(files, folder):
     return hybridize(example_fmu("dc_drive"), files["train"], files["test"], folder / "hybrid.fmu",
-                     folder / "report", budget=2, time_budget=600.0, progress=False)
+                     folder / "report", budget=2, time_budget=600.0, ann_on_term=False, progress=False)
 
 
 @pytest.fixture
@@ -148,7 +148,7 @@ def test_the_same_command_gives_the_same_numbers_on_a_busy_machine(files, tmp_pa
 
 def test_a_time_cap_that_cuts_the_training_short_is_reported(files, tmp_path):
     report = hybridize(example_fmu("dc_drive"), files["train"], files["test"], tmp_path / "h.fmu", tmp_path / "r",
-                       budget=1000, time_budget=1.0, progress=False).report
+                       budget=1000, time_budget=1.0, ann_on_term=False, progress=False).report
     assert report["training"]["cut_short_by_time_budget"]
     assert report["training"]["loss_evaluations"] < 1000
     assert "cut it short" in (tmp_path / "r" / "report.md").read_text()
