@@ -68,7 +68,8 @@ def cmd_train(args) -> None:
     except ValueError:
         raise FmuBuilderError(f"--hidden must be comma-separated integers, got '{args.hidden}'") from None
     settings = TrainSettings(
-        epochs=args.epochs, budget=args.budget, optimizer=args.optimizer, element_length=args.element_length, order=args.order, batch_size=args.batch_size,
+        epochs=args.epochs, budget=args.budget, optimizer=args.optimizer, element_length=args.element_length,
+        order=args.order, batch_size=args.batch_size,
         step_size=args.step_size, solver=args.solver, learning_rate=args.lr, decay=args.decay,
         nipt_iterations=args.nipt, ccpt_iterations=args.ccpt, time_budget=args.time_budget, seed=args.seed,
         loss_signals=parse_names(args.loss, "--loss"), sensor_lag=args.sensor_lag, resume=args.resume, progress=not args.quiet)
