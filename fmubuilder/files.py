@@ -81,12 +81,12 @@ def replace_folder(staging: str | os.PathLike, target: str | os.PathLike) -> Pat
     try:
         os.replace(staging, target)
     except OSError as exc:
-        if old is not None:
+        if old is not None:     # the old folder back; should that fail, it stays in `old`, not lost
             os.replace(old / "previous", target)
-        raise FmuBuilderError(f"cannot write {target}: {exc.strerror or exc}") from None
-    finally:
-        if old is not None:
             shutil.rmtree(old, ignore_errors=True)
+        raise FmuBuilderError(f"cannot write {target}: {exc.strerror or exc}") from None
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
     return target
 
 

@@ -50,13 +50,11 @@ VALIDATION_SHARE = 0.2
 # The NeuralFMU training's work: loss evaluations, each a simulation of all training elements with
 # its gradient (an Adam step costs one, an L-BFGS step its line search's, see neural.train.Trainer.fit).
 DEFAULT_BUDGET = 10
-# The optimizer through the solver: "adam" or "lbfgs" (after ADAM_STEPS Adam steps). L-BFGS, on the
-# same budget of 10 evaluations (benchmarks/bench_effects.py --optimizer): on the DC drive's Coulomb
-# friction the NeuralFMU's validation score 17.9 against Adam's 59.7, and it is chosen, its worst
-# test signal 190 x the noise where Adam's choice (the ANN on the term) left 961; on the Stribeck
-# friction the term stays the choice (its NeuralFMU: worst test signal 1350 against 2130, validation
-# 87.7 against 65.4), and on the speed-current loss (its NeuralFMU: 305 against 1410). Three Adam
-# steps first landed in between on both frictions.
+# The optimizer through the solver: "adam" or "lbfgs" (after ADAM_STEPS Adam steps). On the DC
+# drive's truths, 5 evaluations each, with the bounded warm start (benchmarks/bench_effects.py
+# --optimizer; the NeuralFMU's worst test signal / noise, L-BFGS against Adam): Coulomb 303 / 391,
+# speed-current loss 218 / 4.18e4, two effects 1690 / 7.17e4, but Stribeck 318 / 51.8 and windage
+# 24.4 / 4.24. Three Adam steps first landed in between on both frictions (before the bounded warm start).
 OPTIMIZER = "lbfgs"
 ADAM_STEPS = 0
 # Seconds of the test data replayed by the round-trip validation (fmpy Euler and CVode).

@@ -915,7 +915,7 @@ class _BudgetSpent(Exception):
 
 
 def _flat(parameters) -> torch.Tensor:
-    return torch.cat([p.detach().flatten() for p in parameters])
+    return torch.nn.utils.parameters_to_vector(parameters).detach()
 
 
 def _same_point(a: tuple, b: tuple) -> bool:
