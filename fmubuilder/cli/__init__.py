@@ -11,7 +11,7 @@ import os
 import sys
 import warnings
 
-from ..errors import FmuBuilderError
+from ..errors import FmuBuilderError, first_line
 
 DEFAULT_CALL_TIMEOUT = 60.0
 
@@ -103,7 +103,7 @@ def _call(args, caught: list) -> int:
         sys.stdout.flush()
         if caught:  # kept back, but not lost: one line
             print(f"warning: {len(caught)} warning(s) during the command, the first: "
-                  f"'{_first_line(caught[0].message)}'; rerun with --debug to see them", file=sys.stderr)
+                  f"'{first_line(caught[0].message)}'; rerun with --debug to see them", file=sys.stderr)
     except FmuBuilderError as exc:
         if args.debug:
             raise
@@ -125,7 +125,7 @@ def _call(args, caught: list) -> int:
     except Exception as exc:  # a bug, not bad input: still one line unless --debug
         if args.debug:
             raise
-        print(f"error: internal error ({type(exc).__name__}: {_first_line(exc)}){_warnings_note(caught)}; "
+        print(f"error: internal error ({type(exc).__name__}: {first_line(exc)}){_warnings_note(caught)}; "
               "rerun with --debug for the traceback", file=sys.stderr)
         return 2
     return 0
@@ -135,12 +135,7 @@ def _warnings_note(caught: list) -> str:
     if not caught:
         return ""
     more = f" and {len(caught) - 1} more" if len(caught) > 1 else ""
-    return f" (after the warning '{_first_line(caught[0].message)}'{more})"
-
-
-def _first_line(text) -> str:
-    lines = str(text).strip().splitlines()
-    return lines[0] if lines else ""
+    return f" (after the warning '{first_line(caught[0].message)}'{more})"
 
 
 def main(argv: list[str] | None = None) -> int:

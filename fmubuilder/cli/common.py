@@ -1,6 +1,7 @@
 """Argument helpers shared by the commands."""
 from __future__ import annotations
 
+import argparse
 import math
 from pathlib import Path
 
@@ -48,4 +49,15 @@ def check_output_path(path: str | Path, force: bool) -> Path:
 def positive(value: float, option: str) -> float:
     if not (math.isfinite(value) and value > 0):
         raise FmuBuilderError(f"{option} {value:g}: give a positive number")
+    return value
+
+
+def loss_evaluations(text: str) -> int:
+    """--budget: a whole number of loss evaluations, 0 or more."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number of loss evaluations") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{value}: give 0 or more loss evaluations")
     return value

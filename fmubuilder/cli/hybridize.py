@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from .common import parse_assignments
+from .common import loss_evaluations, parse_assignments
 
 
 class _TrainFile(argparse.Action):
@@ -26,17 +26,6 @@ class _TrainStart(argparse.Action):
         runs[-1][1].append(value)
 
 
-def _budget(text: str) -> int:
-    """--budget: a whole number of loss evaluations, 0 or more."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number of loss evaluations") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{value}: give 0 or more loss evaluations")
-    return value
-
-
 def add_hybridize_parser(subparsers, common=None) -> None:
     from ..hybridize.workflow import DEFAULT_BUDGET, VALIDATION_SHARE
     p = subparsers.add_parser(
@@ -56,7 +45,7 @@ def add_hybridize_parser(subparsers, common=None) -> None:
     p.add_argument("--test-start", action="append", metavar="NAME=VALUE", help="start value for the test data")
     p.add_argument("--output", "-o", required=True, metavar="HYBRID.fmu", help="the hybrid FMU to write")
     p.add_argument("--report", required=True, metavar="DIR", help="folder for report.json, report.md and plots")
-    p.add_argument("--budget", type=_budget, default=DEFAULT_BUDGET, metavar="N",
+    p.add_argument("--budget", type=loss_evaluations, default=DEFAULT_BUDGET, metavar="N",
                    help="the NeuralFMU training's work in loss evaluations, each a simulation of all training "
                         f"elements with its gradient (default {DEFAULT_BUDGET}); the same number gives the same "
                         "result on any machine")

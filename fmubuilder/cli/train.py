@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 
 from ..errors import FmuBuilderError
-from .common import parse_assignments, parse_names
+from .common import loss_evaluations, parse_assignments, parse_names
 
 
 def add_train_parser(subparsers, common=None) -> argparse.ArgumentParser:
@@ -25,10 +25,11 @@ def add_train_parser(subparsers, common=None) -> argparse.ArgumentParser:
     p.add_argument("--hidden", default="16,16", metavar="N,N", help="hidden layer sizes (default 16,16)")
     p.add_argument("--activation", default="tanh", choices=["tanh", "sigmoid", "relu"])
     p.add_argument("--parameters", metavar="A,B", help="tunable FMU parameters to train as well")
-    p.add_argument("--epochs", type=int, default=30, help="default 30")
-    p.add_argument("--budget", type=int, metavar="N",
-                   help="train for N loss evaluations (each a simulation of a batch with its gradient) instead of "
-                        "--epochs")
+    work = p.add_mutually_exclusive_group()
+    work.add_argument("--epochs", type=int, help="default 30")
+    work.add_argument("--budget", type=loss_evaluations, metavar="N",
+                      help="train for N loss evaluations (each a simulation of a batch with its gradient) instead of "
+                           "epochs")
     p.add_argument("--optimizer", default="adam", choices=["adam", "lbfgs"],
                    help="adam: one step per batch; lbfgs: one step over all elements per epoch, its line search "
                         "up to 10 loss evaluations (default adam)")
@@ -68,7 +69,8 @@ def cmd_train(args) -> None:
     except ValueError:
         raise FmuBuilderError(f"--hidden must be comma-separated integers, got '{args.hidden}'") from None
     settings = TrainSettings(
-        epochs=args.epochs, budget=args.budget, optimizer=args.optimizer, element_length=args.element_length,
+        epochs=TrainSettings.epochs if args.epochs is None else args.epochs, budget=args.budget,
+        optimizer=args.optimizer, element_length=args.element_length,
         order=args.order, batch_size=args.batch_size,
         step_size=args.step_size, solver=args.solver, learning_rate=args.lr, decay=args.decay,
         nipt_iterations=args.nipt, ccpt_iterations=args.ccpt, time_budget=args.time_budget, seed=args.seed,

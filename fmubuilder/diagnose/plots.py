@@ -112,7 +112,7 @@ def _figure(plt, rows: int, columns: int = 1, **options):
     return plt.subplots(rows, columns, figsize=(4.5 * columns + 3, 2.4 * rows + 0.6), squeeze=False, **options)
 
 
-def _save(plt, fig, path: Path, title: str) -> Path:
+def save_figure(plt, fig, path: Path, title: str) -> Path:
     fig.suptitle(title, fontsize=11)
     if fig.get_layout_engine() is None:     # a constrained layout (room for a colourbar) stays
         fig.tight_layout()
@@ -135,7 +135,7 @@ def _signals(plt, folder, data, nominal, fitted_run, units) -> Path:
         ax.grid(alpha=0.3)
     axes[0, 0].legend(loc="best", fontsize=8)
     axes[-1, 0].set_xlabel("time [s]")
-    return _save(plt, fig, folder / "signals.png", "Diagnosis: measured signals and the declared FMU")
+    return save_figure(plt, fig, folder / "signals.png", "Diagnosis: measured signals and the declared FMU")
 
 
 def _residuals(plt, folder, data, nominal, fitted_run, noise, units) -> Path:
@@ -156,7 +156,7 @@ def _residuals(plt, folder, data, nominal, fitted_run, noise, units) -> Path:
         ax.grid(alpha=0.3)
     axes[0, 0].legend(loc="best", fontsize=8)
     axes[-1, 0].set_xlabel("time [s]")
-    return _save(plt, fig, folder / "residuals.png", f"Diagnosis: residuals ({RESIDUAL}) over time")
+    return save_figure(plt, fig, folder / "residuals.png", f"Diagnosis: residuals ({RESIDUAL}) over time")
 
 
 def _residual_vs_inputs(plt, folder, data, nominal, inputs, shown, left_out, units) -> Path:
@@ -179,4 +179,4 @@ def _residual_vs_inputs(plt, folder, data, nominal, inputs, shown, left_out, uni
     if left_out:
         title += f"\n(left out, they accumulate over time: {', '.join(left_out)})"
     fig.colorbar(points, ax=axes, fraction=0.03, pad=0.01).set_label("time [s]")
-    return _save(plt, fig, folder / "residual_vs_inputs.png", title)
+    return save_figure(plt, fig, folder / "residual_vs_inputs.png", title)

@@ -2,6 +2,7 @@
 cannot end early, identifiers, and the jinja2 templates of c_templates/."""
 from __future__ import annotations
 
+import functools
 import math
 import re
 
@@ -13,8 +14,10 @@ TEMPLATE_DIR = data_path("c_templates")
 C_IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
 
 
+@functools.cache
 def templates() -> jinja2.Environment:
-    """The templates of c_templates/, with the filters c_string and c_comment."""
+    """The templates of c_templates/, with the filters c_string and c_comment (one environment, so
+    each template is parsed once per process)."""
     env = jinja2.Environment(loader=jinja2.FileSystemLoader(TEMPLATE_DIR), undefined=jinja2.StrictUndefined,
                              trim_blocks=True, lstrip_blocks=True, keep_trailing_newline=True)
     env.filters.update(c_string=c_string, c_comment=c_comment)

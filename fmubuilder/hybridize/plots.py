@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..diagnose.plots import (COLOURS, FMU_STYLE, HYBRID_STYLE, MEASURED_STYLE, RESIDUAL, label, pyplot,
-                              robust_ylim)
+                              robust_ylim, save_figure)
 
 
 def plot_signals(path: Path, data, before, after, hybrid_label: str | None, units: dict, title: str,
@@ -49,7 +49,7 @@ def plot_signals(path: Path, data, before, after, hybrid_label: str | None, unit
     axes[0, 1].set_title(f"errors ({RESIDUAL})", fontsize=10)
     for ax in axes[-1]:
         ax.set_xlabel("time [s]")
-    return _save(plt, fig, path, title)
+    return save_figure(plt, fig, path, title)
 
 
 def plot_effect(path: Path, effect, units: dict, title: str) -> Path:
@@ -81,12 +81,4 @@ def plot_effect(path: Path, effect, units: dict, title: str) -> Path:
         if effect.truth is None:
             ax.text(0.01, 0.02, f"no true effect drawn: {effect.truth_source}", transform=ax.transAxes,
                     fontsize=7, color="0.35")
-    return _save(plt, fig, path, title)
-
-
-def _save(plt, fig, path: Path, title: str) -> Path:
-    fig.suptitle(title, fontsize=11)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(plt, fig, path, title)

@@ -102,6 +102,17 @@ def test_the_training_budget_is_a_count_of_loss_evaluations_on_the_command_line(
         assert error.startswith("error: argument --budget") and error.count("\n") == 1 and "Traceback" not in error
 
 
+def test_train_takes_epochs_or_a_budget_not_both(capsys):
+    from fmubuilder.cli import build_parser
+    train = ["train", "m.fmu", "--data", "d.csv", "--target", "der(v)", "--inputs", "v", "-o", "t.pt"]
+    assert build_parser().parse_args([*train, "--budget", "4"]).epochs is None
+    for work in (["--epochs", "30", "--budget", "4"], ["--budget", "-1"]):
+        with pytest.raises(SystemExit) as stopped:
+            build_parser().parse_args([*train, *work])
+        assert stopped.value.code == 2
+        error = capsys.readouterr().err
+        assert error.startswith("error: argument") and error.count("\n") == 1
+
 def strip_wall_times(report: dict) -> dict:
     report = json.loads(json.dumps(report))
     for key in ("seconds", "timings", "hybrid_fmu", "model_fmu", "plots"):
