@@ -801,12 +801,20 @@ class Trainer:
     def scaled_residuals(self) -> torch.Tensor:
         """All elements' residuals in one vector whose squared sum is the loss (batch_loss of all
         elements from their current starts, no carry-over), without gradient."""
+        count = len(self.loss_signals)
+        return torch.cat([r / math.sqrt(r.numel() * self.scale[name] * count)
+                          for name, r in self._all_residuals().items()])
+
+    def signal_losses(self) -> dict:
+        """{signal: MSE over all elements from their current starts / the plain FMU's}: the loss's
+        terms before their mean, without gradient."""
+        return {name: float((r ** 2).mean() / self.scale[name]) for name, r in self._all_residuals().items()}
+
+    def _all_residuals(self) -> dict:
         with torch.no_grad():
             trajectory = simulate(self.model, self.element_duration, self.step, starts=[e.start for e in self.elements],
                                   record=self.loss_signals, solver=self.settings.solver, inputs=self.inputs)
-            residuals = self._residuals(trajectory, self.elements)
-        count = len(self.loss_signals)
-        return torch.cat([r / math.sqrt(r.numel() * self.scale[name] * count) for name, r in residuals.items()])
+            return self._residuals(trajectory, self.elements)
 
     def _through_sensor(self, values: torch.Tensor, shown: torch.Tensor | None = None) -> torch.Tensor:
         """[K+1, B] simulated values seen through the sensors' first-order lag. The sensor starts
