@@ -105,6 +105,8 @@ class TrainSettings:
     ccpt_window: float = 1.0          # seconds of data per local derivative fit
     warm_start: bool = False          # fit the ANN to the collocation estimate (L-BFGS) before training
     warm_start_iterations: int = 300  # L-BFGS iterations of the warm start
+    warm_start_target: str = "pointwise"  # "pointwise": local slopes; "integral": window increments (warm_start.py)
+    integral_window: float = 0.5      # seconds per window of the integral target
     gauss_newton_iterations: int = 0  # Gauss-Newton steps on the ANN's last layer before training (gauss_newton.py)
     time_budget: float | None = None  # seconds for the whole training call
     seed: int = 0
@@ -214,6 +216,10 @@ def _settings(settings: TrainSettings | None, overrides: dict) -> TrainSettings:
         raise FmuBuilderError(f"unknown loss scale '{settings.loss_scale}': use reference or variance")
     if settings.optimizer not in ("adam", "lbfgs"):
         raise FmuBuilderError(f"unknown optimizer '{settings.optimizer}': use adam or lbfgs")
+    if settings.warm_start_target not in ("pointwise", "integral"):
+        raise FmuBuilderError(f"unknown warm start target '{settings.warm_start_target}': use pointwise or integral")
+    if not settings.integral_window > 0:
+        raise FmuBuilderError(f"the integral window must be positive seconds, got {settings.integral_window}")
     if settings.order not in ("random", "sequential"):
         raise FmuBuilderError(f"unknown element order '{settings.order}': use random or sequential")
     if settings.epochs < 0:
