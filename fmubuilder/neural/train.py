@@ -32,7 +32,8 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    the ODE solver. The ANN gate is set to 1 first if it was 0. The warm start (`warm_start`,
    warm_start.py) fits the same target full-batch with L-BFGS instead of Adam on minibatches, with
    the forced states smoothed and read a sensor lag later, and keeps the fit only if it lowers the
-   training loss. Where the model's controllers make collocation unreliable, the Gauss-Newton warm
+   training loss; with `warm_start_target="integral"` it fits the ANN's integrals over windows of
+   `integral_window` seconds to the measured states' increments instead of slopes. Where the model's controllers make collocation unreliable, the Gauss-Newton warm
    start (`gauss_newton_iterations`, gauss_newton.py) fits the ANN's last layer through the solver
    to the closed-loop response itself.
 4. Training: the data are cut into elements (default 100 s) simulated side by side; the loss is the

@@ -8,6 +8,12 @@ difference, measured derivative minus the FMU's own, estimates the missing term 
 the ANN's inputs along that run. The ANN is fitted to it full-batch with L-BFGS (a few hundred
 evaluations of a tiny network on some 10^4 samples: a second or two), then the training through
 the solver fine-tunes it from there instead of from zero.
+
+The integral target (`warm_start_target="integral"`, the weak form) compares increments instead of
+slopes: over windows [a, b] of the data, x(b) - x(a) minus the FMU derivative's integral along the
+forced run is what the ANN's integral (trapezoid rule on the run's grid, in torch) has to give.
+No window is left out: the state is continuous where its derivative jumps, and a window across a
+sign change is matched by the ANN's mean over it, not assigned to one point's inputs.
 """
 from __future__ import annotations
 
