@@ -151,8 +151,9 @@ def _interpolated(time, values):
 def forced_channel_run(model: NeuralFMU, data: MeasuredData, step: float, solver: str, window: float, inputs,
                        sensor_lag: float = 0.0):
     """The forced run (forced_run: the measured states set to their local lines through +-window/2,
-    or with window 0 to the samples interpolated linearly, read a sensor lag later) on its whole grid: (absolute times [N], ANN inputs [N, n_in], FMU channel derivatives
-    [N, C], the channels' state names), or None when no channel's state is measured."""
+    or with window 0 to the samples interpolated linearly, read a sensor lag later) on its whole
+    grid: (absolute times [N], ANN inputs [N, n_in], FMU channel derivatives [N, C], the channels'
+    state names), or None when no channel's state is measured."""
     config = model.config
     state_names = model.state_names()
     derivative_names = [v.name for v in model.info.derivatives]

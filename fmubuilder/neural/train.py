@@ -33,9 +33,10 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    warm_start.py) fits the same target full-batch with L-BFGS instead of Adam on minibatches, with
    the forced states smoothed and read a sensor lag later, and keeps the fit only if it lowers the
    training loss; with `warm_start_target="integral"` it fits the ANN's integrals over windows of
-   `integral_window` seconds to the measured states' increments instead of slopes. Where the model's controllers make collocation unreliable, the Gauss-Newton warm
-   start (`gauss_newton_iterations`, gauss_newton.py) fits the ANN's last layer through the solver
-   to the closed-loop response itself.
+   `integral_window` seconds to the measured states' increments instead of slopes. Where the
+   model's controllers make collocation unreliable, the Gauss-Newton warm start
+   (`gauss_newton_iterations`, gauss_newton.py) fits the ANN's last layer through the solver to
+   the closed-loop response itself.
 4. Training: the data are cut into elements (default 100 s) simulated side by side; the loss is the
    MSE per measured signal (weighted by the uncertainty band when the CSV has <signal>_std columns)
    divided by the plain FMU's MSE on the same elements, averaged over the signals: every signal

@@ -153,8 +153,9 @@ def warm_start(trainer) -> dict:
     """Fit the ANN to the collocation estimate of the missing term (see the module docstring), and
     keep the fit only if it lowers the training loss (simulated over all elements, each from the
     start the hybrid reaches): where the forced controllers react to sensor noise and lag more
-    than to the effect, the estimate is wrong. Returns what it did: samples, relative fit error
-    (nan without a measured channel state), the loss before and after, whether it was kept."""
+    than to the effect, the estimate is wrong. Returns what it did: samples (windows with the
+    integral target), the target, relative fit error (nan without a measured channel state), the
+    loss before and after, whether it was kept."""
     integral = trainer.settings.warm_start_target == "integral"
     samples = integral_targets(trainer) if integral else collocation_targets(trainer)
     if samples is None:
@@ -173,8 +174,8 @@ def warm_start(trainer) -> dict:
                 p.copy_(saved)
         _loss_from_own_starts(trainer)      # the element starts back at the kept parameters
     # simulations without gradient: the forced run, and a capture and a loss per evaluation
-    return {"samples": int(target.shape[0]), "target": trainer.settings.warm_start_target, "fit_error": error, "loss_before": loss_before, "loss_after": loss_after,
-            "kept": kept, "simulations": 5 if kept else 7}
+    return {"samples": int(target.shape[0]), "target": trainer.settings.warm_start_target, "fit_error": error,
+            "loss_before": loss_before, "loss_after": loss_after, "kept": kept, "simulations": 5 if kept else 7}
 
 
 def scale_output_to_effect(topology, target: torch.Tensor) -> None:
