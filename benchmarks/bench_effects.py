@@ -17,10 +17,12 @@ training elements with gradient; the diagnosis' work is fixed), so the numbers d
 busy the machine is. `--optimizer` trains with another optimizer than hybridize's default, on the
 same budget (`adam`, `lbfgs`, or `adam-lbfgs:N`: L-BFGS after N Adam steps), to compare them;
 `--elements N` cuts the training data into at least N elements (hybridize: MIN_ELEMENTS).
-`--truth-only` scores the truth FMU alone: a quick check of the scoring.
+`--warm-start-target pointwise|integral` and `--integral-window S` set the NeuralFMU's warm start
+target (neural/warm_start.py). `--truth-only` scores the truth FMU alone: a quick check of the scoring.
 
     python benchmarks/bench_effects.py [--cases dc_drive,vldm | dc_drive:stribeck,...] [--budget EVALUATIONS]
                                        [--optimizer adam|lbfgs|adam-lbfgs:N] [--elements N]
+                                       [--warm-start-target pointwise|integral] [--integral-window S]
                                        [--truth-only]
 """
 from __future__ import annotations
@@ -52,6 +54,10 @@ def main() -> None:
                         help="the training's optimizer (default: hybridize's)")
     parser.add_argument("--elements", type=int, default=None,
                         help="at least this many training elements (default: hybridize's)")
+    parser.add_argument("--warm-start-target", choices=["pointwise", "integral"], default=None,
+                        help="the NeuralFMU's warm start target (default: hybridize's)")
+    parser.add_argument("--integral-window", type=float, default=None,
+                        help="seconds per window of the integral warm start target (default: hybridize's)")
     parser.add_argument("--truth-only", action="store_true",
                         help="score the truth FMU alone (checks the scoring; no hybridize)")
     args = parser.parse_args()
@@ -59,6 +65,12 @@ def main() -> None:
         cases = _cases(args.cases)
         if args.optimizer:
             workflow.OPTIMIZER, workflow.ADAM_STEPS = _optimizer(args.optimizer)
+        if args.warm_start_target:
+            workflow.WARM_START_TARGET = args.warm_start_target
+        if args.integral_window is not None:
+            if not args.integral_window > 0:
+                raise ValueError(f"--integral-window: give positive seconds, got {args.integral_window}")
+            workflow.INTEGRAL_WINDOW = args.integral_window
         if args.elements is not None:
             if args.elements < 1:
                 raise ValueError(f"--elements: give 1 or more, got {args.elements}")
@@ -80,7 +92,8 @@ def main() -> None:
         print(f"done: {example} {variant} ({seconds:.0f} s), {scoring.describe()}", flush=True)
     optimizer = workflow.OPTIMIZER + (f" after {workflow.ADAM_STEPS} Adam steps" if workflow.ADAM_STEPS else "")
     print(f"\nTest MSE / noise variance of the measured value (1 = noise floor), {args.budget} loss evaluations "
-          f"({optimizer}, at least {workflow.MIN_ELEMENTS} elements):\n")
+          f"({optimizer}, at least {workflow.MIN_ELEMENTS} elements, warm start target {workflow.WARM_START_TARGET}"
+          + (f" over {workflow.INTEGRAL_WINDOW:g} s" if workflow.WARM_START_TARGET == "integral" else "") + "):\n")
     print("| case | signal | truth FMU | plain FMU | fitted term | NeuralFMU | ANN on the term | chosen "
           "| NeuralFMU channels and inputs | seconds |")
     print("|---|---|---|---|---|---|---|---|---|---|")

@@ -16,7 +16,8 @@ floor per signal.
 
     python benchmarks/bench_representation.py [--cases stribeck,coulomb,speed_current_loss]
         [--hidden 16,16] [--activation tanh] [--iterations N] [--weight-decay D] [--input-scale std|maxabs|F]
-        [--inputs speed,current] [--collocation]
+        [--inputs speed,current] [--collocation [--target pointwise|integral] [--integral-window S]
+        [--edges raw|fit]] [--unbounded]
 """
 from __future__ import annotations
 
@@ -88,13 +89,14 @@ def run_case(variant: str, args) -> list[list[str]]:
     torch.manual_seed(0)
     model = NeuralFMU(declared, config, start_values=train.start_values)
     try:
-        x, target, speed = samples(model, variant, data_set, train, args.collocation)
+        x, target, speed, average = samples(model, variant, data_set, train, args.collocation, args)
         initialise(model, train, args.input_scale, x)
         scale_output_to_effect(model.topology, target)
-        fit_full_batch(model.topology, x, target, args.iterations, weight_decay=args.weight_decay)
+        fit_full_batch(model.topology, x, target, args.iterations, weight_decay=args.weight_decay,
+                       bounded=not args.unbounded, average=average)
         with torch.no_grad():
             fitted = model.topology.correction(x)
-        truth_x, truth_target, truth_speed = samples(model, variant, data_set, train, False)
+        truth_x, truth_target, truth_speed, _ = samples(model, variant, data_set, train, False, args)
         with torch.no_grad():
             on_truth = model.topology.correction(truth_x)
         fit = relative_errors(on_truth, truth_target, truth_speed)
@@ -133,19 +135,27 @@ def scored(model, data) -> dict:
     return errors
 
 
-def samples(model, variant: str, data_set, train, collocation: bool):
-    """(raw ANN inputs, target, speed) along the training part: the true effect on the truth's
-    trajectory, or the collocation estimate from the measured data."""
+def samples(model, variant: str, data_set, train, collocation: bool, args):
+    """(raw ANN inputs, target, speed, window means or None) along the training part: the true
+    effect on the truth's trajectory, or the collocation estimate from the measured data (its
+    pointwise or its integral form)."""
     if collocation:
+        from fmubuilder.neural import collocation as collocation_module
         from fmubuilder.neural.train import Trainer
-        from fmubuilder.neural.warm_start import collocation_targets
-        settings = TrainSettings(solver="rk4", step_size=STEP, ccpt_window=0.5, progress=False)
+        from fmubuilder.neural.warm_start import collocation_targets, integral_targets
+        settings = TrainSettings(solver="rk4", step_size=STEP, ccpt_window=0.5, progress=False,
+                                 sensor_lag=train.sensor_lag, warm_start_target=args.target,
+                                 integral_window=args.integral_window)
+        collocation_module.EDGE_VALUES = args.edges
         trainer = Trainer(model, train, settings, 0.0)
         trainer.inputs = train.input_signals(model.info)
-        x, target = collocation_targets(trainer)
+        if args.target == "integral":
+            x, target, average = integral_targets(trainer)
+        else:
+            (x, target), average = collocation_targets(trainer), None
         speed_column = model.config.inputs.index("speed") if "speed" in model.config.inputs else None
         speed = x[:, speed_column].numpy() if speed_column is not None else np.full(len(x), np.inf)
-        return x, target, speed
+        return x, target, speed, average
     states = [v.name for v in model.info.states]
     starts = {**train.start_values, **data_set.variant.truth_parameters}
     result = simulate(example_fmu(data_set.variant.fmu), start_time=train.start, stop_time=train.stop,
@@ -154,7 +164,7 @@ def samples(model, variant: str, data_set, train, collocation: bool):
     values = {name: np.asarray(result[name], dtype=float) for name in dict.fromkeys(states + model.config.inputs)}
     x = torch.from_numpy(np.stack([values[name] for name in model.config.inputs], axis=1))
     target = torch.from_numpy(np.stack([true_effect(variant, c, values) for c in model.config.channels], axis=1))
-    return x, target, values["speed"]
+    return x, target, values["speed"], None
 
 
 def initialise(model, train, input_scale: str, x: torch.Tensor) -> None:
@@ -197,11 +207,22 @@ def main() -> None:
     parser.add_argument("--inputs", default="", help="override the workflow's inputs, comma-separated")
     parser.add_argument("--collocation", action="store_true",
                         help="fit to the collocation estimate from the data instead of the true effect")
+    parser.add_argument("--target", default="pointwise", choices=["pointwise", "integral"],
+                        help="with --collocation: local slopes (pointwise) or window increments (integral)")
+    parser.add_argument("--integral-window", type=float, default=TrainSettings().integral_window,
+                        help="seconds per window of the integral target")
+    parser.add_argument("--edges", default="raw", choices=["raw", "fit"],
+                        help="the integral target's state at the window edges: the samples or their local lines")
+    parser.add_argument("--unbounded", action="store_true", help="without the fit's range bound")
     args = parser.parse_args()
     rows = []
     for variant in args.cases.split(","):
         rows += run_case(variant.strip(), args)
-    source = "collocation estimate" if args.collocation else "true effect"
+    source = "true effect"
+    if args.collocation:
+        source = "collocation estimate" if args.target == "pointwise" else \
+            f"integral collocation target ({args.integral_window:g} s windows, {args.edges} edges)"
+    source += ", unbounded" if args.unbounded else ""
     print(f"\nANN {args.hidden} {args.activation}, input scale {args.input_scale}, {args.iterations} L-BFGS "
           f"iterations, weight decay {args.weight_decay:g}, fitted to the {source}; MSE / noise variance (1 = floor):\n")
     print("| case | channels <- inputs | signal | fit error on the true effect (rel. MSE) | train | test |")

@@ -76,6 +76,12 @@ WARM_START = True
 # drive's training data (10 Hz), 0.5 s windows, those across steps left out, estimate the Coulomb
 # friction with an rms error of 7 % of its size; 1 s windows, all kept (before), 130 %.
 COLLOCATION_WINDOW = 0.5
+# The warm start's target (neural/warm_start.py): "pointwise", the local lines' slopes, or
+# "integral", the state's increments over windows of INTEGRAL_WINDOW seconds. benchmarks/
+# bench_effects.py --budget 5, the NeuralFMU's worst test signal / noise, pointwise / integral: DC
+# drive Stribeck 318 / 158, Coulomb 303 / 327, speed-current loss 218 / 230, two effects 1690 / 1.57e4.
+WARM_START_TARGET = "pointwise"
+INTEGRAL_WINDOW = 0.5
 # Seconds of the training data on which outputs equal to the corrected derivative are detected.
 ALIAS_SPAN = 60.0
 
@@ -533,7 +539,8 @@ def _training_settings(data: MeasuredData, diagnosis) -> dict:
     span = float(data.time[-1] - data.time[0])
     showing = [e.signal for e in diagnosis.errors if e.significant]
     return {"element_length": min(MAX_ELEMENT_LENGTH, span / MIN_ELEMENTS), "loss_signals": showing or None,
-            "warm_start": WARM_START, "ccpt_window": COLLOCATION_WINDOW, "optimizer": OPTIMIZER,
+            "warm_start": WARM_START, "ccpt_window": COLLOCATION_WINDOW, "warm_start_target": WARM_START_TARGET,
+            "integral_window": INTEGRAL_WINDOW, "optimizer": OPTIMIZER,
             "adam_steps": ADAM_STEPS if OPTIMIZER == "lbfgs" else 0}
 
 

@@ -24,12 +24,136 @@ MAX_SAMPLES = 50_000
 # A window whose local line leaves more than this many times the typical residual spans a step or a
 # kink (see smooth_windows).
 ROUGHNESS_LIMIT = 2.0
+# The integral target's window edges: the raw samples ("raw") or their local lines' values ("fit").
+EDGE_VALUES = "raw"
 
 
 def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solver: str, window: float, inputs,
                         sensor_lag: float = 0.0):
     """(ANN inputs [N, n_in], FMU channel derivatives [N, C], measured derivatives [N, C], mask [N, C])
     or None when no channel's state is measured. sensor_lag: the sensors' first-order time constant."""
+    run = forced_channel_run(model, data, step, solver, window, inputs, sensor_lag)
+    if run is None:
+        return None
+    times, ann_inputs, fmu_channels, channel_states = run
+    every = max(1, len(times) // MAX_SAMPLES)
+    keep = slice(0, len(times), every)
+    times, ann_inputs, fmu_channels = times[keep], ann_inputs[keep], fmu_channels[keep]
+    measured = np.zeros_like(fmu_channels)
+    mask = np.zeros(fmu_channels.shape, dtype=bool)
+    forced = [s for s in model.state_names() if s in data.signals]
+    smooth = smooth_windows(data, forced, times + sensor_lag, window)
+    for j, state in enumerate(channel_states):
+        if state in data.signals:
+            _, slope, valid = local_fit(data.time, data.signals[state], times + sensor_lag, window)
+            measured[:, j], mask[:, j] = slope, valid & smooth
+    return ann_inputs, fmu_channels, measured, mask
+
+
+def integral_samples(model: NeuralFMU, data: MeasuredData, step: float, solver: str, window: float, inputs,
+                     sensor_lag: float = 0.0, span: float = 0.5, edges: str | None = None):
+    """The weak-form counterpart of collocation_samples: over windows [a, b] of `span` seconds,
+    x(b) - x(a) = integral of (FMU derivative + missing term) dt, with no window left out (the state
+    is continuous where its derivative jumps, at a friction's sign change or a load step).
+    Returns (ANN inputs on the forced run's whole grid [N, n_in], FMU channel derivatives on it
+    [N, C], WindowMeans of the windows, measured mean derivative (x(b) - x(a)) / (b - a) [W, C],
+    mask [W, C]) or None when no channel's state is measured. The window edges are the sample times
+    one sensor lag earlier (a lagging sensor shows the state then); x there is the sample itself
+    (edges="raw") or the local line's value through +-window/2 of it (edges="fit"). Consecutive
+    windows overlap: one starts at every sample. The states are forced to the samples interpolated,
+    not to local lines: a line through a load step smears the current over the line's span, and
+    the integral of the FMU's derivative over a window near the step with it (on the DC drive's
+    Coulomb data the target's rms error over 0.5 s windows was 2.34 with 0.5 s lines, 0.74 with
+    the samples, against a friction of rms 4.8 rad/s^2)."""
+    run = forced_channel_run(model, data, step, solver, 0.0, inputs, sensor_lag)
+    if run is None:
+        return None
+    times, ann_inputs, fmu_channels, channel_states = run
+    lo, hi = window_edges(data.time - sensor_lag, times[0], times[-1], span)
+    means = WindowMeans(times, (data.time - sensor_lag)[lo], (data.time - sensor_lag)[hi])
+    measured = np.zeros((len(lo), len(channel_states)))
+    mask = np.zeros(measured.shape, dtype=bool)
+    for j, state in enumerate(channel_states):
+        if state in data.signals:
+            values, valid = edge_values(data.time, data.signals[state], window, edges or EDGE_VALUES)
+            measured[:, j] = (values[hi] - values[lo]) / (data.time[hi] - data.time[lo])
+            mask[:, j] = valid[lo] & valid[hi]
+    return ann_inputs, fmu_channels, means, measured, mask
+
+
+def window_edges(edge_times: np.ndarray, first: float, last: float, span: float):
+    """Index pairs (lo, hi) of the edges within [first, last]: a window from every edge to the first
+    edge at least `span` later (at least the next one)."""
+    inside = np.flatnonzero((edge_times >= first) & (edge_times <= last))
+    if len(inside) < 2:
+        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+    t = edge_times[inside]
+    hi = np.maximum(np.searchsorted(t, t + span - 1e-9, side="left"), np.arange(1, len(t) + 1))
+    complete = hi < len(t)
+    return inside[complete], inside[hi[complete]]
+
+
+def edge_values(time: np.ndarray, values: np.ndarray, window: float, edges: str):
+    """(the state at each sample, valid): the sample itself, or its local line's value."""
+    if edges == "raw":
+        return values, np.ones(values.shape, dtype=bool)
+    if edges == "fit":
+        fitted, _, valid = local_fit(time, values, time, window)
+        return fitted, valid
+    raise ValueError(f"unknown window edge values '{edges}': use raw or fit")
+
+
+class WindowMeans:
+    """The mean over each window [a, b] of a signal given on a time grid, as a linear map in torch:
+    the trapezoid rule's running integral on the grid, interpolated linearly at a and b. Applied
+    to the ANN's output along the forced run, it is what the measured increments are compared with."""
+
+    def __init__(self, grid: np.ndarray, starts: np.ndarray, ends: np.ndarray):
+        self.grid = np.asarray(grid, dtype=float)
+        self.count = len(starts)
+        self._dt = torch.from_numpy(np.diff(self.grid))[:, None]
+        self._a = self._position(starts)
+        self._b = self._position(ends)
+        self._length = torch.from_numpy(np.asarray(ends, dtype=float) - np.asarray(starts, dtype=float))[:, None]
+
+    def _position(self, at: np.ndarray):
+        index = np.clip(np.searchsorted(self.grid, at, side="right") - 1, 0, len(self.grid) - 2)
+        weight = (at - self.grid[index]) / (self.grid[index + 1] - self.grid[index])
+        return torch.from_numpy(index), torch.from_numpy(np.clip(weight, 0.0, 1.0))[:, None]
+
+    def __call__(self, values: torch.Tensor) -> torch.Tensor:
+        """values [N, C] on the grid -> means [W, C] over the windows."""
+        steps = 0.5 * (values[1:] + values[:-1]) * self._dt.to(values.dtype)
+        running = torch.cat([torch.zeros_like(values[:1]), torch.cumsum(steps, dim=0)])
+
+        def at(position):
+            index, weight = position
+            weight = weight.to(values.dtype)
+            return running[index] * (1.0 - weight) + running[index + 1] * weight
+        return (at(self._b) - at(self._a)) / self._length.to(values.dtype)
+
+    def subset(self, rows):
+        """The windows selected by the boolean or index array `rows`."""
+        chosen = WindowMeans.__new__(WindowMeans)
+        chosen.grid, chosen._dt = self.grid, self._dt
+        rows = torch.as_tensor(rows)
+        chosen._a = (self._a[0][rows], self._a[1][rows])
+        chosen._b = (self._b[0][rows], self._b[1][rows])
+        chosen._length = self._length[rows]
+        chosen.count = len(chosen._length)
+        return chosen
+
+
+def _interpolated(time, values):
+    return lambda at: (np.interp(at, time, values),)
+
+
+def forced_channel_run(model: NeuralFMU, data: MeasuredData, step: float, solver: str, window: float, inputs,
+                       sensor_lag: float = 0.0):
+    """The forced run (forced_run: the measured states set to their local lines through +-window/2,
+    or with window 0 to the samples interpolated linearly, read a sensor lag later) on its whole
+    grid: (absolute times [N], ANN inputs [N, n_in], FMU channel derivatives [N, C], the channels'
+    state names), or None when no channel's state is measured."""
     config = model.config
     state_names = model.state_names()
     derivative_names = [v.name for v in model.info.derivatives]
@@ -37,7 +161,10 @@ def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solve
     if not any(s in data.signals for s in channel_states):
         return None
     forced = [s for s in state_names if s in data.signals]
-    fits = [local_fitter(data.time, data.signals[s], window) for s in forced]
+    if window > 0:
+        fits = [local_fitter(data.time, data.signals[s], window) for s in forced]
+    else:
+        fits = [_interpolated(data.time, data.signals[s]) for s in forced]
 
     def values(t):
         t = np.atleast_1d(np.asarray(t, dtype=float)) + sensor_lag
@@ -45,19 +172,9 @@ def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solve
 
     names = list(dict.fromkeys(config.inputs + config.channels))
     run = forced_run(model, data, step, solver, forced, values, names, inputs)
-    times = data.start + run.times
-    every = max(1, len(times) // MAX_SAMPLES)
-    keep = slice(0, len(times), every)
-    ann_inputs = np.stack([run.numpy(n)[keep, 0] for n in config.inputs], axis=1)
-    fmu_channels = np.stack([run.numpy(c)[keep, 0] for c in config.channels], axis=1)
-    measured = np.zeros_like(fmu_channels)
-    mask = np.zeros(fmu_channels.shape, dtype=bool)
-    smooth = smooth_windows(data, forced, times[keep] + sensor_lag, window)
-    for j, state in enumerate(channel_states):
-        if state in data.signals:
-            _, slope, valid = local_fit(data.time, data.signals[state], times[keep] + sensor_lag, window)
-            measured[:, j], mask[:, j] = slope, valid & smooth
-    return ann_inputs, fmu_channels, measured, mask
+    ann_inputs = np.stack([run.numpy(n)[:, 0] for n in config.inputs], axis=1)
+    fmu_channels = np.stack([run.numpy(c)[:, 0] for c in config.channels], axis=1)
+    return data.start + run.times, ann_inputs, fmu_channels, channel_states
 
 
 def smooth_windows(data: MeasuredData, states: list[str], at: np.ndarray, window: float) -> np.ndarray:

@@ -32,9 +32,11 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    the ODE solver. The ANN gate is set to 1 first if it was 0. The warm start (`warm_start`,
    warm_start.py) fits the same target full-batch with L-BFGS instead of Adam on minibatches, with
    the forced states smoothed and read a sensor lag later, and keeps the fit only if it lowers the
-   training loss. Where the model's controllers make collocation unreliable, the Gauss-Newton warm
-   start (`gauss_newton_iterations`, gauss_newton.py) fits the ANN's last layer through the solver
-   to the closed-loop response itself.
+   training loss; with `warm_start_target="integral"` it fits the ANN's integrals over windows of
+   `integral_window` seconds to the measured states' increments instead of slopes. Where the
+   model's controllers make collocation unreliable, the Gauss-Newton warm start
+   (`gauss_newton_iterations`, gauss_newton.py) fits the ANN's last layer through the solver to
+   the closed-loop response itself.
 4. Training: the data are cut into elements (default 100 s) simulated side by side; the loss is the
    MSE per measured signal (weighted by the uncertainty band when the CSV has <signal>_std columns)
    divided by the plain FMU's MSE on the same elements, averaged over the signals: every signal
@@ -105,6 +107,8 @@ class TrainSettings:
     ccpt_window: float = 1.0          # seconds of data per local derivative fit
     warm_start: bool = False          # fit the ANN to the collocation estimate (L-BFGS) before training
     warm_start_iterations: int = 300  # L-BFGS iterations of the warm start
+    warm_start_target: str = "pointwise"  # "pointwise": local slopes; "integral": window increments (warm_start.py)
+    integral_window: float = 0.5      # seconds per window of the integral target
     gauss_newton_iterations: int = 0  # Gauss-Newton steps on the ANN's last layer before training (gauss_newton.py)
     time_budget: float | None = None  # seconds for the whole training call
     seed: int = 0
@@ -214,6 +218,10 @@ def _settings(settings: TrainSettings | None, overrides: dict) -> TrainSettings:
         raise FmuBuilderError(f"unknown loss scale '{settings.loss_scale}': use reference or variance")
     if settings.optimizer not in ("adam", "lbfgs"):
         raise FmuBuilderError(f"unknown optimizer '{settings.optimizer}': use adam or lbfgs")
+    if settings.warm_start_target not in ("pointwise", "integral"):
+        raise FmuBuilderError(f"unknown warm start target '{settings.warm_start_target}': use pointwise or integral")
+    if not settings.integral_window > 0:
+        raise FmuBuilderError(f"the integral window must be positive seconds, got {settings.integral_window}")
     if settings.order not in ("random", "sequential"):
         raise FmuBuilderError(f"unknown element order '{settings.order}': use random or sequential")
     if settings.epochs < 0:

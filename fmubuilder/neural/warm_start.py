@@ -8,6 +8,12 @@ difference, measured derivative minus the FMU's own, estimates the missing term 
 the ANN's inputs along that run. The ANN is fitted to it full-batch with L-BFGS (a few hundred
 evaluations of a tiny network on some 10^4 samples: a second or two), then the training through
 the solver fine-tunes it from there instead of from zero.
+
+The integral target (`warm_start_target="integral"`, the weak form) compares increments instead of
+slopes: over windows [a, b] of the data, x(b) - x(a) minus the FMU derivative's integral along the
+forced run is what the ANN's integral (trapezoid rule on the run's grid, in torch) has to give.
+No window is left out: the state is continuous where its derivative jumps, and a window across a
+sign change is matched by the ANN's mean over it, not assigned to one point's inputs.
 """
 from __future__ import annotations
 
@@ -16,7 +22,7 @@ import math
 import numpy as np
 import torch
 
-from .collocation import collocation_samples
+from .collocation import collocation_samples, integral_samples
 
 # The bounded fit (fit_full_batch): grid points over the inputs' range, and the share of the
 # target's samples at either end left out of its range (single outliers of the estimate).
@@ -38,22 +44,47 @@ def collocation_targets(trainer):
     if samples is None:
         return None
     inputs, fmu_channels, measured, mask = samples
-    topology = model.topology
-    with torch.no_grad():
-        if topology.config.kind == "gates" and bool((topology.gate_ann == 0).any()):
-            topology.gate_ann.fill_(1.0)
-        gate_ann, gate_fmu = topology.gate_ann.detach(), topology.gate_fmu.detach()
-    # gate_ann * r + gate_fmu * der_fmu = measured  ->  r = (measured - gate_fmu der_fmu) / gate_ann
-    target = (torch.from_numpy(measured) - gate_fmu * torch.from_numpy(fmu_channels)) / gate_ann
-    target = torch.where(torch.from_numpy(mask), target, topology.neutral_target(torch.from_numpy(fmu_channels)))
+    target = _ann_part(model.topology, measured, fmu_channels, mask)
     # Samples with no valid estimate (a window across a step, see collocation.smooth_windows) are
     # left out rather than pulled to the neutral target.
     rows = torch.from_numpy(mask.any(axis=1))
     return torch.from_numpy(np.ascontiguousarray(inputs))[rows], target[rows]
 
 
+def integral_targets(trainer):
+    """The weak form of collocation_targets: (raw ANN inputs on the forced run's grid [N, n_in],
+    target of the ANN part's mean over each window [W, C], WindowMeans mapping the ANN part on the
+    grid to its window means), or None when no channel's state is measured."""
+    model, settings = trainer.model, trainer.settings
+    samples = integral_samples(model, trainer.data, trainer.step, settings.solver, settings.ccpt_window,
+                               trainer.inputs, settings.sensor_lag or 0.0, span=settings.integral_window)
+    if samples is None:
+        return None
+    inputs, fmu_channels, means, measured, mask = samples
+    with torch.no_grad():
+        fmu_means = means(torch.from_numpy(fmu_channels)).numpy()
+    target = _ann_part(model.topology, measured, fmu_means, mask,
+                       neutral=means(model.topology.neutral_target(torch.from_numpy(fmu_channels))))
+    rows = mask.any(axis=1)
+    return torch.from_numpy(np.ascontiguousarray(inputs)), target[torch.from_numpy(rows)], means.subset(rows)
+
+
+def _ann_part(topology, measured: np.ndarray, fmu_channels: np.ndarray, mask: np.ndarray, neutral=None):
+    """What the ANN part has to give where the channel's state is measured, the neutral target
+    elsewhere: gate_ann * r + gate_fmu * der_fmu = measured -> r = (measured - gate_fmu der_fmu) / gate_ann."""
+    with torch.no_grad():
+        if topology.config.kind == "gates" and bool((topology.gate_ann == 0).any()):
+            topology.gate_ann.fill_(1.0)
+        gate_ann, gate_fmu = topology.gate_ann.detach(), topology.gate_fmu.detach()
+    fmu = torch.from_numpy(fmu_channels)
+    target = (torch.from_numpy(measured) - gate_fmu * fmu) / gate_ann
+    if neutral is None:
+        neutral = topology.neutral_target(fmu)
+    return torch.where(torch.from_numpy(mask), target, neutral.detach())
+
+
 def fit_full_batch(topology, x: torch.Tensor, target: torch.Tensor, iterations: int, bounded: bool = True,
-                   weight_decay: float = WEIGHT_DECAY) -> float:
+                   weight_decay: float = WEIGHT_DECAY, average=None) -> float:
     """Least-squares fit of topology.correction(x) to target with L-BFGS over all samples at once
     (the ANN's weights only; the pre-/post-processing stays). Returns the final mean squared error
     relative to the target's variance; a line search that made it worse leaves the start.
@@ -65,7 +96,12 @@ def fit_full_batch(topology, x: torch.Tensor, target: torch.Tensor, iterations: 
     the friction's peak), which the simulation then passes through. `weight_decay` times the sum of
     the ANN's squared weights and biases is added: the estimate is noisy where the effect changes
     steeply (at standstill the measured speed is mostly noise), and a steep fit to that noise puts
-    wrong turns into the correction between the samples."""
+    wrong turns into the correction between the samples.
+
+    With `average` (the integral target, collocation.WindowMeans) the correction is evaluated at
+    every x and its window means are what meets the target, one row per window; the range bound
+    stays on the pointwise correction."""
+    average = average or (lambda values: values)
     scale = target.var(dim=0, unbiased=False).clamp_min(1e-12) if len(target) > 1 else torch.ones(target.shape[1])
     parameters = list(topology.ann.parameters())
     penalty = range_penalty(x, target, scale) if bounded else (lambda _: 0.0)
@@ -75,7 +111,7 @@ def fit_full_batch(topology, x: torch.Tensor, target: torch.Tensor, iterations: 
 
     def objective():
         decay = weight_decay * sum((p ** 2).sum() for p in parameters) if weight_decay else 0.0
-        return (((topology.correction(x) - target) ** 2) / scale).mean() + penalty(topology) + decay
+        return (((average(topology.correction(x)) - target) ** 2) / scale).mean() + penalty(topology) + decay
 
     def closure():
         optimizer.zero_grad()
@@ -93,7 +129,7 @@ def fit_full_batch(topology, x: torch.Tensor, target: torch.Tensor, iterations: 
         if not math.isfinite(loss) or loss > start_loss:     # a diverged line search: keep the start
             for p, saved in zip(parameters, best):
                 p.copy_(saved)
-        return float((((topology.correction(x) - target) ** 2) / scale).mean())
+        return float((((average(topology.correction(x)) - target) ** 2) / scale).mean())
 
 
 def range_penalty(x: torch.Tensor, target: torch.Tensor, scale: torch.Tensor, points: int = RANGE_POINTS):
@@ -117,17 +153,19 @@ def warm_start(trainer) -> dict:
     """Fit the ANN to the collocation estimate of the missing term (see the module docstring), and
     keep the fit only if it lowers the training loss (simulated over all elements, each from the
     start the hybrid reaches): where the forced controllers react to sensor noise and lag more
-    than to the effect, the estimate is wrong. Returns what it did: samples, relative fit error
-    (nan without a measured channel state), the loss before and after, whether it was kept."""
-    samples = collocation_targets(trainer)
+    than to the effect, the estimate is wrong. Returns what it did: samples (windows with the
+    integral target), the target, relative fit error (nan without a measured channel state), the
+    loss before and after, whether it was kept."""
+    integral = trainer.settings.warm_start_target == "integral"
+    samples = integral_targets(trainer) if integral else collocation_targets(trainer)
     if samples is None:
         return {"samples": 0, "fit_error": math.nan, "kept": False}
     topology = trainer.model.topology
     before_fit = _copy(topology.ann.parameters())
     loss_before = _loss_from_own_starts(trainer)
-    x, target = samples
+    x, target, average = samples if integral else (*samples, None)
     scale_output_to_effect(topology, target)
-    error = fit_full_batch(topology, x, target, trainer.settings.warm_start_iterations)
+    error = fit_full_batch(topology, x, target, trainer.settings.warm_start_iterations, average=average)
     loss_after = _loss_from_own_starts(trainer)
     kept = loss_after < loss_before
     if not kept:
@@ -136,8 +174,8 @@ def warm_start(trainer) -> dict:
                 p.copy_(saved)
         _loss_from_own_starts(trainer)      # the element starts back at the kept parameters
     # simulations without gradient: the forced run, and a capture and a loss per evaluation
-    return {"samples": int(x.shape[0]), "fit_error": error, "loss_before": loss_before, "loss_after": loss_after,
-            "kept": kept, "simulations": 5 if kept else 7}
+    return {"samples": int(target.shape[0]), "target": trainer.settings.warm_start_target, "fit_error": error,
+            "loss_before": loss_before, "loss_after": loss_after, "kept": kept, "simulations": 5 if kept else 7}
 
 
 def scale_output_to_effect(topology, target: torch.Tensor) -> None:
