@@ -4,8 +4,8 @@ instance with any solver of solvers.py, recording the outputs on the way: the ou
 solver's dense output. A fixed-step solver also ends a step at each output time, every solver at
 each input kink (a breakpoint, where it restarts).
 
-Time comparisons use a tolerance of 1e-12 times the experiment's scale, so output times,
-time events and the stop time that differ only by rounding are the same instant.
+Times within events.time_tolerance (1e-12 of the experiment's time scale) are the same instant,
+so output times, time events and the stop time that differ only by rounding are one.
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from bisect import bisect_left, bisect_right
 
 import numpy as np
 
-from .events import EventSequence, locate
+from .events import EventSequence, locate, time_scale, time_tolerance
 from .results import SimulationResult, SimulationStats
 from .solvers import Solver
 from .system import HybridSystem
@@ -51,8 +51,8 @@ class _Loop:
     def __init__(self, system, solver, start_time, stop_time, output_times, recorder, stats, record_events):
         self.system, self.solver = system, solver
         self.start, self.stop = float(start_time), float(stop_time)
-        self.scale = max(abs(self.start), abs(self.stop), self.stop - self.start)
-        self.eps = 1e-12 * self.scale
+        self.scale = time_scale(self.start, self.stop)
+        self.eps = time_tolerance(self.start, self.scale)       # at every time of the experiment
         self.outputs = output_times.tolist()
         self.i_out, self.n_out = 0, len(self.outputs)
         self.recorder, self.stats, self.record_events = recorder, stats, record_events
@@ -77,7 +77,7 @@ class _Loop:
         self.x = x
         self.solver.reset(self.system.derivatives, self.start, x)
         counts = {"time_events": 0, "state_events": 0, "step_events": 0}
-        seq = EventSequence(self.start, next_event, self._indicators(self.start, x), counts, 1e-12, self.scale)
+        seq = EventSequence(self.start, next_event, self._indicators(self.start, x), counts, self.scale)
         try:
             seq.drive(self.stop, self)
         finally:
@@ -214,7 +214,7 @@ class _Recorder:
 def output_grid(start: float, stop: float, interval: float) -> np.ndarray:
     """start, start + interval, ..., ending exactly at stop."""
     span = stop - start
-    eps = 1e-12 * max(abs(start), abs(stop), span)
+    eps = time_tolerance(start, time_scale(start, stop))
     count = int(math.floor(span / interval * (1 + 1e-12)))
     grid = start + np.arange(count + 1) * interval
     if stop - grid[-1] > eps:

@@ -30,6 +30,9 @@ from ..fmi.instance import EventInfo
 MAX_EVENTS_AT_ONE_TIME = 1000
 MAX_CUT_STEPS_IN_A_ROW = 100
 STEP, EVENT = "step", "event"     # what the sequence asks its driver for
+# Times closer than this times the experiment's time scale (time_tolerance) are one instant: the
+# rounding of output, grid, input and event times, far below any step.
+RELATIVE_TIME_TOLERANCE = 1e-12
 _TIME_EVENT, _STATE_EVENT, _STEP_EVENT = (EVENT, "time"), (EVENT, "state"), (EVENT, "step")
 
 
@@ -48,14 +51,14 @@ class EventSequence:
         (EVENT, "state" | "step"), or with no event driver.stepped_on(seq) (if not None)
 
     For an event the driver runs event mode, restarts its solver on the states it left and sets
-    next_event, z and terminated. Times within `tolerance(t)` are one instant."""
+    next_event, z and terminated. Times within `tolerance(t)` are one instant (time_tolerance,
+    `scale` the experiment's time_scale)."""
 
-    def __init__(self, t: float, next_event: float, z, counts: dict, relative_tolerance: float,
-                 time_scale: float, index: int = 0):
+    def __init__(self, t: float, next_event: float, z, counts: dict, scale: float, index: int = 0):
         self.t, self.next_event, self.z = t, next_event, z
         self.index = index                  # which instance of the driver's (a batch element)
         self.counts = counts                # time_events, state_events, step_events (shared by a batch)
-        self.relative_tolerance, self.time_scale = relative_tolerance, time_scale
+        self.time_scale = scale
         self.terminated = False
         self.pending_step = False           # step once more even at the limit (set by a driver)
         self.events_here = 0                # time events since the last step
@@ -78,14 +81,14 @@ class EventSequence:
             pass
 
     def tolerance(self, t: float) -> float:
-        return self.relative_tolerance * max(self.time_scale, abs(t))
+        return time_tolerance(t, self.time_scale)
 
     def towards(self, limit: float, driver):
         # The hot loop of every simulation: one pass per step, so no call it can do without.
-        # tolerance(t) inline: rel * scale while |t| <= scale, which it stays in the engine.
-        rel, scale = self.relative_tolerance, self.time_scale
+        # tolerance(t) inline: rel * scale while |t| <= scale, where the experiment keeps it.
+        rel, scale = RELATIVE_TIME_TOLERANCE, self.time_scale
         floor = rel * scale
-        at_limit = limit - rel * max(scale, abs(limit))
+        at_limit = limit - time_tolerance(limit, scale)
         step_limit, completed_step = driver.step_limit, driver.completed_step
         indicators_at_end, stepped_on = driver.indicators_at_end, driver.stepped_on
         counts = self.counts
@@ -146,6 +149,17 @@ class EventSequence:
                 "or Zeno behaviour); reduce the step size or fix the model")
         tolerance = max(self.tolerance(t_end), 1e-12 * (t_end - t_start))
         return driver.cut_at_state_event(self, t_start, t_end, z_end, tolerance)
+
+
+def time_scale(start: float, stop: float) -> float:
+    """The scale of an experiment's times from start to stop: max(|start|, |stop|, stop - start)."""
+    return max(abs(start), abs(stop), stop - start)
+
+
+def time_tolerance(t: float, scale: float) -> float:
+    """How close to t another time is the same instant, in an experiment of that time scale: one
+    tolerance for every driver of the event sequence (engine and batch) and the engine's outputs."""
+    return RELATIVE_TIME_TOLERANCE * max(scale, abs(t))
 
 
 def event_mode(instance, *, entered: bool = False, before_iteration: Callable[[], None] | None = None,
