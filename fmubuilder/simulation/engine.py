@@ -93,9 +93,13 @@ class _Loop:
         """The stop, the next input kink, the next output time for a fixed-step solver (once the
         output times reached are recorded: the sequence asks before each step)."""
         t, target = seq.t, stop
-        i_out = self.i_out
-        if i_out < self.n_out and self.outputs[i_out] <= t + self.eps:
-            i_out = self._record_reached(t)
+        i_out, outputs = self.i_out, self.outputs
+        if i_out < self.n_out and outputs[i_out] <= t + self.eps:     # _record_reached, inline
+            i_next = bisect_right(outputs, t + self.eps, i_out)
+            table = self.system.outputs((t,), self.x[None, :])
+            self.recorder.add(outputs[i_out:i_next], table if i_next == i_out + 1 else
+                              np.repeat(table, i_next - i_out, axis=0))
+            self.i_out = i_out = i_next
         if self.breakpoints:
             breakpoints, i_bp = self.breakpoints, self.i_bp
             while i_bp < len(breakpoints) and breakpoints[i_bp] <= t + self.eps:
@@ -152,15 +156,14 @@ class _Loop:
                 seq.z = self._indicators_at(t, self.x)
 
     # ------------------------------------------------------------------------------------------
-    def _record_reached(self, t) -> int:
-        """The output times reached (after the events at that time); returns the next one's index."""
+    def _record_reached(self, t) -> None:
+        """The output times reached (after the events at that time)."""
         i_next = bisect_right(self.outputs, t + self.eps, self.i_out)
         if i_next > self.i_out:
             table = self.system.outputs((t,), self.x[None, :])
             count, self.i_out = i_next - self.i_out, i_next
             self.recorder.add(self.outputs[self.i_out - count:self.i_out],
                               table if count == 1 else np.repeat(table, count, axis=0))
-        return i_next
 
     def _indicators(self, t, x):
         """Indicators at the start, the reference for the first step's sign changes."""

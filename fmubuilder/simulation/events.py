@@ -125,8 +125,9 @@ class EventSequence:
             self.events_here = 0
             step_event = False
             if t_end != t:    # not a step of length zero (which only carries an event time's gradient)
-                step_event, self.terminated = completed_step(self, state_event)
-                if self.terminated:
+                step_event, terminated = completed_step(self, state_event)
+                if terminated:
+                    self.terminated = True
                     return
             if self.next_event <= t_end + (floor if -scale <= t_end <= scale else rel * abs(t_end)):
                 continue    # a time event is due now: the next pass handles it, and any crossing with it
