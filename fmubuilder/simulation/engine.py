@@ -107,8 +107,8 @@ class _Loop:
             self.i_bp = i_bp
             if i_bp < len(breakpoints) and breakpoints[i_bp] < target:
                 target = breakpoints[i_bp]
-        if self.stop_at_outputs and i_out < self.n_out and self.outputs[i_out] < target:
-            target = self.outputs[i_out]
+        if self.stop_at_outputs and i_out < self.n_out and outputs[i_out] < target:
+            target = outputs[i_out]
         return target
 
     def step(self, seq, end):
