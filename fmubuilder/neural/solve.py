@@ -67,7 +67,7 @@ import numpy as np
 import torch
 
 from ..errors import FmuBuilderError
-from ..simulation.events import EVENT, EventSequence, event_mode, locate
+from ..simulation.events import EVENT, EventSequence, event_mode, locate, time_scale
 from ..simulation.inputs import InputSignals
 from ..simulation.solvers import hermite, rk4_step
 from .layer import EventSensitivity, FmuEvaluator, fd_steps, fmu_call
@@ -78,8 +78,6 @@ SOLVERS = ("euler", "rk4")
 # The batched step whose ends the elements' sequences are sent: the elements' rows in it, the states
 # before (every element's), its first stages, the states after (tensor and numpy), the corrections.
 _Stepping = namedtuple("_Stepping", "position x dx1 x_new x_np c")
-# Times within this much times max(1, |t|) are the same instant (rounding of event and grid times).
-RELATIVE_TIME_TOLERANCE = 1e-11
 
 
 @dataclass
@@ -457,8 +455,9 @@ class _Run:
         for b in self.rows:   # the indicators: the reference of the first step's sign changes
             z = (self.ev.indicators(b, self.t0[b], x_np[b], self._u(b, self.t0[b]))
                  if self.info.n_event_indicators else None)
-            self.elements.append(EventSequence(float(self.t0[b]), float(self.first_events[b]), z, self.counts,
-                                               RELATIVE_TIME_TOLERANCE, 1.0, index=b))
+            t0, duration = float(self.t0[b]), float(self.grid[-1])     # the element's experiment, as the engine's
+            self.elements.append(EventSequence(t0, float(self.first_events[b]), z, self.counts,
+                                               time_scale(t0, t0 + duration), index=b))
         records, captured = [], {}
         x, dd, c, _ = self._walk(self.t0, x, dd, c, record=False)   # the time events due at the start
         for k in range(self.K):

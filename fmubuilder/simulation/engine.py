@@ -4,8 +4,8 @@ instance with any solver of solvers.py, recording the outputs on the way: the ou
 solver's dense output. A fixed-step solver also ends a step at each output time, every solver at
 each input kink (a breakpoint, where it restarts).
 
-Time comparisons use a tolerance of 1e-12 times the experiment's scale, so output times,
-time events and the stop time that differ only by rounding are the same instant.
+Times within events.time_tolerance (1e-12 of the experiment's time scale) are the same instant,
+so output times, time events and the stop time that differ only by rounding are one.
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from bisect import bisect_left, bisect_right
 
 import numpy as np
 
-from .events import EventSequence, locate
+from .events import EventSequence, locate, time_scale, time_tolerance
 from .results import SimulationResult, SimulationStats
 from .solvers import Solver
 from .system import HybridSystem
@@ -51,8 +51,8 @@ class _Loop:
     def __init__(self, system, solver, start_time, stop_time, output_times, recorder, stats, record_events):
         self.system, self.solver = system, solver
         self.start, self.stop = float(start_time), float(stop_time)
-        self.scale = max(abs(self.start), abs(self.stop), self.stop - self.start)
-        self.eps = 1e-12 * self.scale
+        self.scale = time_scale(self.start, self.stop)
+        self.eps = time_tolerance(self.start, self.scale)       # at every time of the experiment
         self.outputs = output_times.tolist()
         self.i_out, self.n_out = 0, len(self.outputs)
         self.recorder, self.stats, self.record_events = recorder, stats, record_events
@@ -65,6 +65,10 @@ class _Loop:
         self.events: list[tuple[float, str]] = []
         self.terminated = False
         self.t = self.start
+        self.indicator_evaluations = 0
+        # what each step calls, bound once
+        self._solver_step, self._indicators_at = solver.step, system.indicators
+        self._system_completed_step = system.completed_step
 
     def run(self) -> None:
         x, next_event, terminate = self.system.initialize(self.start, self.stop)
@@ -73,8 +77,11 @@ class _Loop:
         self.x = x
         self.solver.reset(self.system.derivatives, self.start, x)
         counts = {"time_events": 0, "state_events": 0, "step_events": 0}
-        seq = EventSequence(self.start, next_event, self._indicators(self.start, x), counts, 1e-12, self.scale)
-        seq.drive(self.stop, self)
+        seq = EventSequence(self.start, next_event, self._indicators(self.start, x), counts, self.scale)
+        try:
+            seq.drive(self.stop, self)
+        finally:
+            self.stats.indicator_evaluations = self.indicator_evaluations
         for key, value in counts.items():
             setattr(self.stats, key, value)
         if not seq.terminated:
@@ -86,8 +93,13 @@ class _Loop:
         """The stop, the next input kink, the next output time for a fixed-step solver (once the
         output times reached are recorded: the sequence asks before each step)."""
         t, target = seq.t, stop
-        if self.i_out < self.n_out and self.outputs[self.i_out] <= t + self.eps:
-            self._record_reached(t)
+        i_out, outputs = self.i_out, self.outputs
+        if i_out < self.n_out and outputs[i_out] <= t + self.eps:     # _record_reached, inline
+            i_next = bisect_right(outputs, t + self.eps, i_out)
+            table = self.system.outputs((t,), self.x[None, :])
+            self.recorder.add(outputs[i_out:i_next], table if i_next == i_out + 1 else
+                              np.repeat(table, i_next - i_out, axis=0))
+            self.i_out = i_out = i_next
         if self.breakpoints:
             breakpoints, i_bp = self.breakpoints, self.i_bp
             while i_bp < len(breakpoints) and breakpoints[i_bp] <= t + self.eps:
@@ -95,33 +107,33 @@ class _Loop:
             self.i_bp = i_bp
             if i_bp < len(breakpoints) and breakpoints[i_bp] < target:
                 target = breakpoints[i_bp]
-        if self.stop_at_outputs and self.i_out < self.n_out and self.outputs[self.i_out] < target:
-            target = self.outputs[self.i_out]
+        if self.stop_at_outputs and i_out < self.n_out and outputs[i_out] < target:
+            target = outputs[i_out]
         return target
 
     def step(self, seq, end):
-        t = self.solver.step(end)
+        t = self._solver_step(end)
         self.x = self.solver.x
         return t
 
     def indicators_at_end(self, seq, t):
-        self.stats.indicator_evaluations += 1
-        return self.system.indicators(t, self.x)
+        self.indicator_evaluations += 1
+        return self._indicators_at(t, self.x)
 
     def cut_at_state_event(self, seq, t0, t1, z1, tolerance):
         t, z, _, evaluations = locate(self._indicators_on_step, t0, seq.z, t1, z1, tolerance)
-        self.stats.indicator_evaluations += evaluations
+        self.indicator_evaluations += evaluations
         if t != t1:
             self.x = self.solver.interpolate(t)
         return t, z
 
     def completed_step(self, seq, state_event):
-        t, outputs = seq.t, self.outputs
-        i_next = bisect_left(outputs, t - self.eps, self.i_out)      # the output times inside the step
-        if i_next > self.i_out:
-            times, self.i_out = outputs[self.i_out:i_next], i_next
+        t, i_out = seq.t, self.i_out
+        if i_out < self.n_out and self.outputs[i_out] < t - self.eps:     # output times inside the step
+            i_next = bisect_left(self.outputs, t - self.eps, i_out)
+            times, self.i_out = self.outputs[i_out:i_next], i_next
             self.recorder.add(times, self.system.outputs(np.array(times), self.solver.interpolate_many(times)))
-        return self.system.completed_step(t, self.x)
+        return self._system_completed_step(t, self.x)
 
     def stepped_on(self, seq):
         if self.i_bp < len(self.breakpoints) and seq.t >= self.breakpoints[self.i_bp] - self.eps:
@@ -139,7 +151,9 @@ class _Loop:
             self._record_now(t, self.x)
         if not seq.terminated:
             self.solver.restart(t, self.x, keep_step=kind == "time")
-            seq.z = self._indicators(t, self.x)
+            if seq.z is not None:       # the indicators after the event: the next step's reference
+                self.indicator_evaluations += 1
+                seq.z = self._indicators_at(t, self.x)
 
     # ------------------------------------------------------------------------------------------
     def _record_reached(self, t) -> None:
@@ -152,10 +166,10 @@ class _Loop:
                               table if count == 1 else np.repeat(table, count, axis=0))
 
     def _indicators(self, t, x):
-        """Indicators at a (re)start, the reference for the next step's sign changes."""
+        """Indicators at the start, the reference for the first step's sign changes."""
         if not self.system.n_indicators:
             return None
-        self.stats.indicator_evaluations += 1
+        self.indicator_evaluations += 1
         return self.system.indicators(t, x)
 
     def _indicators_on_step(self, t):
@@ -203,7 +217,7 @@ class _Recorder:
 def output_grid(start: float, stop: float, interval: float) -> np.ndarray:
     """start, start + interval, ..., ending exactly at stop."""
     span = stop - start
-    eps = 1e-12 * max(abs(start), abs(stop), span)
+    eps = time_tolerance(start, time_scale(start, stop))
     count = int(math.floor(span / interval * (1 + 1e-12)))
     grid = start + np.arange(count + 1) * interval
     if stop - grid[-1] > eps:

@@ -30,6 +30,10 @@ from ..fmi.instance import EventInfo
 MAX_EVENTS_AT_ONE_TIME = 1000
 MAX_CUT_STEPS_IN_A_ROW = 100
 STEP, EVENT = "step", "event"     # what the sequence asks its driver for
+# Times closer than this times the experiment's time scale (time_tolerance) are one instant: the
+# rounding of output, grid, input and event times, far below any step.
+RELATIVE_TIME_TOLERANCE = 1e-12
+_TIME_EVENT, _STATE_EVENT, _STEP_EVENT = (EVENT, "time"), (EVENT, "state"), (EVENT, "step")
 
 
 class EventSequence:
@@ -47,14 +51,14 @@ class EventSequence:
         (EVENT, "state" | "step"), or with no event driver.stepped_on(seq) (if not None)
 
     For an event the driver runs event mode, restarts its solver on the states it left and sets
-    next_event, z and terminated. Times within `tolerance(t)` are one instant."""
+    next_event, z and terminated. Times within `tolerance(t)` are one instant (time_tolerance,
+    `scale` the experiment's time_scale)."""
 
-    def __init__(self, t: float, next_event: float, z, counts: dict, relative_tolerance: float,
-                 time_scale: float, index: int = 0):
+    def __init__(self, t: float, next_event: float, z, counts: dict, scale: float, index: int = 0):
         self.t, self.next_event, self.z = t, next_event, z
         self.index = index                  # which instance of the driver's (a batch element)
         self.counts = counts                # time_events, state_events, step_events (shared by a batch)
-        self.relative_tolerance, self.time_scale = relative_tolerance, time_scale
+        self.time_scale = scale
         self.terminated = False
         self.pending_step = False           # step once more even at the limit (set by a driver)
         self.events_here = 0                # time events since the last step
@@ -64,49 +68,55 @@ class EventSequence:
         """`towards` for a driver of one instance, which does each request at once:
         driver.step(seq, end) -> the time reached, driver.event(seq, kind)."""
         walk = self.towards(limit, driver)
+        send, step, event = walk.send, driver.step, driver.event
         try:
             kind, what = next(walk)
             while True:
                 if kind is STEP:
-                    kind, what = walk.send(driver.step(self, what))
+                    kind, what = send(step(self, what))
                 else:
-                    driver.event(self, what)
-                    kind, what = next(walk)
+                    event(self, what)
+                    kind, what = send(None)
         except StopIteration:
             pass
 
     def tolerance(self, t: float) -> float:
-        return self.relative_tolerance * max(self.time_scale, abs(t))
+        return time_tolerance(t, self.time_scale)
 
     def towards(self, limit: float, driver):
-        # tolerance(t) inline (the hot loop): rel * scale while |t| <= scale, which it stays in the engine
-        rel, scale = self.relative_tolerance, self.time_scale
+        # The hot loop of every simulation: one pass per step, so no call it can do without.
+        # tolerance(t) inline: rel * scale while |t| <= scale, where the experiment keeps it.
+        rel, scale = RELATIVE_TIME_TOLERANCE, self.time_scale
         floor = rel * scale
-        at_limit = limit - rel * max(scale, abs(limit))
+        at_limit = limit - time_tolerance(limit, scale)
         step_limit, completed_step = driver.step_limit, driver.completed_step
         indicators_at_end, stepped_on = driver.indicators_at_end, driver.stepped_on
+        counts = self.counts
         while not self.terminated:
-            t = self.t
-            if self.next_event <= t + (floor if -scale <= t <= scale else rel * abs(t)):
-                self.t = max(t, self.next_event)      # a time event a rounding error ahead is now
+            t, next_event = self.t, self.next_event
+            if next_event <= t + (floor if -scale <= t <= scale else rel * abs(t)):
+                if next_event > t:
+                    self.t = next_event     # a time event a rounding error ahead is now
                 self.events_here += 1
                 if self.events_here > MAX_EVENTS_AT_ONE_TIME:
                     raise FmuBuilderError(
                         f"more than {MAX_EVENTS_AT_ONE_TIME} events at t={self.t:.17g}: the model keeps "
                         "scheduling events without letting time advance; check its time events")
-                self.counts["time_events"] += 1
-                yield EVENT, "time"
+                counts["time_events"] += 1
+                yield _TIME_EVENT
                 continue
             if t >= at_limit and not self.pending_step:
                 return
             end = step_limit(self, limit)
-            t_end = yield STEP, (self.next_event if self.next_event < end else end)
+            t_end = yield STEP, (next_event if next_event < end else end)
             self.pending_step = False
             state_event = False
-            if self.z is not None:      # the indicators at the step's end: a sign change cuts it
+            z = self.z
+            if z is not None:      # the indicators at the step's end: a sign change cuts it
                 z_end = indicators_at_end(self, t_end)
-                state_event = any_crossed(self.z, z_end)
-                if state_event:
+                product = z * z_end     # a crossing needs a product <= 0 (any_crossed, without calls)
+                if not product.item(product.argmin()) > 0.0 and crossed(z, z_end).any():
+                    state_event = True
                     t_end, z_end = self._cut(t, t_end, z_end, driver)
                 else:
                     self.cuts_in_a_row = 0
@@ -115,15 +125,19 @@ class EventSequence:
             self.events_here = 0
             step_event = False
             if t_end != t:    # not a step of length zero (which only carries an event time's gradient)
-                step_event, self.terminated = completed_step(self, state_event)
-                if self.terminated:
+                step_event, terminated = completed_step(self, state_event)
+                if terminated:
+                    self.terminated = True
                     return
             if self.next_event <= t_end + (floor if -scale <= t_end <= scale else rel * abs(t_end)):
                 continue    # a time event is due now: the next pass handles it, and any crossing with it
-            if state_event or step_event:
-                self.counts["state_events"] += state_event
-                self.counts["step_events"] += step_event
-                yield EVENT, "state" if state_event else "step"
+            if state_event:
+                counts["state_events"] += 1
+                counts["step_events"] += step_event
+                yield _STATE_EVENT
+            elif step_event:
+                counts["step_events"] += 1
+                yield _STEP_EVENT
             elif stepped_on is not None:
                 stepped_on(self)
 
@@ -136,6 +150,17 @@ class EventSequence:
                 "or Zeno behaviour); reduce the step size or fix the model")
         tolerance = max(self.tolerance(t_end), 1e-12 * (t_end - t_start))
         return driver.cut_at_state_event(self, t_start, t_end, z_end, tolerance)
+
+
+def time_scale(start: float, stop: float) -> float:
+    """The scale of an experiment's times from start to stop: max(|start|, |stop|, stop - start)."""
+    return max(abs(start), abs(stop), stop - start)
+
+
+def time_tolerance(t: float, scale: float) -> float:
+    """How close to t another time is the same instant, in an experiment of that time scale: one
+    tolerance for every driver of the event sequence (engine and batch) and the engine's outputs."""
+    return RELATIVE_TIME_TOLERANCE * max(scale, abs(t))
 
 
 def event_mode(instance, *, entered: bool = False, before_iteration: Callable[[], None] | None = None,
@@ -171,8 +196,10 @@ def crossed(z0: np.ndarray, z1: np.ndarray) -> np.ndarray:
 
 def any_crossed(z0: np.ndarray, z1: np.ndarray) -> bool:
     """Whether any indicator fires; cheap when none does (the usual step)."""
-    # A crossing needs z0 * z1 <= 0, so that product rules out almost every step at once.
-    return bool((z0 * z1 <= 0.0).any()) and bool(crossed(z0, z1).any())
+    # A crossing needs z0 * z1 <= 0, so the smallest product rules out almost every step at once
+    # (argmin: a tenth of the cost of a reduction on a few indicators; NaN is not > 0: checked).
+    product = z0 * z1
+    return not product.item(product.argmin()) > 0.0 and bool(crossed(z0, z1).any())
 
 
 def locate(indicators_at: Callable[[float], np.ndarray], t0: float, z0: np.ndarray,

@@ -6,8 +6,8 @@ accepted step at a time without passing `t_limit`, and asked for the state anywh
 its last step by `interpolate(t)`. That is all the event-handling loop needs, so solvers
 stay free of FMI. `integrate` drives a solver over a plain ODE.
 
-`f(t, x)` returns dx as a numpy array; the solver copies it at once, so `f` may reuse one
-output buffer between calls (the FMU right-hand side does).
+`f(t, x)` returns dx as a numpy array; the solver copies it or uses it up at once, so `f` may
+reuse one output buffer between calls.
 
 DOPRI5 evaluates f at the end of each step (its last stage is the next step's first); the
 fixed-step solvers evaluate it when the next step or an interpolation needs it.
@@ -80,48 +80,38 @@ class Solver:
 
 
 class FixedStepSolver(Solver):
-    """Steps of a fixed size h, shortened only to land exactly on t_limit.
-
-    The derivative at the current point is evaluated when the next step needs it, not at
-    the end of a step: after an event it would have to be evaluated again anyway."""
+    """Steps of a fixed size h, shortened only to land exactly on t_limit."""
 
     def __init__(self, step_size: float):
         super().__init__()
         if not step_size > 0.0 or not math.isfinite(step_size):
             raise FmuBuilderError(f"step size must be a positive number, got {step_size}")
         self.h = float(step_size)
-        self._dx_current = False        # whether self.dx belongs to (self.t, self.x)
 
     def reset(self, f: Rhs, t: float, x) -> None:
         self._f = f
+        self.restart(t, x)
+
+    def restart(self, t: float, x, keep_step: bool = False) -> None:
         self.t = self.t_prev = float(t)
         self.x = self.x_prev = np.array(x, dtype=float)
-        self._dx_current = False
-
-    def _derivative_here(self) -> np.ndarray:
-        if not self._dx_current:
-            self.dx = np.array(self._f(self.t, self.x), dtype=float)
-            self.n_rhs += 1
-            self._dx_current = True
-        return self.dx
 
     def step(self, t_limit: float) -> float:
-        t = self.t
+        t, x = self.t, self.x
         h = t_limit - t
         if h > self.h * (1.0 + _SNAP):
             h = self.h
             t_new = t + h
         else:
             t_new = t_limit
-        dx = self._derivative_here()
-        x_new = self._advance(t, self.x, dx, h)
-        self.t_prev, self.x_prev, self.dx_prev = t, self.x, dx
+        x_new = self._advance(t, x, h)
+        self.t_prev, self.x_prev = t, x
         self.t, self.x = t_new, x_new
-        self._dx_current = False
         self.n_steps += 1
         return t_new
 
-    def _advance(self, t: float, x: np.ndarray, dx: np.ndarray, h: float) -> np.ndarray:
+    def _advance(self, t: float, x: np.ndarray, h: float) -> np.ndarray:
+        """The state after a step of length h from (t, x) (the current point)."""
         raise NotImplementedError
 
 
@@ -131,8 +121,10 @@ class Euler(FixedStepSolver):
     name = "euler"
     order = 1
 
-    def _advance(self, t, x, dx, h):
-        return x + h * dx
+    def _advance(self, t, x, h):
+        # f's buffer is read at once, so no copy of it (the derivative is kept by RK4 only)
+        self.n_rhs += 1
+        return x + h * np.asarray(self._f(t, x), dtype=float)
 
     def interpolate(self, t: float) -> np.ndarray:
         theta, _ = self._theta(t)
@@ -147,7 +139,24 @@ class RK4(FixedStepSolver):
     name = "rk4"
     order = 4
 
-    def _advance(self, t, x, k1, h):
+    # The derivative at the current point is evaluated when the next step or an interpolation
+    # needs it, not at the end of a step: after an event it would have to be evaluated again anyway.
+    _dx_current = False     # whether self.dx belongs to (self.t, self.x)
+
+    def restart(self, t: float, x, keep_step: bool = False) -> None:
+        super().restart(t, x)
+        self._dx_current = False
+
+    def _derivative_here(self) -> np.ndarray:
+        if not self._dx_current:
+            self.dx = np.array(self._f(self.t, self.x), dtype=float)
+            self.n_rhs += 1
+            self._dx_current = True
+        return self.dx
+
+    def _advance(self, t, x, h):
+        k1 = self.dx_prev = self._derivative_here()
+        self._dx_current = False        # the next point's is evaluated when needed
         f = self._f
         self.n_rhs += 3
         return rk4_step(lambda t, x: np.array(f(t, x), dtype=float), t, x, k1, h)

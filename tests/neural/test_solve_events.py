@@ -106,3 +106,26 @@ def test_gradients_of_a_batch_element_with_its_own_time_events(plant_fmu):
                     minus[b, j] -= delta
                     fd = (final_speed(plus, [0, 1])[b] - final_speed(minus, [0, 1])[b]) / (2 * delta)
                 assert x0.grad[b, j].item() == pytest.approx(fd.item(), rel=1e-4, abs=1e-8)
+
+
+def test_a_time_event_a_rounding_error_past_a_grid_point_as_the_engine_decides(plant_fmu):
+    """One time tolerance for both drivers: with the sample period 4e-12 longer than the grid step,
+    the samples fall 4e-12 t past the grid points, within the tolerance (1e-12 of the time scale,
+    here the stop time 0.5) up to t = 0.125 and beyond it after: there each a step of its own. The
+    torch solver takes the engine's steps and events, and its trajectory (up to its steps to a time
+    event within the tolerance past a grid point, which the engine ends at the grid point)."""
+    period, stop = 0.01 * (1 + 4e-12), 0.5
+    setpoint = {"time": [0.0, 1.0], "setpoint": [1.0, 1.0]}
+    names = ["w", "i", "u"]
+    engine = engine_simulate(plant_fmu, stop_time=stop, solver="euler", step_size=0.01, output_interval=0.01,
+                             inputs=setpoint, variables=names, start_values={"Ts": period})
+    from fmubuilder.simulation import input_signals_from
+    with NeuralFMU(plant_fmu, TopologyConfig(), start_values={"Ts": period}) as model, torch.no_grad():
+        run = simulate(model, stop, 0.01, record=names, inputs=input_signals_from(setpoint, model.info),
+                       solver="euler")
+    # samples k Ts: k = 0 at the initialization, 1..49 time events, the 50th past the stop; a step
+    # of its own to each of k = 13..49 (past 0.125)
+    assert engine.stats.time_events == 49 and engine.stats.steps == 50 + 37
+    assert run.stats["steps"] == engine.stats.steps and run.stats["time_events"] == engine.stats.time_events
+    for j, name in enumerate(names):
+        np.testing.assert_allclose(run.values[:, 0, j].numpy(), engine[name], rtol=1e-9, atol=1e-12)

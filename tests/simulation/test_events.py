@@ -107,7 +107,7 @@ class _Clock:
 def test_the_sequence_cuts_a_step_at_a_crossing_and_steps_on_to_the_limit():
     clock = _Clock(crossing=0.35, times=[], step=0.2)
     counts = {"time_events": 0, "state_events": 0, "step_events": 0}
-    seq = EventSequence(0.0, 0.5, np.array([-0.35]), counts, 1e-12, 1.0)
+    seq = EventSequence(0.0, 0.5, np.array([-0.35]), counts, 1.0)
     log = clock.run(seq, 0.6)
     assert log[:3] == [(STEP, 0.2), ("completed", 0.2), (STEP, 0.4)]
     assert log[3][0] == "cut" and 0.35 <= log[3][1] <= 0.35 + 1e-12
@@ -119,7 +119,7 @@ def test_the_sequence_cuts_a_step_at_a_crossing_and_steps_on_to_the_limit():
 def test_a_time_event_at_the_end_of_a_step_takes_a_crossing_there_with_it():
     clock = _Clock(crossing=0.5, times=[], step=1.0)
     counts = {"time_events": 0, "state_events": 0, "step_events": 0}
-    seq = EventSequence(0.0, 0.5, np.array([-0.5]), counts, 1e-12, 1.0)
+    seq = EventSequence(0.0, 0.5, np.array([-0.5]), counts, 1.0)
     log = clock.run(seq, 1.0)
     assert log == [(STEP, 0.5), ("cut", 0.5), ("completed", 0.5), (EVENT, "time"), (STEP, 1.0), ("completed", 1.0)]
     assert counts == {"time_events": 1, "state_events": 0, "step_events": 0}
