@@ -93,13 +93,9 @@ class _Loop:
         """The stop, the next input kink, the next output time for a fixed-step solver (once the
         output times reached are recorded: the sequence asks before each step)."""
         t, target = seq.t, stop
+        if self.i_out < self.n_out and self.outputs[self.i_out] <= t + self.eps:
+            self._record_reached(t)
         i_out, outputs = self.i_out, self.outputs
-        if i_out < self.n_out and outputs[i_out] <= t + self.eps:     # _record_reached, inline
-            i_next = bisect_right(outputs, t + self.eps, i_out)
-            table = self.system.outputs((t,), self.x[None, :])
-            self.recorder.add(outputs[i_out:i_next], table if i_next == i_out + 1 else
-                              np.repeat(table, i_next - i_out, axis=0))
-            self.i_out = i_out = i_next
         if self.breakpoints:
             breakpoints, i_bp = self.breakpoints, self.i_bp
             while i_bp < len(breakpoints) and breakpoints[i_bp] <= t + self.eps:
