@@ -142,7 +142,9 @@ class FmuInstance:
         CALL[0] = code
         status = getattr(self._lib, function)(*args)
         CALL[0] = -code
-        return self._check(status, function)
+        if status > 1:      # tested here: a call to _check per FMI call would cost on the event path
+            self._check(status, function)
+        return status
 
     def _check(self, status: int, function: str) -> int:
         if status > 1:  # fmi2Discard or worse
