@@ -23,6 +23,7 @@ from __future__ import annotations
 import datetime
 import re
 import uuid
+import zipfile
 from dataclasses import dataclass
 
 from lxml import etree
@@ -103,6 +104,14 @@ def derive_model_description(original_xml: bytes, spec: HybridSpec, info) -> Hyb
     xml = etree.tostring(root, xml_declaration=True, encoding="UTF-8", pretty_print=True)
     return HybridDescription(xml=xml, guid=guid, model_identifier=identifier, channels=layout,
                              log_categories=log_categories)
+
+
+def channel_layouts(spec: HybridSpec) -> list[ChannelLayout]:
+    """The channels of the hybrid of `spec` as its export lays them out (the gates' names among them)."""
+    from fmubuilder.fmi import read_model_info
+    with zipfile.ZipFile(spec.original_fmu) as archive:
+        original_xml = archive.read("modelDescription.xml")
+    return derive_model_description(original_xml, spec, read_model_info(spec.original_fmu)).channels
 
 
 def new_identity(root) -> str:

@@ -241,12 +241,8 @@ def _read_inputs(data_csv, info) -> dict:
 
 def _gate_names_of(spec: HybridSpec) -> dict[str, tuple[int, str]]:
     """The gates as the export names them (see _gate_index)."""
-    from fmubuilder.fmi import read_model_info
-    from .hybrid_description import derive_model_description
-    info = read_model_info(spec.original_fmu)
-    with zipfile.ZipFile(spec.original_fmu) as archive:
-        description = derive_model_description(archive.read("modelDescription.xml"), spec, info)
-    return _gate_index((layout.p_ann, layout.p_fmu) for layout in description.channels)
+    from .hybrid_description import channel_layouts
+    return _gate_index((layout.p_ann, layout.p_fmu) for layout in channel_layouts(spec))
 
 
 def _embedded_spec(hybrid_fmu: Path, folder: Path) -> tuple[HybridSpec, dict[str, tuple[int, str]]]:

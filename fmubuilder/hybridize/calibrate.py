@@ -70,7 +70,6 @@ class Sensitivity:
     name: str
     declared: float
     explained: float          # share of the score the best linear step along this parameter removes
-    linear_estimate: float    # the value that step reaches
     direction: np.ndarray | None = field(default=None, repr=False)   # the scaled sensitivity
     equivalent: list = field(default_factory=list)   # names of later-ranked parameters that act alike
 
@@ -91,7 +90,6 @@ class Calibration:
     value: float
     train_score: float        # mean over signals of MSE / MSE plain, on the training samples
     simulations: int
-    history: list = field(default_factory=list)     # (value, score) of every accepted step
 
     @property
     def description(self) -> str:
@@ -112,9 +110,8 @@ def calibratable_parameters(info, fixed_by_data: set[str]) -> list:
     (a zero start gives no scale for the perturbation)."""
     chosen = []
     for var in info.parameters:
-        if var.causality != "parameter" or var.type != "Real" or var.variability not in ("fixed", "tunable"):
-            continue
-        if var.name in fixed_by_data:
+        if var.causality != "parameter" or var.type != "Real" or var.variability not in ("fixed", "tunable") \
+                or var.name in fixed_by_data:
             continue
         try:
             start = float(var.start)
@@ -197,9 +194,7 @@ def screen_parameters(model_fmu, info, runs: Runs, scoring: Scoring) -> list[Sen
         gg = float(gradient @ gradient)
         if gg == 0.0:
             continue
-        step = -float(gradient @ residual) / gg
-        ranked.append(Sensitivity(var.name, declared, float(gradient @ residual) ** 2 / (gg * total), declared + step,
-                                  gradient))
+        ranked.append(Sensitivity(var.name, declared, float(gradient @ residual) ** 2 / (gg * total), gradient))
     return sorted(ranked, key=lambda s: s.explained, reverse=True)
 
 
@@ -228,7 +223,6 @@ def fit_parameter(model_fmu, runs: Runs, scoring: Scoring, name: str, declared: 
     low, high = sorted((declared / RANGE, declared * RANGE))
     value, residual = declared, objective.scaled(errors)
     score = float(residual @ residual)
-    history = [(value, score)]
     relative_delta = PERTURBATION
     while objective.simulations + 2 <= budget:
         delta = relative_delta * value
@@ -250,12 +244,11 @@ def fit_parameter(model_fmu, runs: Runs, scoring: Scoring, name: str, declared: 
                 if trial_score < score:
                     relative_delta = min(PERTURBATION, max(MIN_PERTURBATION, abs(trial_value - value) / abs(value)))
                     value, residual, score, accepted = trial_value, trial_residual, trial_score, True
-                    history.append((value, score))
                     break
             step /= 2.0
         if not accepted or abs(step) <= STEP_TOLERANCE * abs(value):
             break
-    return Calibration(name, declared, value, score, objective.simulations, history)
+    return Calibration(name, declared, value, score, objective.simulations)
 
 
 def calibrate(model_fmu, info, runs: Runs, scoring: Scoring, *,

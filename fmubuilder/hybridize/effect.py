@@ -14,7 +14,6 @@ the plot shows the learned term alone.
 """
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,7 +23,9 @@ from ..data import read_sidecar
 from ..errors import FmuBuilderError
 from ..export.network import OnnxNetwork
 from ..export.spec import HybridSpec
-from .evaluate import Scoring
+from ..files import file_sha256
+from ..fmi import Fmu, read_model_info
+from .evaluate import Scoring, simulate_over
 
 # Points of the declared FMU's run at which the effects are evaluated.
 EFFECT_POINTS = 600
@@ -43,14 +44,11 @@ class Effect:
 def effect_of(spec_path: Path, declared_fmu: Path, data, start_values: dict, scoring: Scoring) -> Effect:
     """The learned (and, if known, true) effect along the declared FMU's run over `data`, simulated
     as every model is scored (`scoring`)."""
-    from ..simulation import simulate
     spec = HybridSpec.load(spec_path)
-    info_states = _state_names(declared_fmu)
+    info_states = [s.name for s in read_model_info(declared_fmu).states]
     interval = max(scoring.step, (data.stop - data.start) / EFFECT_POINTS)
-    inputs = {"time": data.time, **data.inputs} if data.inputs else None
-    run = simulate(declared_fmu, start_time=data.start, stop_time=data.stop, start_values=start_values,
-                   inputs=inputs, variables=list(dict.fromkeys([*spec.inputs, *info_states])),
-                   solver=scoring.solver, step_size=scoring.step, output_interval=interval)
+    run = simulate_over(declared_fmu, data, start_values, dict.fromkeys([*spec.inputs, *info_states]), scoring,
+                        output_interval=interval, record_events=False)
     channel = spec.channels[0]
     network = OnnxNetwork(spec.onnx)
     values = np.column_stack([np.asarray(run[name], dtype=float) for name in spec.inputs])
@@ -60,16 +58,12 @@ def effect_of(spec_path: Path, declared_fmu: Path, data, start_values: dict, sco
         truth_fmu, parameters, effect.truth_source = _truth_model(data)
         if truth_fmu is not None:
             states = np.column_stack([np.asarray(run[name], dtype=float) for name in info_states])
-            effect.truth = _derivative_difference(truth_fmu, declared_fmu, channel, run.time, states, data,
-                                                  start_values, parameters)
+            # f_truth - f_declared of the channel at the same times, states and inputs
+            effect.truth = (_derivatives(truth_fmu, channel, run.time, states, data, {**start_values, **parameters})
+                            - _derivatives(declared_fmu, channel, run.time, states, data, start_values))
     except FmuBuilderError as exc:
         effect.truth, effect.truth_source = None, f"the truth could not be evaluated ({exc})"
     return effect
-
-
-def _state_names(fmu: Path) -> list[str]:
-    from ..fmi import read_model_info
-    return [s.name for s in read_model_info(fmu).states]
 
 
 def _truth_model(data) -> tuple[Path | None, dict, str]:
@@ -83,7 +77,7 @@ def _truth_model(data) -> tuple[Path | None, dict, str]:
     if name not in list_examples():
         return None, {}, f"the truth model {name} is not a bundled example"
     fmu = example_fmu(name)
-    if model.get("sha256") and hashlib.sha256(fmu.read_bytes()).hexdigest() != model["sha256"]:
+    if model.get("sha256") and file_sha256(fmu) != model["sha256"]:
         return None, {}, f"the bundled {name} differs from the one that made the data"
     parameters = dict(((sidecar.get("truth") or {}).get("parameters")) or {})
     return fmu, parameters, f"{name}.fmu" + (f" with {_listed(parameters)}" if parameters else "")
@@ -93,17 +87,8 @@ def _listed(values: dict) -> str:
     return ", ".join(f"{k} = {v:g}" if isinstance(v, (int, float)) else f"{k} = {v}" for k, v in values.items())
 
 
-def _derivative_difference(truth_fmu: Path, declared_fmu: Path, channel: str, time: np.ndarray,
-                           states: np.ndarray, data, start_values: dict, parameters: dict) -> np.ndarray:
-    """f_truth - f_declared of `channel` at the given times and states (inputs from the data)."""
-    truth = _derivatives(truth_fmu, channel, time, states, data, {**start_values, **parameters})
-    declared = _derivatives(declared_fmu, channel, time, states, data, start_values)
-    return truth - declared
-
-
 def _derivatives(fmu_path: Path, channel: str, time: np.ndarray, states: np.ndarray, data,
                  start_values: dict) -> np.ndarray:
-    from ..fmi import Fmu
     from ..simulation.events import event_mode
     with Fmu(fmu_path) as fmu:
         index = fmu.info.state_index(channel)

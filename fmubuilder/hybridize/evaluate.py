@@ -98,14 +98,6 @@ class Evaluation:
     errors: dict                  # signal -> {"mse", "max_abs", "final"}
     time: np.ndarray
     predicted: dict               # signal -> model values at the data's time stamps
-    wall_time: float
-
-    def on(self, data: MeasuredData, start: float, stop: float) -> "Evaluation":
-        """The errors on the samples of [start, stop] only (of the same simulation)."""
-        keep = (self.time >= start) & (self.time <= stop)
-        predicted = {name: values[keep] for name, values in self.predicted.items()}
-        errors = {name: signal_errors(data.signals[name][keep], predicted[name]) for name in data.names}
-        return Evaluation(errors, self.time[keep], predicted, self.wall_time)
 
 
 def read_data(path: Path, info) -> MeasuredData:
@@ -120,23 +112,27 @@ def read_data(path: Path, info) -> MeasuredData:
 
 def evaluate(fmu_path: Path, data: MeasuredData, start_values: dict, scoring: Scoring) -> Evaluation:
     """Simulate the FMU over the data's span and compare it, seen through the sensors, with the data."""
-    import time as wallclock
-
-    from ..simulation import simulate
-    started = wallclock.perf_counter()
-    inputs = {"time": data.time, **data.inputs} if data.inputs else None
-    steps = {"step_size": scoring.step} if scoring.rtol is None else {"rtol": scoring.rtol}
-    with np.errstate(all="ignore"):     # a poor candidate may run off; its errors say so
-        result = simulate(fmu_path, start_time=data.start, stop_time=data.stop, start_values=start_values,
-                          inputs=inputs, variables=data.names, solver=scoring.solver, output_interval=scoring.step,
-                          record_events=True, **steps)
+    result = simulate_over(fmu_path, data, start_values, data.names, scoring)
     predicted = {}
     for name in data.names:
         seen = first_order_lag(result.time, np.asarray(result[name], dtype=float), data.sensor_lag)
         predicted[name] = sample_settled(result.time, seen, data.time)
     with np.errstate(all="ignore"):
         errors = {name: signal_errors(data.signals[name], predicted[name]) for name in data.names}
-    return Evaluation(errors, data.time, predicted, wallclock.perf_counter() - started)
+    return Evaluation(errors, data.time, predicted)
+
+
+def simulate_over(fmu_path: Path, data: MeasuredData, start_values: dict, names, scoring: Scoring, *,
+                  output_interval: float | None = None, record_events: bool = True):
+    """The FMU over the data's span with the data's inputs, by the engine as `scoring` says,
+    recorded every `output_interval` (the scoring step) and, with `record_events`, on both sides of events."""
+    from ..simulation import simulate
+    inputs = {"time": data.time, **data.inputs} if data.inputs else None
+    steps = {"step_size": scoring.step} if scoring.rtol is None else {"rtol": scoring.rtol}
+    with np.errstate(all="ignore"):     # a poor candidate may run off; its errors say so
+        return simulate(fmu_path, start_time=data.start, stop_time=data.stop, start_values=start_values,
+                        inputs=inputs, variables=list(names), solver=scoring.solver,
+                        output_interval=output_interval or scoring.step, record_events=record_events, **steps)
 
 
 def sample_settled(time: np.ndarray, values: np.ndarray, at: np.ndarray) -> np.ndarray:

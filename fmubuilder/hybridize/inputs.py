@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .evaluate import sample_settled
+from .evaluate import Scoring, sample_settled, simulate_over
 
 # Share of held-out samples outside the training range (widened by RANGE_MARGIN of its width) above
 # which a variable is not offered to the ANN.
@@ -129,6 +129,8 @@ class MissingTermRun:
         self._plain = None        # {channel: plain run seen through the lag, on the forced grid}
 
     def estimate(self, channels: list[str]) -> MissingTerm | None:
+        from scipy.integrate import cumulative_trapezoid
+
         from ..diagnose.trace import variable_kind
         from ..neural.collocation import local_slope
         info, data = self.info, self.data
@@ -153,7 +155,8 @@ class MissingTermRun:
             # The same local fit on the measured state and on the integral of the model's derivative:
             # one linear operator on both, so that steps at events cancel instead of leaving spikes.
             slope, valid = local_slope(at, data.signals[channel_states[c]], at, SLOPE_WINDOW)
-            model_slope, _ = local_slope(at, np.interp(at, grid, _integral(grid, seen[c])), at, SLOPE_WINDOW)
+            model_integral = np.interp(at, grid, cumulative_trapezoid(seen[c], grid, initial=0.0))
+            model_slope, _ = local_slope(at, model_integral, at, SLOPE_WINDOW)
             missing[c] = np.where(valid, slope - model_slope, np.nan)
         sampled = {n: np.interp(at, grid, values[n]) for n in candidates}
         aliases = {c: equal_to(sampled, c) for c in channels}
@@ -188,12 +191,7 @@ class MissingTermRun:
 def _plain_run(model_fmu, data, start_values: dict, names: list[str], step: float, solver: str):
     """(time, {name: values}) of the plain FMU over the run, by the engine (the batch solver's
     steps, a sixth of its time: nothing is forced), recorded every step and on both sides of events."""
-    from ..simulation import simulate
-    inputs = {"time": data.time, **data.inputs} if data.inputs else None
-    with np.errstate(all="ignore"):
-        result = simulate(model_fmu, start_time=data.start, stop_time=data.stop, start_values=start_values,
-                          inputs=inputs, variables=list(names), solver=solver, step_size=step, output_interval=step,
-                          record_events=True)
+    result = simulate_over(model_fmu, data, start_values, names, Scoring(solver, step))
     return result.time, {n: np.asarray(result[n], dtype=float) for n in names}
 
 
@@ -238,15 +236,9 @@ def _forced_run(model_fmu, info, data, start_values, forced: dict, names, step, 
         model.close()
 
 
-def _integral(grid: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Cumulative trapezoidal integral of a gridded signal from the grid's start."""
-    return np.concatenate(([0.0], np.cumsum(0.5 * (values[1:] + values[:-1]) * np.diff(grid))))
-
-
 # -- steps 2 to 4: samples, candidates and the forward selection -----------------------------------
 
-def choose_inputs(term: MissingTerm, channel: str, train: np.ndarray, validation: np.ndarray,
-                  exclude: set[str] = frozenset()) -> InputChoice:
+def choose_inputs(term: MissingTerm, channel: str, train: np.ndarray, validation: np.ndarray) -> InputChoice:
     """Inputs for the ANN at `channel`; train and validation: boolean masks over term.time.
     The cross-validation runs over the settled samples of both, in time order."""
     target = term.missing[channel]
@@ -254,7 +246,7 @@ def choose_inputs(term: MissingTerm, channel: str, train: np.ndarray, validation
     train, validation = train & usable, validation & usable
     out_of_range = {n: share for n in term.variables
                     if (share := outside_share(term.variables[n][train], term.variables[n][validation])) > OUT_OF_RANGE_SHARE}
-    exclude = {*exclude, channel, *term.aliases.get(channel, ())}
+    exclude = {channel, *term.aliases.get(channel, ())}
     candidates = [n for n in term.variables if n not in exclude and n not in out_of_range
                   and np.ptp(term.variables[n][train]) > 0]
     candidates.sort(key=lambda n: (n not in term.measured, KIND_ORDER.get(term.kinds.get(n), 5)))

@@ -23,8 +23,7 @@ the term as any other candidate.
 from __future__ import annotations
 
 import math
-import zipfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -59,7 +58,6 @@ class Refinement:
     objective_after: float      # the same with the scales (equal when not kept)
     simulations: int
     kept: bool
-    history: list = field(default_factory=list)     # (scales, objective) of every accepted point
 
     def to_dict(self) -> dict:
         return {"gates": self.gates, "scales": self.scales, "objective_before": _finite(self.objective_before),
@@ -84,44 +82,42 @@ def refine_scales(hybrid_fmu, gates: list[str], runs: Runs, noise: dict[str, flo
         if residual is None:       # the term as exported does not simulate: nothing to refine from
             bar.stop("the hybrid does not simulate over the training data")
             return Refinement(gates, start.tolist(), math.inf, math.inf, objective.simulations, False)
-        scales, history, ended = _levenberg_marquardt(objective, start, residual, budget)
+        scales, after, ended = _levenberg_marquardt(objective, start, residual, budget)
         bar.stop(ended)
-    before, after = history[0][1], history[-1][1]
+    before = _cost(residual)
     kept = after < before
     return Refinement(gates, [float(s) for s in (scales if kept else start)], before, after if kept else before,
-                      objective.simulations, kept, history)
+                      objective.simulations, kept)
 
 
 def _levenberg_marquardt(objective: "_Objective", scales: np.ndarray, residual: np.ndarray, budget: int):
-    """(scales, [(scales, objective) of every accepted point], why it ended before the budget)."""
+    """(scales, their objective, why it ended before the budget)."""
     cost = _cost(residual)
-    history = [(scales.tolist(), cost)]
     damping, relative_delta = DAMPING, PERTURBATION
     n = scales.size
     while objective.simulations + n + 1 <= budget:
         jacobian = _jacobian(objective, scales, residual, relative_delta)
         if jacobian is None:
-            return scales, history, "a perturbed run failed"
+            return scales, cost, "a perturbed run failed"
         gradient, curvature = jacobian.T @ residual, jacobian.T @ jacobian
         if not np.any(np.diag(curvature) > 0):
-            return scales, history, "the term does not move the signals"
+            return scales, cost, "the term does not move the signals"
         accepted = False
         while objective.simulations < budget:
             step = np.linalg.solve(curvature + damping * np.diag(np.diag(curvature)) + 1e-300 * np.eye(n), -gradient)
             trial = objective.residuals(scales + step)
             if trial is not None and _cost(trial) < cost:
                 scales, residual, cost, accepted = scales + step, trial, _cost(trial), True
-                history.append((scales.tolist(), cost))
                 damping /= DAMPING_FACTOR
                 break
             damping *= DAMPING_FACTOR
         if not accepted:
-            return scales, history, "no lower training error found"
+            return scales, cost, "no lower training error found"
         relative = float(np.max(np.abs(step) / np.maximum(np.abs(scales), 1e-12)))
         if relative < STEP_TOLERANCE:
-            return scales, history, "converged"
+            return scales, cost, "converged"
         relative_delta = min(PERTURBATION, max(MIN_PERTURBATION, relative))
-    return scales, history, "the budget is spent"
+    return scales, cost, "the budget is spent"
 
 
 def _jacobian(objective: "_Objective", scales: np.ndarray, residual: np.ndarray, relative_delta: float):
@@ -187,12 +183,8 @@ def _noise_level(noise: dict[str, float], name: str, data: MeasuredData) -> floa
 
 def term_gates(spec) -> list[str]:
     """The gate parameter of each channel of a fitted term's hybrid spec, as the export names them."""
-    from ..export.hybrid_description import derive_model_description
-    from ..fmi import read_model_info
-    info = read_model_info(spec.original_fmu)
-    with zipfile.ZipFile(spec.original_fmu) as archive:
-        description = derive_model_description(archive.read("modelDescription.xml"), spec, info)
-    return [layout.p_ann for layout in description.channels]
+    from ..export.hybrid_description import channel_layouts
+    return [layout.p_ann for layout in channel_layouts(spec)]
 
 
 def scaled_term(fitted: dict, scale: float) -> dict:
