@@ -66,10 +66,8 @@ def write_report(folder: Path, *, model_fmu, diagnosis, plain, candidates, chose
                     "chosen": c is chosen, **c.details}
                    for c in candidates],
         "test_note": TEST_NOTE,
-        "roundtrip": {"max_rel_error": roundtrip["max_rel_error"] if roundtrip else None,
-                      "passed": roundtrip["passed"] if roundtrip else None,
-                      "not_compared": roundtrip["not_compared"] if roundtrip else None,
-                      "span": roundtrip["span"] if roundtrip else None},
+        "roundtrip": {key: roundtrip[key] if roundtrip else None
+                      for key in ("max_rel_error", "passed", "not_compared", "span")},
         "hybrid_fmu": str(hybrid_fmu) if hybrid_fmu else None,
         "model_fmu": str(model_fmu),
         "seconds": seconds,
@@ -216,16 +214,15 @@ def _cell(text: str) -> str:
 
 def _candidate_note(model: dict, training: dict | None) -> str:
     """Why a row looks the way it does."""
-    notes = []
+    notes, training = [], training or {}
     if model.get("loss_evaluations") is not None:       # a NeuralFMU, plain or on the fitted term
-        done = model.get("loss_evaluations")
-        asked = (training or {}).get("budget")
+        done, asked = model["loss_evaluations"], training.get("budget")
         notes.append(f"trained with {done} of {asked} loss evaluations" if asked is not None
                      else f"trained with {done} loss evaluations")
         if done == 0:
             notes.append("the wall-clock cap ran out before the first loss evaluation"
-                         if (training or {}).get("cut_short_by_time_budget") else "no training was asked for")
-        elif (training or {}).get("cut_short_by_time_budget"):
+                         if training.get("cut_short_by_time_budget") else "no training was asked for")
+        elif training.get("cut_short_by_time_budget"):
             notes.append("cut short by the wall-clock cap")
     elif model.get("calibrated"):
         notes.append(f"calibrated by Gauss-Newton on `{model.get('fitted_on', 'the training data')}` in "

@@ -20,12 +20,16 @@ class TermStart:
 
 
 def term_start(fitted: dict | None, ann_inputs: list[str]) -> TermStart | None:
-    """What the candidate trains, or None when the diagnosis offers no term an FMU can read (none,
-    or one of time itself)."""
+    """What the candidate trains, or None when the diagnosis offers no term an FMU can read."""
+    inputs = fmu_term_inputs(fitted["terms"]) if fitted and fitted.get("offered") else []
+    if not inputs:
+        return None
+    return TermStart(fitted["channel"], list(dict.fromkeys([*inputs, *ann_inputs])), fitted["terms"])
+
+
+def fmu_term_inputs(terms: list[dict]) -> list[str]:
+    """The variables a fitted term reads; none when it reads time itself, which an FMU cannot take
+    as a variable input."""
     from ..neural.base_term import term_inputs
-    if not fitted or not fitted.get("offered"):
-        return None
-    terms = fitted["terms"]
-    if any(t["variable"] == "time" for t in terms if t["basis"] != "1") or not term_inputs(terms):
-        return None
-    return TermStart(fitted["channel"], list(dict.fromkeys([*term_inputs(terms), *ann_inputs])), terms)
+    inputs = term_inputs(terms)
+    return [] if "time" in inputs else inputs

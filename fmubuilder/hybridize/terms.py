@@ -15,7 +15,8 @@ from torch import nn
 from ..errors import FmuBuilderError
 from ..export import freeze
 from ..export.spec import HybridSpec
-from ..neural.base_term import FittedTerm, term_inputs
+from ..neural.base_term import FittedTerm
+from .term_started import fmu_term_inputs
 
 DTYPE = torch.float64
 
@@ -62,14 +63,11 @@ def spec_from_fitted_term(fitted: dict, fmu_path: Path, guid: str, folder: Path,
                           aliases: dict[str, str] | None = None) -> HybridSpec | None:
     """The hybrid of a fitted term from the diagnosis (None when it depends on time itself,
     which an FMU cannot take as a variable input)."""
-    terms = fitted["terms"]
-    if any(t["variable"] == "time" for t in terms if t["basis"] != "1"):
-        return None
-    inputs = term_inputs(terms)
+    inputs = fmu_term_inputs(fitted["terms"])
     if not inputs:
         return None
     onnx_path = folder / "term.onnx"
-    freeze(FittedTerm(terms, inputs).eval(), len(inputs), onnx_path)
+    freeze(FittedTerm(fitted["terms"], inputs).eval(), len(inputs), onnx_path)
     spec = HybridSpec(original_fmu=Path(fmu_path).resolve(), original_guid=guid, channels=[fitted["channel"]],
                       inputs=inputs, onnx=onnx_path, p_ann=[1.0], p_fmu=[1.0], aliases=aliases or {},
                       term="fitted term", expression=fitted.get("expression", ""))

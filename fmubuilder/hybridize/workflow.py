@@ -231,20 +231,22 @@ def _assign_roles(info, train_csv, train_start, validation_csv, validation_start
     if len(starts) != len(paths):
         raise FmuBuilderError(f"{len(starts)} sets of training start values for {len(paths)} training files; "
                               "give one per file")
-    runs = [read_data(Path(p), info) for p in paths]
-    train = [Part(d, {**d.start_values, **(s or {})}, (d.start, d.stop)) for d, s in zip(runs, starts)]
-    test_data = read_data(Path(test_csv), info)
-    test = Part(test_data, {**test_data.start_values, **(test_start or {})}, (test_data.start, test_data.stop))
+    train = [_whole_run(info, p, s) for p, s in zip(paths, starts)]
+    test = _whole_run(info, test_csv, test_start)
     if validation_csv is not None:
-        data = read_data(Path(validation_csv), info)
-        validation = [Part(data, {**data.start_values, **(validation_start or {})}, (data.start, data.stop))]
-        return Roles(train, validation, test, held_out_of_training=False)
+        return Roles(train, [_whole_run(info, validation_csv, validation_start)], test, held_out_of_training=False)
     validation = []
     for part in train:
         split = _split_time(part.data)
         validation.append(Part(part.data, part.start_values, (_next_sample(part.data, split), part.data.stop)))
         part.window = (part.data.start, split)
     return Roles(train, validation, test, held_out_of_training=True)
+
+
+def _whole_run(info, path, start_values: dict | None) -> Part:
+    """All samples of a data file, its sidecar's start values overridden by `start_values`."""
+    data = read_data(Path(path), info)
+    return Part(data, {**data.start_values, **(start_values or {})}, (data.start, data.stop))
 
 
 def _split_time(data: MeasuredData) -> float:
@@ -274,10 +276,7 @@ def score(scores: Scores, roles: Roles, scoring: Scoring, which: tuple[str, ...]
         parts = parts_of[role]
         pieces = []
         for part in parts:
-            key = id(part.data)
-            if key not in scores.runs:
-                scores.runs[key] = evaluate(scores.fmu, part.data, part.start_values, scoring)
-            run = scores.runs[key]
+            run = scores.runs[id(part.data)]
             pieces.append((part.data.signals, run.predicted, (run.time >= part.window[0]) & (run.time <= part.window[1])))
         scores.errors[role] = {name: signal_errors(np.concatenate([m[name][k] for m, _, k in pieces]),
                                                    np.concatenate([p[name][k] for _, p, k in pieces]))
@@ -373,7 +372,6 @@ def channel_aliases(model_fmu, info, channel: str, start_values: dict, data_time
     """{output: channel} for the outputs of the plain model equal to `channel` along its run
     (the diagnosis' test: within 1e-9 relative), e.g. a power whose integral is an energy state.
     The hybrid must correct them with the derivative, or they contradict the corrected state."""
-    import numpy as np
     from ..diagnose.diagnosis import derivative_aliases
     from ..diagnose.runs import ModelRunner
     states = {s.name for s in info.states}
@@ -566,16 +564,15 @@ def _roundtrip(chosen: Candidate, test: Part) -> dict:
 
 
 def _publish(source: Path, target: Path, force: bool) -> None:
-    if target.exists() and not force:
-        raise FmuBuilderError(f"{target} exists; choose another output path or pass --force to overwrite it")
+    _check_outputs(target, None, force)     # again: the file may have appeared while the command ran
     target.parent.mkdir(parents=True, exist_ok=True)
     copy_atomically(source, target)
 
 
-def _check_outputs(output_fmu: Path, report_dir: Path, force: bool) -> None:
+def _check_outputs(output_fmu: Path, report_dir: Path | None, force: bool) -> None:
     if output_fmu.exists() and not force:
         raise FmuBuilderError(f"{output_fmu} exists; choose another output path or pass --force to overwrite it")
-    if report_dir.exists() and any(report_dir.iterdir()) and not force:
+    if report_dir is not None and report_dir.exists() and any(report_dir.iterdir()) and not force:
         raise FmuBuilderError(f"report folder {report_dir} is not empty; choose another with --report or pass --force")
 
 
