@@ -191,10 +191,8 @@ def _compare(label: str, a, b, names) -> dict:
     """Largest difference relative to each signal's range, on the time stamps both runs share."""
     ta, tb = np.asarray(a["time"], float), np.asarray(b["time"], float)
     # Keep one sample per time (the last: after an event), then the stamps both have.
-    ka = np.r_[np.diff(ta) > 0, True]
-    kb = np.r_[np.diff(tb) > 0, True]
-    ta_, tb_ = ta[ka], tb[kb]
-    shared, ia, ib = np.intersect1d(np.round(ta_, 9), np.round(tb_, 9), return_indices=True)
+    ka, kb = np.r_[np.diff(ta) > 0, True], np.r_[np.diff(tb) > 0, True]
+    shared, ia, ib = np.intersect1d(np.round(ta[ka], 9), np.round(tb[kb], 9), return_indices=True)
     worst = 0.0
     for name in names:
         va, vb = np.asarray(a[name], float)[ka][ia], np.asarray(b[name], float)[kb][ib]

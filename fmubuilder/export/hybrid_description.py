@@ -191,8 +191,7 @@ def _variable_label(state: str) -> str:
 
 def _name_prefix(existing: set[str]) -> str:
     """'hybrid', or 'hybrid_<n>' if the original already uses names under 'hybrid'."""
-    candidates = ["hybrid"] + [f"hybrid_{n}" for n in range(1, 1000)]
-    for prefix in candidates:
+    for prefix in ("hybrid", *(f"hybrid_{n}" for n in range(1, 1000))):
         if not any(name == prefix or name.startswith(prefix + ".") or name.startswith(prefix + "[")
                    for name in existing):
             return prefix
@@ -277,9 +276,7 @@ def _network_dependencies(spec, info, unknowns, index_of, state_names) -> set[in
         elif var.causality in ("parameter", "calculatedParameter", "independent") or var.variability == "constant":
             continue  # not a state or input: no entry in the dependency lists
         else:
-            listed = unknowns["Derivatives"].get(name)
-            if listed is None:
-                listed = unknowns["Outputs"].get(name)
+            listed = unknowns["Derivatives"].get(name, unknowns["Outputs"].get(name))
             if listed is None or listed.get("dependencies") is None:
                 return None
             dependencies.update(int(i) for i in listed.get("dependencies").split())
@@ -305,5 +302,4 @@ def _merge_dependencies(unknown, extra: set[int] | None) -> None:
 
 def _drop_dependencies(unknown) -> None:
     for attribute in ("dependencies", "dependenciesKind"):
-        if attribute in unknown.attrib:
-            del unknown.attrib[attribute]
+        unknown.attrib.pop(attribute, None)

@@ -82,8 +82,8 @@ class HybridSpec:
         self.inputs = [str(i) for i in self.inputs]
         n = len(self.channels)
         # Gates default to "both on": the trained hybrid as it was trained.
-        self.p_ann = _gates(self.p_ann, n, 1.0, "p_ann")
-        self.p_fmu = _gates(self.p_fmu, n, 1.0, "p_fmu")
+        self.p_ann = _gates(self.p_ann, n, "p_ann")
+        self.p_fmu = _gates(self.p_fmu, n, "p_fmu")
         if n == 0:
             raise FmuBuilderError("the hybrid spec has no channels; list the derivatives the network corrects")
         if len(set(self.channels)) != n:
@@ -200,8 +200,8 @@ class HybridSpec:
         return [by_name[c] for c in self.channels]
 
 
-def _gates(values, n: int, default: float, what: str) -> list[float]:
-    values = [default] * n if values is None or len(values) == 0 else list(values)
+def _gates(values, n: int, what: str) -> list[float]:
+    values = [1.0] * n if values is None or len(values) == 0 else list(values)
     if len(values) != n:
         raise FmuBuilderError(f"the hybrid spec has {len(values)} {what} values for {n} channels; give one per channel")
     try:

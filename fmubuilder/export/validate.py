@@ -96,10 +96,9 @@ class Comparison:
     def verdict(self) -> str:
         if self.error is None and not self.compared:
             return "not compared (no samples left)"
-        verdict = "passed" if self.passed else "FAILED"
         if self.informational:
-            verdict = f"{'within' if self.passed else 'outside'} tolerance, informational only: {self.informational}"
-        return verdict
+            return f"{'within' if self.passed else 'outside'} tolerance, informational only: {self.informational}"
+        return "passed" if self.passed else "FAILED"
 
 
 @dataclass
