@@ -145,7 +145,7 @@ def _pack(original: zipfile.ZipFile, packed: Path, xml: bytes, library: Path, id
 # -- round trip ---------------------------------------------------------------------------------
 
 def validate_calibrated(calibrated_fmu, original_fmu, parameters: dict[str, float], *, start_values=None,
-                        start_time: float = 0.0, stop_time: float, step_size: float, variables=None) -> dict:
+                        start_time: float = 0.0, stop_time: float, step_size: float) -> dict:
     """fmpy (Euler) on the calibrated FMU without the calibrated values against fmpy and
     fmubuilder's replica of fmpy's Euler loop on the original with them: the same binary and
     arithmetic, so equal to round-off.
@@ -159,8 +159,8 @@ def validate_calibrated(calibrated_fmu, original_fmu, parameters: dict[str, floa
     from .validate import simulate_fmpy_euler
     info = read_model_info(original_fmu)
     start_values = dict(start_values or {})
-    names = list(variables or [v.name for v in info.variables.values()
-                               if v.type == "Real" and v.causality == "output"] or [s.name for s in info.states])
+    names = [v.name for v in info.variables.values() if v.type == "Real" and v.causality == "output"] \
+        or [s.name for s in info.states]
     names += [name for name in parameters if name not in names]
     common = dict(start_time=start_time, stop_time=stop_time, output_interval=step_size, output=names)
 

@@ -36,10 +36,10 @@ class HybridReference(FmuSystem):
 
     def __init__(self, fmu: Fmu, spec: HybridSpec, *, variables: Sequence[str], start_values: dict | None = None,
                  inputs=None, tolerance: float | None = None, p_ann: Sequence[float] | None = None,
-                 p_fmu: Sequence[float] | None = None, network: OnnxNetwork | None = None):
+                 p_fmu: Sequence[float] | None = None):
         super().__init__(fmu, variables=variables, start_values=start_values, inputs=inputs, tolerance=tolerance)
         info = fmu.info
-        self.network = network if network is not None else OnnxNetwork(spec.onnx)
+        self.network = OnnxNetwork(spec.onnx)
         self.p_ann = [float(g) for g in (p_ann if p_ann is not None else spec.p_ann)]
         self.p_fmu = [float(g) for g in (p_fmu if p_fmu is not None else spec.p_fmu)]
         self.channel_index = [info.state_index(c) for c in spec.channels]

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -211,10 +210,10 @@ def distinct(ranked: list[Sensitivity]) -> list[Sensitivity]:
     return kept
 
 
-def fit_parameter(model_fmu, runs: Runs, scoring: Scoring, name: str, declared: float,
-                  budget: int = FIT_SIMULATIONS) -> Calibration | None:
+def fit_parameter(model_fmu, runs: Runs, scoring: Scoring, name: str, declared: float) -> Calibration | None:
     """Gauss-Newton on the score over `runs`, one sensitivity simulation per step, a step that
-    does not lower the score halved; None when the plain model does not simulate."""
+    does not lower the score halved, in at most FIT_SIMULATIONS simulations; None when the plain
+    model does not simulate."""
     objective = _Objective(model_fmu, runs, scoring, name)
     errors = objective.errors(declared)
     if errors is None:
@@ -224,7 +223,7 @@ def fit_parameter(model_fmu, runs: Runs, scoring: Scoring, name: str, declared: 
     value, residual = declared, objective.scaled(errors)
     score = float(residual @ residual)
     relative_delta = PERTURBATION
-    while objective.simulations + 2 <= budget:
+    while objective.simulations + 2 <= FIT_SIMULATIONS:
         delta = relative_delta * value
         perturbed = objective.errors(value + delta)
         if perturbed is None:
@@ -235,7 +234,7 @@ def fit_parameter(model_fmu, runs: Runs, scoring: Scoring, name: str, declared: 
             break
         step = -float(gradient @ residual) / gg
         accepted = False
-        while objective.simulations < budget and abs(step) > STEP_TOLERANCE * abs(value):
+        while objective.simulations < FIT_SIMULATIONS and abs(step) > STEP_TOLERANCE * abs(value):
             trial_value = min(max(value + step, low), high)
             trial = objective.errors(trial_value)
             if trial is not None:
@@ -272,18 +271,3 @@ def calibrate(model_fmu, info, runs: Runs, scoring: Scoring, *,
             fits.append(fit)
     return ranked, fits
 
-
-def calibrated_fmu(model_fmu, fit: Calibration, folder) -> Path:
-    """The original FMU with the fitted value as its own (see fmubuilder.export.calibrated)."""
-    from ..export.calibrated import export_calibrated
-    return export_calibrated(model_fmu, {fit.name: fit.value}, Path(folder) / "calibrated.fmu")
-
-
-def roundtrip(fmu, details: dict, start_values: dict, start: float, stop: float) -> dict:
-    """The workflow's round trip of a calibrated candidate: the exported FMU in fmpy against the
-    original with the calibrated values (fmpy and the engine, Euler at the scoring step)."""
-    from ..export.calibrated import validate_calibrated
-    check = validate_calibrated(fmu, details["original_fmu"], details["calibrated"], start_values=start_values,
-                                start_time=start, stop_time=stop, step_size=details["step"])
-    return {"passed": check["passed"], "max_rel_error": check["max_rel_error"], "span": [start, stop],
-            "table": check["table"], "not_compared": []}
