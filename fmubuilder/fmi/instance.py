@@ -142,14 +142,13 @@ class FmuInstance:
         CALL[0] = code
         status = getattr(self._lib, function)(*args)
         CALL[0] = -code
-        if status > 1:      # tested here: a call to _check per FMI call would cost on the event path
-            self._check(status, function)
+        if status > 1:      # fmi2Discard or worse; tested inline, as in the hot-path calls below
+            self._fail(status, function)
         return status
 
-    def _check(self, status: int, function: str) -> int:
-        if status > 1:  # fmi2Discard or worse
-            raise FmuCallError(function, status, tuple(self.messages))
-        return status
+    def _fail(self, status: int, function: str):
+        """Raise for a status of fmi2Discard or worse, with the FMU's last log message."""
+        raise FmuCallError(function, status, tuple(self.messages))
 
     # -- life cycle ----------------------------------------------------------------------
     def setup_experiment(self, start_time: float = 0.0, stop_time: float | None = None,
@@ -246,7 +245,7 @@ class FmuInstance:
         c_vrs = ffi.new("fmi2ValueReference[]", list(vrs) or [0])
         out = ffi.new("double[]", max(n, 1))
         view = np.frombuffer(ffi.buffer(out), dtype=np.float64)[:n]
-        get_real, component, check = self._lib.fmi2GetReal, self.component, self._check
+        get_real, component, fail = self._lib.fmi2GetReal, self.component, self._fail
         code, done = CODE["fmi2GetReal"], -CODE["fmi2GetReal"]
 
         def read() -> np.ndarray:
@@ -255,7 +254,7 @@ class FmuInstance:
                 status = get_real(component, c_vrs, n, out)
                 CALL[0] = done
                 if status > 1:
-                    check(status, "fmi2GetReal")
+                    fail(status, "fmi2GetReal")
             return view.copy()
         return read
 
@@ -265,7 +264,7 @@ class FmuInstance:
         c_vrs = ffi.new("fmi2ValueReference[]", list(vrs) or [0])
         buffer = ffi.new("double[]", max(n, 1))
         view = np.frombuffer(ffi.buffer(buffer), dtype=np.float64)[:n]
-        set_real, component, check = self._lib.fmi2SetReal, self.component, self._check
+        set_real, component, fail = self._lib.fmi2SetReal, self.component, self._fail
         code, done = CODE["fmi2SetReal"], -CODE["fmi2SetReal"]
 
         def write(values) -> None:
@@ -275,7 +274,7 @@ class FmuInstance:
                 status = set_real(component, c_vrs, n, buffer)
                 CALL[0] = done
                 if status > 1:
-                    check(status, "fmi2SetReal")
+                    fail(status, "fmi2SetReal")
         return write
 
     # -- continuous-time interface ---------------------------------------------------------
@@ -285,7 +284,7 @@ class FmuInstance:
         status = self._lib.fmi2SetTime(self.component, t)
         CALL[0] = _SETTIME_DONE
         if status > 1:
-            self._check(status, "fmi2SetTime")
+            self._fail(status, "fmi2SetTime")
 
     # With no states (or no indicators) the array calls below are not made: fmpy and fmusim skip
     # them, and some tools' FMUs answer nx = 0 with an error.
@@ -296,7 +295,7 @@ class FmuInstance:
         status = self._lib.fmi2GetContinuousStates(self.component, self._x, self._n_states)
         CALL[0] = _GETCONTINUOUSSTATES_DONE
         if status > 1:
-            self._check(status, "fmi2GetContinuousStates")
+            self._fail(status, "fmi2GetContinuousStates")
         return self._x_view.copy()
 
     def set_continuous_states(self, x) -> None:
@@ -307,7 +306,7 @@ class FmuInstance:
         status = self._lib.fmi2SetContinuousStates(self.component, self._x, self._n_states)
         CALL[0] = _SETCONTINUOUSSTATES_DONE
         if status > 1:
-            self._check(status, "fmi2SetContinuousStates")
+            self._fail(status, "fmi2SetContinuousStates")
 
     def get_derivatives(self) -> np.ndarray:
         if not self._n_states:
@@ -316,7 +315,7 @@ class FmuInstance:
         status = self._lib.fmi2GetDerivatives(self.component, self._dx, self._n_states)
         CALL[0] = _GETDERIVATIVES_DONE
         if status > 1:
-            self._check(status, "fmi2GetDerivatives")
+            self._fail(status, "fmi2GetDerivatives")
         return self._dx_view.copy()
 
     def get_event_indicators(self) -> np.ndarray:
@@ -326,7 +325,7 @@ class FmuInstance:
         status = self._lib.fmi2GetEventIndicators(self.component, self._z, self._n_indicators)
         CALL[0] = _GETEVENTINDICATORS_DONE
         if status > 1:
-            self._check(status, "fmi2GetEventIndicators")
+            self._fail(status, "fmi2GetEventIndicators")
         return self._z_view.copy()
 
     def get_nominals_of_continuous_states(self) -> np.ndarray:
@@ -343,7 +342,7 @@ class FmuInstance:
         status = self._lib.fmi2CompletedIntegratorStep(self.component, no_set_fmu_state_prior, flags, flags + 1)
         CALL[0] = _COMPLETEDINTEGRATORSTEP_DONE
         if status > 1:
-            self._check(status, "fmi2CompletedIntegratorStep")
+            self._fail(status, "fmi2CompletedIntegratorStep")
         return bool(flags[0]), bool(flags[1])
 
     # -- event mode ------------------------------------------------------------------------

@@ -18,9 +18,7 @@ from ..data import MeasuredData, first_order_lag, load_data
 from ..errors import FmuBuilderError
 from ..fmi import read_model_info
 
-# Scoring.checked: the first step is this share of the sample period (rounded down to 1, 2 or 5 x
-# 10^n); h and h/2 may differ by at most STEP_TOLERANCE times a signal's noise variance (mean
-# square over the training samples); at most MAX_HALVINGS halvings.
+# Scoring.checked's step search (see there).
 FIRST_STEP_SHARE = 0.1
 STEP_TOLERANCE = 0.1
 MAX_HALVINGS = 4
