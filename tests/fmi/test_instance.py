@@ -131,3 +131,12 @@ def test_get_and_set_by_name(fmu):
     with pytest.raises(FmuBuilderError, match="unknown variable 'hh'.*did you mean 'h'"):
         inst.set({"hh": 1.0})
     inst.free()
+
+
+def test_a_call_in_the_wrong_state_raises_through_the_generic_path_too(fmu):
+    """The status test inlined in FmuInstance._call: an error raises, OK passes."""
+    inst = fmu.instantiate()
+    with pytest.raises(FmuCallError, match="fmi2EnterContinuousTimeMode returned fmi2Error"):
+        inst.enter_continuous_time_mode()
+    inst.setup_experiment(start_time=0.0)
+    inst.free()
