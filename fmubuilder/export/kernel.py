@@ -139,9 +139,7 @@ class _Lowering:
         self.graph = model.graph
         self.prefix = prefix
         self.opset = next((o.version for o in model.opset_import if o.domain in _DEFAULT_DOMAINS), 17)
-        self.constants: dict[str, np.ndarray] = {
-            init.name: numpy_helper.to_array(init) for init in self.graph.initializer
-        }
+        self.constants = {init.name: numpy_helper.to_array(init) for init in self.graph.initializer}
         self.shapes: dict[str, tuple[int, ...]] = {}  # computed tensors
         self.root: dict[str, str] = {}  # computed tensor -> tensor that owns its storage
         self.steps: list[_Step] = []

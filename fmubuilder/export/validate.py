@@ -115,16 +115,14 @@ class ValidationReport:
         return next(c for c in self.comparisons if c.label.startswith(label_start))
 
     def format_table(self) -> str:
-        lines = [f"validation of {self.hybrid_fmu}"]
-        lines.append("fmpy modelDescription validation: " +
-                     ("passed" if not self.fmpy_problems else "FAILED: " + "; ".join(self.fmpy_problems)))
+        lines = [f"validation of {self.hybrid_fmu}", "fmpy modelDescription validation: "
+                 + ("passed" if not self.fmpy_problems else "FAILED: " + "; ".join(self.fmpy_problems))]
         for comparison in self.comparisons:
             lines.append(f"\n{comparison.label}: {comparison.verdict} (tolerance {comparison.tolerance:.0e} relative"
                          f"{f', {comparison.samples} samples' if comparison.compared else ''})")
             if comparison.error:
                 lines.append(f"  error: {comparison.error}")
-                continue
-            if not comparison.compared:
+            if not comparison.compared:     # a failed simulation included
                 continue
             width = max([len("signal")] + [len(s.name) for s in comparison.signals])
             lines.append(f"  {'signal':<{width}}  {'max abs diff':>12}  {'max rel diff':>12}")
@@ -303,12 +301,11 @@ def _fmpy_run(hybrid_fmu: Path, setup: _Setup, solver: str) -> _Run:
     import fmpy
     start_values = {**setup.fmu_start_values, **setup.gate_start_values}
     kwargs = dict(start_time=setup.start, stop_time=setup.stop, solver=solver, output=setup.signals,
-                  start_values=start_values, record_events=False, validate=False)
+                  start_values=start_values, record_events=False, validate=False, output_interval=setup.step)
     if solver == "Euler":
-        # fmpy's Euler takes one step per output interval.
-        kwargs.update(step_size=setup.step, output_interval=setup.step)
+        kwargs["step_size"] = setup.step    # fmpy's Euler takes one step per output interval
     else:
-        kwargs.update(relative_tolerance=setup.rtol, output_interval=setup.step)
+        kwargs["relative_tolerance"] = setup.rtol
     if setup.input_data is not None:
         kwargs["input"] = _structured(setup.input_data)
     result = fmpy.simulate_fmu(str(hybrid_fmu), **kwargs)

@@ -72,9 +72,7 @@ def choose(scores: dict, plain_score: float, margin: float) -> str | None:
         best_ann = min(ann, key=ann.get)
         if chosen is None or ann[best_ann] * margin < simple[chosen]:
             chosen = best_ann
-    if chosen is None or not scores[chosen] < plain_score:
-        return None
-    return chosen
+    return chosen if chosen is not None and scores[chosen] < plain_score else None
 
 
 RULE = ("lowest validation score (geometric mean over the signals of MSE / noise variance); a candidate with an "
