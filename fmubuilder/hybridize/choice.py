@@ -27,9 +27,10 @@ import math
 import numpy as np
 
 from .inputs import time_blocks
+from .term_started import NAME as TERM_STARTED
 
 # The ANN candidates and their start: they must beat the one-number candidates by the margin.
-ANN_CANDIDATES = ("neural", "neural on the fitted term")
+ANN_CANDIDATES = ("neural", TERM_STARTED)
 # Standard deviations of the noise's spread that the margin spans.
 MARGIN_SIGMAS = 2.0
 

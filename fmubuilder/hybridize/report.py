@@ -136,8 +136,12 @@ def summary_line(report: dict) -> str:
         best = min((m["validation_relative_mse"] for m in report["models"]), default=float("nan"))
         return (f"{found} **Shipped: nothing**: no candidate beat the declared FMU on the validation data "
                 f"(best MSE ratio {best:.3g}).")
-    what = (f"the fitted term `{chosen['description']}`" if chosen["name"] == "fitted term"
-            else f"a neural network ({chosen['description']})")
+    if chosen["name"] == "fitted term":
+        what = f"the fitted term `{chosen['description']}`"
+    elif chosen.get("calibrated"):
+        what = f"the calibrated parameter {chosen['description']}"
+    else:
+        what = f"a neural network ({chosen['description']})"
     return (f"{found} **Shipped** `{Path(report['hybrid_fmu']).name}` with {what}. **Held-out gain** (MSE, mean "
             f"over the signals): {_gain(chosen['validation_relative_mse'])} on validation, "
             f"{_gain(chosen['test_relative_mse'])} on test.")

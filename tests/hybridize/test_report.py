@@ -206,3 +206,19 @@ def test_candidate_notes_say_how_each_kind_was_made():
     assert "coefficient kept" in unrefined and "->" not in unrefined
     assert calibrated.startswith("calibrated by Gauss-Newton on `a.csv` in 7 simulations")
     assert on_term.startswith("trained with 4 of 10 loss evaluations")
+
+
+def test_the_summary_names_what_each_kind_of_candidate_ships():
+    from fmubuilder.hybridize.report import summary_line
+    found = {"significant": True, "p_value": 1e-9, "channel": "der(v)", "inputs": ["v"]}
+
+    def shipped(model: dict) -> str:
+        chosen = {"chosen": True, "validation_relative_mse": 0.5, "test_relative_mse": 0.5, **model}
+        return summary_line({"diagnosis": found, "units": {}, "hybrid_fmu": "out.fmu", "models": [chosen]})
+
+    calibrated = shipped({"name": "calibrated b", "description": "b = 0.2 (declared 0.1)", "calibrated": {"b": 0.2}})
+    assert "with the calibrated parameter b = 0.2 (declared 0.1)." in calibrated and "neural" not in calibrated
+    assert "with the fitted term `der(v) += -0.1*v`." in shipped({"name": "fitted term",
+                                                                "description": "der(v) += -0.1*v"})
+    assert "with a neural network (ANN on der(v))." in shipped({"name": "neural", "description": "ANN on der(v)",
+                                                                  "loss_evaluations": 3})
