@@ -227,7 +227,8 @@ class FmuInstance:
 
     def get(self, names: Sequence[str]) -> list:
         """Values of variables by name, each in its own Python type."""
-        return [self._getter(self.info.variable(n))([self.info.variable(n).value_reference])[0] for n in names]
+        variables = [self.info.variable(n) for n in names]
+        return [getattr(self, f"get_{v.api_type.lower()}")([v.value_reference])[0] for v in variables]
 
     def set(self, values: dict[str, object]) -> None:
         """Set variables by name; strings from the command line are converted by type."""
@@ -235,9 +236,6 @@ class FmuInstance:
             var = self.info.variable(name)
             setter = getattr(self, f"set_{var.api_type.lower()}")
             setter([var.value_reference], [convert_value(var, value)])
-
-    def _getter(self, var: Variable):
-        return getattr(self, f"get_{var.api_type.lower()}")
 
     def real_getter(self, vrs: Sequence[int]):
         """A fast reader of a fixed set of Real variables: returns a function giving a new array."""
