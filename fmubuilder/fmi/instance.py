@@ -184,46 +184,40 @@ class FmuInstance:
         self.free()
 
     # -- variables -----------------------------------------------------------------------
+    def _get_values(self, function: str, c_type: str, vrs: Sequence[int]):
+        """The C array that fmi2Get<Type> `function` fills for the value references `vrs`."""
+        out = ffi.new(f"{c_type}[]", len(vrs))
+        self._call(function, self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(vrs), out)
+        return out
+
+    def _set_values(self, function: str, c_type: str, vrs: Sequence[int], values: list) -> None:
+        self._call(function, self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(values),
+                   ffi.new(f"{c_type}[]", values))
+
     def get_real(self, vrs: Sequence[int]) -> np.ndarray:
-        n = len(vrs)
-        out = ffi.new("double[]", n)
-        self._call("fmi2GetReal", self.component, ffi.new("fmi2ValueReference[]", list(vrs)), n, out)
-        return np.frombuffer(ffi.buffer(out), dtype=np.float64).copy()
+        return np.frombuffer(ffi.buffer(self._get_values("fmi2GetReal", "double", vrs)), dtype=np.float64).copy()
 
     def set_real(self, vrs: Sequence[int], values: Iterable[float]) -> None:
-        values = [float(v) for v in values]
-        self._call("fmi2SetReal", self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(values),
-                   ffi.new("double[]", values))
+        self._set_values("fmi2SetReal", "double", vrs, [float(v) for v in values])
 
     def get_integer(self, vrs: Sequence[int]) -> list[int]:
-        out = ffi.new("int[]", len(vrs))
-        self._call("fmi2GetInteger", self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(vrs), out)
-        return list(out)
+        return list(self._get_values("fmi2GetInteger", "int", vrs))
 
     def set_integer(self, vrs: Sequence[int], values: Iterable[int]) -> None:
-        values = [int(v) for v in values]
-        self._call("fmi2SetInteger", self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(values),
-                   ffi.new("int[]", values))
+        self._set_values("fmi2SetInteger", "int", vrs, [int(v) for v in values])
 
     def get_boolean(self, vrs: Sequence[int]) -> list[bool]:
-        out = ffi.new("int[]", len(vrs))
-        self._call("fmi2GetBoolean", self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(vrs), out)
-        return [bool(v) for v in out]
+        return [bool(v) for v in self._get_values("fmi2GetBoolean", "int", vrs)]
 
     def set_boolean(self, vrs: Sequence[int], values: Iterable[bool]) -> None:
-        values = [1 if v else 0 for v in values]
-        self._call("fmi2SetBoolean", self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(values),
-                   ffi.new("int[]", values))
+        self._set_values("fmi2SetBoolean", "int", vrs, [1 if v else 0 for v in values])
 
     def get_string(self, vrs: Sequence[int]) -> list[str]:
-        out = ffi.new("fmi2String[]", len(vrs))
-        self._call("fmi2GetString", self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(vrs), out)
-        return [ffi.string(s).decode() if s != ffi.NULL else "" for s in out]
+        return [ffi.string(s).decode() if s != ffi.NULL else "" for s in self._get_values("fmi2GetString", "fmi2String", vrs)]
 
     def set_string(self, vrs: Sequence[int], values: Iterable[str]) -> None:
-        keep = [ffi.new("char[]", str(v).encode()) for v in values]
-        self._call("fmi2SetString", self.component, ffi.new("fmi2ValueReference[]", list(vrs)), len(keep),
-                   ffi.new("fmi2String[]", keep))
+        keep = [ffi.new("char[]", str(v).encode()) for v in values]     # alive until the call returns
+        self._set_values("fmi2SetString", "fmi2String", vrs, keep)
 
     def get(self, names: Sequence[str]) -> list:
         """Values of variables by name, each in its own Python type."""

@@ -4,6 +4,7 @@ import pytest
 
 from fmubuilder.errors import FmuBuilderError
 from fmubuilder.fmi import Fmu, FmuCallError
+from tests.reference_fmus import reference_fmu
 
 
 def initialized(fmu, **start):
@@ -140,3 +141,20 @@ def test_a_call_in_the_wrong_state_raises_through_the_generic_path_too(fmu):
         inst.enter_continuous_time_mode()
     inst.setup_experiment(start_time=0.0)
     inst.free()
+
+
+def test_values_of_every_type_pass_through_the_feedthrough():
+    """Set and read by name, one variable of each FMI type: the Reference FMUs' Feedthrough copies
+    each input to its output."""
+    inputs = {"Float64_continuous_input": 2.5, "Int32_input": -7, "Boolean_input": True, "String_input": "a \"b\" c",
+              "Enumeration_input": 2}
+    with Fmu(reference_fmu("Feedthrough")) as fmu:
+        inst = fmu.instantiate()
+        inst.setup_experiment(start_time=0.0)
+        inst.enter_initialization_mode()
+        inst.exit_initialization_mode()
+        inst.set(inputs)
+        outputs = inst.get([name.replace("input", "output") for name in inputs])
+        assert inst.get(list(inputs)) == outputs == list(inputs.values())
+        assert [type(v) for v in outputs] == [np.float64, int, bool, str, int]
+        inst.free()
