@@ -30,6 +30,8 @@ OPSET = 17
 # Agreement required between onnxruntime and torch, relative to max(1, |output|): float64 round-off
 # of differently ordered sums stays orders of magnitude below this.
 CHECK_TOLERANCE = 1e-12
+# Random inputs (standard normal, seeded) on which onnxruntime and torch are compared.
+CHECK_SAMPLES = 256
 
 
 @dataclass(frozen=True)
@@ -42,36 +44,33 @@ class FrozenNetwork:
     max_abs_diff: float  # largest |onnxruntime - torch| over the check samples
 
 
-def freeze(module: torch.nn.Module, n_inputs: int, path: str | os.PathLike, *, check_samples: int = 256,
-           seed: int = 0) -> FrozenNetwork:
+def freeze(module: torch.nn.Module, n_inputs: int, path: str | os.PathLike) -> FrozenNetwork:
     """Export `module` (one sample of `n_inputs` values in, a vector out) to ONNX in float64.
 
-    The ONNX model is run with onnxruntime on `check_samples` random inputs (standard normal,
-    seeded by `seed`) and compared with the torch network before the file is written atomically.
-    `module` itself is left untouched (a float64 copy is exported).
+    The ONNX model is run with onnxruntime on CHECK_SAMPLES random inputs and compared with the
+    torch network before the file is written atomically. `module` itself is left untouched (a
+    float64 copy is exported).
     """
     import torch  # deferred: importing fmubuilder.export must not load torch
 
-    _check_arguments(module, n_inputs, check_samples)
+    _check_arguments(module, n_inputs)
     network = copy.deepcopy(module).to(torch.float64).eval()
     n_outputs = _probe_outputs(network, n_inputs)
     onnx_bytes = _export(network, n_inputs)
-    samples = np.random.default_rng(seed).standard_normal((check_samples, n_inputs))
+    samples = np.random.default_rng(0).standard_normal((CHECK_SAMPLES, n_inputs))
     max_abs_diff = _check_against_torch(network, onnx_bytes, samples)
     target = Path(path)
     write_atomically(target, onnx_bytes)
     return FrozenNetwork(target, n_inputs, n_outputs, max_abs_diff)
 
 
-def _check_arguments(module, n_inputs, check_samples):
+def _check_arguments(module, n_inputs):
     import torch
 
     if not isinstance(module, torch.nn.Module):
         raise FmuBuilderError(f"freeze() needs a torch.nn.Module, got {type(module).__name__}")
     if isinstance(n_inputs, bool) or not isinstance(n_inputs, int) or n_inputs < 1:
         raise FmuBuilderError(f"n_inputs must be a positive integer, got {n_inputs!r}")
-    if isinstance(check_samples, bool) or not isinstance(check_samples, int) or check_samples < 1:
-        raise FmuBuilderError(f"check_samples must be a positive integer, got {check_samples!r}")
 
 
 def _probe_outputs(network: torch.nn.Module, n_inputs: int) -> int:
