@@ -16,7 +16,6 @@ import numpy as np
 
 from ..data import MeasuredData, first_order_lag, load_data
 from ..errors import FmuBuilderError
-from ..fmi import read_model_info
 
 # Scoring.checked's step search (see there).
 FIRST_STEP_SHARE = 0.1

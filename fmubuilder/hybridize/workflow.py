@@ -28,7 +28,6 @@ idle and a busy machine.
 """
 from __future__ import annotations
 
-import math
 import shutil
 import tempfile
 import time
@@ -42,7 +41,7 @@ from ..errors import FmuBuilderError
 from ..files import copy_atomically, replace_folder, staging_folder
 from ..fmi import read_model_info
 from ..progress import counted
-from .evaluate import Evaluation, Scoring, evaluate, read_data, relative_mse, signal_errors
+from .evaluate import Scoring, evaluate, read_data, relative_mse, signal_errors
 
 # Share of each training run (its end) held out of the fit for validation, when no separate
 # validation run is given.
