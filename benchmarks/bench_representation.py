@@ -31,7 +31,8 @@ from fmubuilder.build import example_fmu
 from fmubuilder.data import first_order_lag, read_sidecar
 from fmubuilder.examples_zoo import cached_data, example_data_sets
 from fmubuilder.fmi import read_model_info
-from fmubuilder.hybridize.evaluate import read_data, sample_settled
+from fmubuilder.hybridize.evaluate import read_data
+from fmubuilder.simulation.results import sample_settled
 from fmubuilder.hybridize.workflow import VALIDATION_SHARE
 from fmubuilder.neural.model import NeuralFMU
 from fmubuilder.neural.system import simulate_hybrid

@@ -21,6 +21,7 @@ import numpy as np
 from ..errors import FmuBuilderError
 from ..fmi.instance import Fmu
 from ..simulation.engine import output_grid, run
+from ..simulation.results import sample_settled
 from ..simulation.solvers import make_solver
 from ..simulation.system import FmuSystem
 from ..data import first_order_lag
@@ -195,10 +196,10 @@ class ModelRunner:
         for name in recorded:
             values = np.asarray(result[name], dtype=float)
             values = values + self._aliased_terms(name, terms, result)
-            sampled[name] = _sample(result.time, values, self.data_time)
+            sampled[name] = sample_settled(result.time, values, self.data_time)
             if name in self.measured:
                 lagged = first_order_lag(result.time, values, self.sensor_lag) if self.sensor_lag > 0 else values
-                predicted[name] = _sample(result.time, lagged, self.data_time)
+                predicted[name] = sample_settled(result.time, lagged, self.data_time)
         wall = wallclock.perf_counter() - started
         self.runs += 1
         self.total_wall_time += wall
@@ -216,19 +217,6 @@ class ModelRunner:
                     w = np.asarray(result[term.variable], dtype=float)
                 total = total + term.coefficient * basis_values(term.basis, w - term.center)
         return total
-
-
-def _sample(time: np.ndarray, values: np.ndarray, at: np.ndarray) -> np.ndarray:
-    """Values at the times `at`; rows recorded around an event share a time, and a stamp there
-    takes the value after the event (the logger samples the settled value)."""
-    if len(time) == len(at) and np.array_equal(time, at):
-        return values.copy()
-    index = np.searchsorted(time, at, side="right") - 1
-    index = np.clip(index, 0, len(time) - 2)
-    t0, t1 = time[index], time[index + 1]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        f = np.where(t1 > t0, (at - t0) / (t1 - t0), 1.0)
-    return values[index] + np.clip(f, 0.0, 1.0) * (values[index + 1] - values[index])
 
 
 def rms(values: np.ndarray) -> float:

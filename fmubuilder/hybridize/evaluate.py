@@ -109,6 +109,7 @@ def read_data(path: Path, info) -> MeasuredData:
 
 def evaluate(fmu_path: Path, data: MeasuredData, start_values: dict, scoring: Scoring) -> Evaluation:
     """Simulate the FMU over the data's span and compare it, seen through the sensors, with the data."""
+    from ..simulation.results import sample_settled
     result = simulate_over(fmu_path, data, start_values, data.names, scoring)
     predicted = {}
     for name in data.names:
@@ -130,16 +131,6 @@ def simulate_over(fmu_path: Path, data: MeasuredData, start_values: dict, names,
         return simulate(fmu_path, start_time=data.start, stop_time=data.stop, start_values=start_values,
                         inputs=inputs, variables=list(names), solver=scoring.solver,
                         output_interval=output_interval or scoring.step, record_events=record_events, **steps)
-
-
-def sample_settled(time: np.ndarray, values: np.ndarray, at: np.ndarray) -> np.ndarray:
-    """Values at the times `at`, linear between records; where two records share a time (before and
-    after an event) a stamp there takes the value after it, as a logger sees the settled value."""
-    index = np.clip(np.searchsorted(time, at, side="right") - 1, 0, len(time) - 2)
-    t0, t1 = time[index], time[index + 1]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        fraction = np.where(t1 > t0, (at - t0) / (t1 - t0), 1.0)
-    return values[index] + np.clip(fraction, 0.0, 1.0) * (values[index + 1] - values[index])
 
 
 def signal_errors(measured: np.ndarray, model: np.ndarray) -> dict:

@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .evaluate import Scoring, sample_settled, simulate_over
+from .evaluate import Scoring, simulate_over
 
 # Share of held-out samples outside the training range (widened by RANGE_MARGIN of its width) above
 # which a variable is not offered to the ANN.
@@ -179,6 +179,7 @@ class MissingTermRun:
         return self._forced
 
     def _plain_run(self, channels: list[str]) -> dict:
+        from ..simulation.results import sample_settled
         if self._plain is None or any(c not in self._plain for c in channels):
             wanted = [c for c in self.measured_channels if not _reads_measured_only(self.info, c, self.data)]
             recorded = list(dict.fromkeys([*channels, *wanted]))

@@ -90,3 +90,16 @@ def _format_column(values: np.ndarray) -> list[str]:
     if np.issubdtype(values.dtype, np.integer):
         return [str(v) for v in values.tolist()]
     return [repr(v) for v in values.tolist()]   # shortest text that reads back exactly
+
+
+def sample_settled(time: np.ndarray, values: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Recorded `values` at the times `at`, linear between records; where two records share a time
+    (before and after an event) a stamp there takes the value after it, as a logger sees the
+    settled value."""
+    if len(time) == len(at) and np.array_equal(time, at):
+        return values.copy()
+    index = np.clip(np.searchsorted(time, at, side="right") - 1, 0, len(time) - 2)
+    t0, t1 = time[index], time[index + 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        fraction = np.where(t1 > t0, (at - t0) / (t1 - t0), 1.0)
+    return values[index] + np.clip(fraction, 0.0, 1.0) * (values[index + 1] - values[index])
