@@ -123,8 +123,8 @@ class EventSensitivity:
     with `state_events`) until shadows have been propagated through a state event. A held sample
     shows no memory at the ticks that resample it, only at a state event between two ticks (the
     VLDM's driver relay): dropped after the warm-up, its shadows never reached one, and the held
-    sample's gradient was cut to zero at each relay switch (training gradient off by 1-2 %
-    over 40 s, more over longer elements)."""
+    sample's gradient was cut to zero at each relay switch (the training gradient 0.4 % off over
+    10 s of driving, 1.4 % over 40 s; benchmarks/bench_gradient.py)."""
 
     def __init__(self, n_knowns: int, warmup: int = 4, recheck: int = 500, state_events: bool = True):
         self.n_knowns, self.warmup, self.recheck = n_knowns, warmup, recheck
@@ -498,6 +498,7 @@ class FmuEvaluator:
         base = np.empty(self.width)
         self.read(b, base)
         d0 = self._d_getters[b]()
+        modes = np.sign(inst.get_event_indicators()) if self.nz and self.q else None   # see _propagate_shadows
         knowns = n + self.P
         changed, x_plus = outcome.values_changed, outcome.x_plus
         R = _identity_reset(n, knowns) if changed else None
@@ -529,7 +530,7 @@ class FmuEvaluator:
         outcome.R, outcome.B = R, B
         if self.q:
             self._propagate_shadows(b, t, x_minus, u, outcome, base, d0, candidates, pool, sensitivity, shadows,
-                                    state_event)
+                                    state_event, modes)
 
     def _column(self, b, i, delta, measured, R, B, d0, candidates: _Candidates, pool) -> None:
         """Column i of R and B from the deviations `measured` after perturbing known i by delta;
@@ -569,10 +570,15 @@ class FmuEvaluator:
         return dd, row - base, dx
 
     def _propagate_shadows(self, b, t, x_minus, u, outcome, base, d0, candidates, pool, sensitivity, keep,
-                           state_event: bool = False):
+                           state_event: bool = False, modes: np.ndarray | None = None):
         """Redo the event on each shadow (nominal continuous state, perturbed discrete state from the
         previous event): gives A (and Rd) on the shadows' span; then G by regression over all
-        candidates, and at most q independent candidates become the new shadows."""
+        candidates, and at most q independent candidates become the new shadows.
+
+        A shadow whose event indicators (signs `modes` of the nominal ones) differ after the event
+        took another branch (the VLDM's start from standstill depends on the held driver error):
+        its difference is a jump, not a derivative, and it is left out (its path is dropped there,
+        as an event without shadows drops it)."""
         inst = self.instances[b]
         d_in, d_out, x_out = [], [], []
         for handle, deviation in self._shadows[b]:
@@ -580,10 +586,12 @@ class FmuEvaluator:
             self.set_point(b, t, x_minus, u)
             event_mode(inst, resume_on_terminate=True)
             dd, df, dx = self._measure(b, outcome.x_plus, base, d0, outcome.values_changed)
+            sensitivity.propagations += 1
+            if modes is not None and not np.array_equal(np.sign(inst.get_event_indicators()), modes):
+                continue
             d_in.append(deviation)
             d_out.append(dd)
             x_out.append(dx)
-            sensitivity.propagations += 1
             if _nonzero(dd, d0):
                 sensitivity.memory_seen = True
                 handle = self._snapshot(b, pool, len(candidates.handles)) if keep else None

@@ -47,7 +47,9 @@ Gradients across events:
    (layer.EventSensitivity); Trajectory.stats["event_sensitivity"] reports the count and time.
    A held sample (the VLDM's driver error) is memoryless at the ticks that resample it but has
    memory across a state event between two ticks (A = 1 there): shadows are therefore kept until
-   they have been propagated through a state event, and for good once they show memory.
+   they have been propagated through a state event, and for good once they show memory. A shadow
+   that takes another branch at the event (its indicators' signs differ from the nominal ones: the
+   VLDM's start from standstill depends on the held error) measures a jump, and is left out.
    Limits: an event of an element restarts its memoryless M (case a), which drops a held sample's
    path at a state event between ticks; an FMU that cannot save its state gets no discrete-state
    path (a warning says so). `benchmarks/bench_gradient.py` checks the whole gradient against
