@@ -119,10 +119,16 @@ class EventSensitivity:
     perturbation (distinct weights), and perturbed one by one only where the probe shows an
     effect, so a known that acts only at some events (a relay switching) is never missed.
     Shadows (discrete states with memory, see solve.py) are kept while any propagated shadow has
-    shown an effect, during the first `warmup` events and around every `recheck`-th."""
+    shown an effect, during the first `warmup` events, around every `recheck`-th, and (for an FMU
+    with `state_events`) until shadows have been propagated through a state event. A held sample
+    shows no memory at the ticks that resample it, only at a state event between two ticks (the
+    VLDM's driver relay): dropped after the warm-up, its shadows never reached one, and the held
+    sample's gradient was cut to zero at each relay switch (the training gradient 0.4 % off over
+    10 s of driving, 1.4 % over 40 s; benchmarks/bench_gradient.py)."""
 
-    def __init__(self, n_knowns: int, warmup: int = 4, recheck: int = 500):
+    def __init__(self, n_knowns: int, warmup: int = 4, recheck: int = 500, state_events: bool = True):
         self.n_knowns, self.warmup, self.recheck = n_knowns, warmup, recheck
+        self.state_event_checked = not state_events   # shadows went through a state event
         self.recent = np.zeros(n_knowns, dtype=bool)   # non-trivial at the previous event
         self.seen = np.zeros(n_knowns, dtype=bool)     # ever non-trivial
         self.uses = 0
@@ -138,7 +144,8 @@ class EventSensitivity:
         return self.uses
 
     def keep_shadows(self) -> bool:
-        return self.memory_seen or self.uses < self.warmup + 1 or self.uses % self.recheck >= self.recheck - 1
+        return (self.memory_seen or not self.state_event_checked or self.uses < self.warmup + 1
+                or self.uses % self.recheck >= self.recheck - 1)
 
     def start_run(self) -> None:
         self.perturbations = self.propagations = self._run_events = 0
@@ -461,10 +468,12 @@ class FmuEvaluator:
 
     # -- events ------------------------------------------------------------------------------
     def handle_event(self, b: int, t: float, x_minus: np.ndarray, u: np.ndarray | None = None,
-                     sensitivity: EventSensitivity | None = None, signs: np.ndarray | None = None) -> EventOutcome:
+                     sensitivity: EventSensitivity | None = None, signs: np.ndarray | None = None,
+                     state_event: bool = False) -> EventOutcome:
         """Run the event iteration of instance b at (t, x_minus); with `sensitivity`, also its
         linearisation (EventOutcome). `signs` (+1/-1 per known) orients the perturbations, so that
-        at a state event the perturbed pre-event state stays beyond the crossing."""
+        at a state event (or step event: `state_event`) the perturbed pre-event state stays beyond
+        the crossing."""
         inst = self.instances[b]
         self.set_point(b, t, x_minus, u)
         # No linearisation of an event at a diverged (non-finite) state: see evaluate.
@@ -478,16 +487,18 @@ class FmuEvaluator:
         if want and not info.terminate_simulation:
             started = time.perf_counter()
             self._post[b] = inst.get_fmu_state(self._post[b])
-            self._event_sensitivity(b, t, x_minus, u, outcome, sensitivity, signs)
+            self._event_sensitivity(b, t, x_minus, u, outcome, sensitivity, signs, state_event)
             inst.set_fmu_state(self._post[b])
             sensitivity.seconds += time.perf_counter() - started
         return outcome
 
-    def _event_sensitivity(self, b, t, x_minus, u, outcome: EventOutcome, sensitivity: EventSensitivity, signs):
+    def _event_sensitivity(self, b, t, x_minus, u, outcome: EventOutcome, sensitivity: EventSensitivity, signs,
+                           state_event: bool = False):
         inst, n = self.instances[b], self.n
         base = np.empty(self.width)
         self.read(b, base)
         d0 = self._d_getters[b]()
+        modes = np.sign(inst.get_event_indicators()) if self.nz and self.q else None   # see _propagate_shadows
         knowns = n + self.P
         changed, x_plus = outcome.values_changed, outcome.x_plus
         R = _identity_reset(n, knowns) if changed else None
@@ -518,7 +529,8 @@ class FmuEvaluator:
         sensitivity.observe(columns, nonzero, probes=int(unchecked.size > 0))
         outcome.R, outcome.B = R, B
         if self.q:
-            self._propagate_shadows(b, t, x_minus, u, outcome, base, d0, candidates, pool, sensitivity, shadows)
+            self._propagate_shadows(b, t, x_minus, u, outcome, base, d0, candidates, pool, sensitivity, shadows,
+                                    state_event, modes)
 
     def _column(self, b, i, delta, measured, R, B, d0, candidates: _Candidates, pool) -> None:
         """Column i of R and B from the deviations `measured` after perturbing known i by delta;
@@ -557,10 +569,16 @@ class FmuEvaluator:
         dd = self._d_getters[b]() - d0 if self.q else None
         return dd, row - base, dx
 
-    def _propagate_shadows(self, b, t, x_minus, u, outcome, base, d0, candidates, pool, sensitivity, keep):
+    def _propagate_shadows(self, b, t, x_minus, u, outcome, base, d0, candidates, pool, sensitivity, keep,
+                           state_event: bool = False, modes: np.ndarray | None = None):
         """Redo the event on each shadow (nominal continuous state, perturbed discrete state from the
         previous event): gives A (and Rd) on the shadows' span; then G by regression over all
-        candidates, and at most q independent candidates become the new shadows."""
+        candidates, and at most q independent candidates become the new shadows.
+
+        A shadow whose event indicators (signs `modes` of the nominal ones) differ after the event
+        took another branch (the VLDM's start from standstill depends on the held driver error):
+        its difference is a jump, not a derivative, and it is left out (its path is dropped there,
+        as an event without shadows drops it)."""
         inst = self.instances[b]
         d_in, d_out, x_out = [], [], []
         for handle, deviation in self._shadows[b]:
@@ -568,15 +586,18 @@ class FmuEvaluator:
             self.set_point(b, t, x_minus, u)
             event_mode(inst, resume_on_terminate=True)
             dd, df, dx = self._measure(b, outcome.x_plus, base, d0, outcome.values_changed)
+            sensitivity.propagations += 1
+            if modes is not None and not np.array_equal(np.sign(inst.get_event_indicators()), modes):
+                continue
             d_in.append(deviation)
             d_out.append(dd)
             x_out.append(dx)
-            sensitivity.propagations += 1
             if _nonzero(dd, d0):
                 sensitivity.memory_seen = True
                 handle = self._snapshot(b, pool, len(candidates.handles)) if keep else None
                 candidates.add(dd, df, dx, handle)
         if d_in:
+            sensitivity.state_event_checked |= state_event
             inverse = _pinv(np.array(d_in).T)
             outcome.A = np.array(d_out).T @ inverse
             if outcome.values_changed:

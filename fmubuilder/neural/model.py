@@ -38,7 +38,9 @@ class NeuralFMU(nn.Module):
         self._holders: dict[int, weakref.ref] = {}   # id(instance) -> the element start it stands at
         self.replays = {"runs": 0, "simulated_seconds": 0.0}   # element starts replayed (solve.Replay)
         n_knowns = self.info.n_states + len(config.parameters)
-        self.event_sensitivity = EventSensitivity(n_knowns)
+        caps = self.info.capabilities
+        self.event_sensitivity = EventSensitivity(n_knowns, state_events=self.info.n_event_indicators > 0 or
+                                                  not caps.completed_integrator_step_not_needed)
 
     @property
     def config(self) -> TopologyConfig:

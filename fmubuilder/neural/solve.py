@@ -45,8 +45,15 @@ Gradients across events:
    without effect (no discrete, output or reset change) at the previous event are probed together
    by one combined perturbation, and perturbed one by one only where it shows an effect
    (layer.EventSensitivity); Trajectory.stats["event_sensitivity"] reports the count and time.
-   Limits: an event of an element restarts its memoryless M (case a); an FMU that cannot save its
-   state gets no discrete-state path (a warning says so).
+   A held sample (the VLDM's driver error) is memoryless at the ticks that resample it but has
+   memory across a state event between two ticks (A = 1 there): shadows are therefore kept until
+   they have been propagated through a state event, and for good once they show memory. A shadow
+   that takes another branch at the event (its indicators' signs differ from the nominal ones: the
+   VLDM's start from standstill depends on the held error) measures a jump, and is left out.
+   Limits: an event of an element restarts its memoryless M (case a), which drops a held sample's
+   path at a state event between ticks; an FMU that cannot save its state gets no discrete-state
+   path (a warning says so). `benchmarks/bench_gradient.py` checks the whole gradient against
+   central differences.
 4. Initial state. For a fresh initialization with x0 or FMU parameters requiring grad, the same is
    done for the initialization: one re-initialization per perturbed start value (needs fmi2Reset);
    its perturbed states seed the shadows.
@@ -499,7 +506,7 @@ class _Run:
                 rows = sorted(b for b, (kind, what) in requests.items() if kind is EVENT and what != "time")
                 state = bool(rows)
                 rows = rows or sorted(b for b, (kind, _) in requests.items() if kind is EVENT)
-                x, dd, c = self._events(rows, x, dd, c, self.signs if state else None)
+                x, dd, c = self._events(rows, x, dd, c, self.signs if state else None, state)
                 for b in rows:
                     self._resume(walks, requests, b, None)
                 continue
@@ -618,10 +625,11 @@ class _Run:
     stepped_on = None
 
     # -- events ------------------------------------------------------------------------------
-    def _event_mode(self, b, t, x_minus: np.ndarray, grad: bool, signs=None):
+    def _event_mode(self, b, t, x_minus: np.ndarray, grad: bool, signs=None, state_event: bool = False):
         """Event mode of element b at (t, x_minus) (with its linearisation if `grad`): its next time
         event, whether it terminates, and its indicators after the event as the next reference."""
-        outcome = self.ev.handle_event(b, t, x_minus, self._u(b, t), self.sens if grad else None, signs)
+        outcome = self.ev.handle_event(b, t, x_minus, self._u(b, t), self.sens if grad else None, signs,
+                                       state_event)
         element = self.elements[b]
         element.next_event = outcome.next_event_time
         element.terminated |= outcome.terminate
@@ -629,13 +637,14 @@ class _Run:
             element.z = self.instances[b].get_event_indicators()
         return outcome
 
-    def _events(self, rows, x, dd, c, signs=None):
+    def _events(self, rows, x, dd, c, signs=None, state_event: bool = False):
         """Event mode of the elements `rows` at their current points, batched; `signs` orients the
         perturbations of an element at a state event (see FmuEvaluator.handle_event)."""
         x_np = x.detach().numpy()
         grad = self.event_grad and self.ev.can_snapshot and x.requires_grad
         signs = signs or {}
-        outcomes = {b: self._event_mode(b, self.elements[b].t, x_np[b], grad, signs.get(b)) for b in rows}
+        outcomes = {b: self._event_mode(b, self.elements[b].t, x_np[b], grad, signs.get(b), state_event)
+                    for b in rows}
         if not grad:
             changed = [b for b, o in outcomes.items() if o.values_changed]
             if changed:  # a constant jump; x + 0 keeps the exact post-event values
