@@ -108,7 +108,7 @@ def derive_model_description(original_xml: bytes, spec: HybridSpec, info) -> Hyb
 
 def channel_layouts(spec: HybridSpec) -> list[ChannelLayout]:
     """The channels of the hybrid of `spec` as its export lays them out (the gates' names among them)."""
-    from fmubuilder.fmi import read_model_info
+    from ..fmi import read_model_info
     with zipfile.ZipFile(spec.original_fmu) as archive:
         original_xml = archive.read("modelDescription.xml")
     return derive_model_description(original_xml, spec, read_model_info(spec.original_fmu)).channels

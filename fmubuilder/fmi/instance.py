@@ -213,7 +213,8 @@ class FmuInstance:
         self._set_values("fmi2SetBoolean", "int", vrs, [1 if v else 0 for v in values])
 
     def get_string(self, vrs: Sequence[int]) -> list[str]:
-        return [ffi.string(s).decode() if s != ffi.NULL else "" for s in self._get_values("fmi2GetString", "fmi2String", vrs)]
+        strings = self._get_values("fmi2GetString", "fmi2String", vrs)
+        return [ffi.string(s).decode() if s != ffi.NULL else "" for s in strings]
 
     def set_string(self, vrs: Sequence[int], values: Iterable[str]) -> None:
         keep = [ffi.new("char[]", str(v).encode()) for v in values]     # alive until the call returns
