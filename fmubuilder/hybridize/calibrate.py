@@ -13,7 +13,8 @@ simulations, not seconds:
                  coefficient times gravity) are one candidate: only the first of them is fitted
     fit       -> the best MAX_CALIBRATED parameters (see RUNNER_UP_SHARE) less such twins, each on the training
                  role (all training runs) by Gauss-Newton with step halving, in at most
-                 FIT_SIMULATIONS simulations each, within [start / RANGE, start * RANGE]
+                 FIT_SIMULATIONS simulations each (one simulation: all training runs once, as
+                 `evaluate.Objective` counts), within [start / RANGE, start * RANGE]
 
 Every run is scored as the workflow scores candidates (`evaluate`: the engine with the scoring
 solver and step, the data's sensor lag), and the objective is the workflow's score: the mean over
@@ -27,9 +28,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..data import MeasuredData
 from ..errors import FmuBuilderError
-from .evaluate import Scoring, evaluate
+from .evaluate import Objective, Runs, Scoring
 
 # Relative perturbation of a parameter for its finite-difference sensitivity: of the size of the
 # errors sought. A model with events (a driver's relays, a sampled controller) answers a 1 % change
@@ -40,7 +40,7 @@ PERTURBATION = 0.1
 MIN_PERTURBATION = 0.01
 # Samples of the first training run the screening simulates (the diagnosis traces as many).
 SCREEN_SAMPLES = 1000
-# Parameters fitted after the screening, and simulations per fit.
+# Parameters fitted after the screening, and simulations (of all training runs) per fit.
 MAX_CALIBRATED = 2
 FIT_SIMULATIONS = 8
 # A screened parameter is fitted when it explains at least MIN_EXPLAINED of the residual and at
@@ -59,9 +59,6 @@ RANGE = 10.0
 SCREEN_REPORTED = 5
 # The fit stops when a step changes the value by less than this (relative).
 STEP_TOLERANCE = 1e-4
-
-Runs = list[tuple[MeasuredData, dict]]      # training samples and the start values of their run
-
 
 @dataclass
 class Sensitivity:
@@ -121,47 +118,15 @@ def calibratable_parameters(info, fixed_by_data: set[str]) -> list:
     return chosen
 
 
-class _Objective:
-    """The score of a parameter value on some runs, and the scaled error vector behind it:
-    score(value) = ||e(value)||^2 with e = (model - measured) / sqrt(n_signals * N_s * MSE_plain_s)."""
-
-    def __init__(self, model_fmu, runs: Runs, scoring: Scoring, name: str | None):
-        self.model_fmu, self.runs, self.scoring, self.name = model_fmu, runs, scoring, name
-        self.simulations = 0
-        self.scale = None
-
-    def errors(self, value: float | None) -> np.ndarray | None:
-        """The unscaled errors of all signals on all runs, or None where the simulation fails."""
-        pieces = {}
-        for data, start_values in self.runs:
-            starts = dict(start_values) if value is None else {**start_values, self.name: value}
-            self.simulations += 1
-            try:
-                run = evaluate(self.model_fmu, data, starts, self.scoring)
-            except FmuBuilderError:
-                return None
-            for signal in data.names:
-                pieces.setdefault(signal, []).append(run.predicted[signal] - data.signals[signal])
-        errors = np.concatenate([np.concatenate(pieces[s]) for s in sorted(pieces)])
-        return errors if np.all(np.isfinite(errors)) else None
-
-    def set_scale(self, plain_errors: np.ndarray) -> None:
-        """Per-sample weights from the plain model's errors, as `relative_mse` weighs signals."""
-        sizes = {}
-        for data, _ in self.runs:
-            for signal in data.names:
-                sizes[signal] = sizes.get(signal, 0) + data.signals[signal].size
-        scale, offset, used = [], 0, 0
-        for signal in sorted(sizes):
-            piece = plain_errors[offset:offset + sizes[signal]]
-            mse = float(np.mean(piece ** 2))
-            scale.append(np.full(sizes[signal], 1.0 / math.sqrt(sizes[signal] * mse) if mse > 0 else 0.0))
-            used += mse > 0
-            offset += sizes[signal]
-        self.scale = np.concatenate(scale) / math.sqrt(max(used, 1))
-
-    def scaled(self, errors: np.ndarray) -> np.ndarray:
-        return errors * self.scale
+def relative_units(objective: Objective, plain_errors: np.ndarray) -> np.ndarray:
+    """Per sample, the unit that makes the squared norm of the errors in it the workflow's score
+    (`relative_mse`, the mean over the signals of MSE / MSE plain): sqrt(n_signals * N_s * MSE_plain_s)
+    for a signal s of N_s samples over all runs. A signal the plain model matches exactly weighs nothing."""
+    names = objective.per_signal(lambda data, name: name)
+    mse = {s: float(np.mean(plain_errors[names == s] ** 2)) for s in set(names.tolist())}
+    used = max(sum(value > 0 for value in mse.values()), 1)
+    return objective.per_signal(lambda data, name: math.sqrt(used * np.count_nonzero(names == name) * mse[name])
+                                if mse[name] > 0 else math.inf)
 
 
 def screen_parameters(model_fmu, info, runs: Runs, scoring: Scoring) -> list[Sensitivity]:
@@ -171,13 +136,13 @@ def screen_parameters(model_fmu, info, runs: Runs, scoring: Scoring) -> list[Sen
     data, start_values = runs[0]
     screen = data.window(data.start, float(data.time[min(SCREEN_SAMPLES, data.time.size) - 1]))
     screen_runs = [(screen, start_values)]
-    plain = _Objective(model_fmu, screen_runs, scoring, None)
-    errors = plain.errors(None)
+    objective = Objective(model_fmu, screen_runs, scoring)
+    errors = objective.errors({})
     if errors is None:
         raise FmuBuilderError(f"{model_fmu}: the plain model does not simulate over the training data; "
                               "check the data's start values")
-    plain.set_scale(errors)
-    residual = plain.scaled(errors)
+    objective.units = relative_units(objective, errors)
+    residual = errors / objective.units
     total = float(residual @ residual)
     if total == 0.0:
         return []          # the plain model fits the data exactly: nothing to explain
@@ -185,11 +150,10 @@ def screen_parameters(model_fmu, info, runs: Runs, scoring: Scoring) -> list[Sen
     for var in calibratable_parameters(info, set(start_values)):
         declared = float(var.start)
         delta = PERTURBATION * declared
-        objective = _Objective(model_fmu, screen_runs, scoring, var.name)
-        perturbed = objective.errors(declared + delta)
+        perturbed = objective.errors({var.name: declared + delta})
         if perturbed is None:
             continue
-        gradient = plain.scaled(perturbed - errors) / delta
+        gradient = (perturbed - residual) / delta
         gg = float(gradient @ gradient)
         if gg == 0.0:
             continue
@@ -214,21 +178,21 @@ def fit_parameter(model_fmu, runs: Runs, scoring: Scoring, name: str, declared: 
     """Gauss-Newton on the score over `runs`, one sensitivity simulation per step, a step that
     does not lower the score halved, in at most FIT_SIMULATIONS simulations; None when the plain
     model does not simulate."""
-    objective = _Objective(model_fmu, runs, scoring, name)
-    errors = objective.errors(declared)
+    objective = Objective(model_fmu, runs, scoring)
+    errors = objective.errors({name: declared})
     if errors is None:
         return None
-    objective.set_scale(errors)
+    objective.units = relative_units(objective, errors)
     low, high = sorted((declared / RANGE, declared * RANGE))
-    value, residual = declared, objective.scaled(errors)
+    value, residual = declared, errors / objective.units
     score = float(residual @ residual)
     relative_delta = PERTURBATION
     while objective.simulations + 2 <= FIT_SIMULATIONS:
         delta = relative_delta * value
-        perturbed = objective.errors(value + delta)
+        perturbed = objective.errors({name: value + delta})
         if perturbed is None:
             break
-        gradient = (objective.scaled(perturbed) - residual) / delta
+        gradient = (perturbed - residual) / delta
         gg = float(gradient @ gradient)
         if gg == 0.0:
             break
@@ -236,13 +200,12 @@ def fit_parameter(model_fmu, runs: Runs, scoring: Scoring, name: str, declared: 
         accepted = False
         while objective.simulations < FIT_SIMULATIONS and abs(step) > STEP_TOLERANCE * abs(value):
             trial_value = min(max(value + step, low), high)
-            trial = objective.errors(trial_value)
+            trial = objective.errors({name: trial_value})
             if trial is not None:
-                trial_residual = objective.scaled(trial)
-                trial_score = float(trial_residual @ trial_residual)
+                trial_score = float(trial @ trial)
                 if trial_score < score:
                     relative_delta = min(PERTURBATION, max(MIN_PERTURBATION, abs(trial_value - value) / abs(value)))
-                    value, residual, score, accepted = trial_value, trial_residual, trial_score, True
+                    value, residual, score, accepted = trial_value, trial, trial_score, True
                     break
             step /= 2.0
         if not accepted or abs(step) <= STEP_TOLERANCE * abs(value):

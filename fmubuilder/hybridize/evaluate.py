@@ -133,6 +133,45 @@ def simulate_over(fmu_path: Path, data: MeasuredData, start_values: dict, names,
                         output_interval=output_interval or scoring.step, record_events=record_events, **steps)
 
 
+Runs = list[tuple[MeasuredData, dict]]      # data and the start values of their run
+
+
+class Objective:
+    """The errors of an FMU on some runs, given start values on top of each run's, and the
+    simulations spent on them. The errors are stacked run by run, each run's signals in the data's
+    order, every sample divided by `units` (of that layout; None: 1). One simulation is one pass
+    over all the runs; a pass that fails (a run does not simulate, or its errors are not finite)
+    costs one as well: it was work done. `bar`, when set, advances once a pass."""
+
+    def __init__(self, fmu_path, runs: Runs, scoring: Scoring):
+        self.fmu_path, self.runs, self.scoring = fmu_path, runs, scoring
+        self.units: np.ndarray | None = None
+        self.simulations = 0
+        self.bar = None
+
+    def errors(self, start_values: dict) -> np.ndarray | None:
+        """(model - measured) / units of every signal on every run; None where a run fails."""
+        self.simulations += 1
+        try:
+            pieces = []
+            for data, run_start_values in self.runs:
+                try:
+                    run = evaluate(self.fmu_path, data, {**run_start_values, **start_values}, self.scoring)
+                except FmuBuilderError:
+                    return None
+                pieces += [run.predicted[name] - data.signals[name] for name in data.names]
+            errors = np.concatenate(pieces) if self.units is None else np.concatenate(pieces) / self.units
+            return errors if np.all(np.isfinite(errors)) else None
+        finally:
+            if self.bar is not None:
+                self.bar.advance()
+
+    def per_signal(self, value_of) -> np.ndarray:
+        """A vector of the errors' layout that holds value_of(data, name) for every sample of that signal."""
+        return np.concatenate([np.full(data.signals[name].size, value_of(data, name))
+                               for data, _ in self.runs for name in data.names])
+
+
 def signal_errors(measured: np.ndarray, model: np.ndarray) -> dict:
     error = np.asarray(model, dtype=float) - np.asarray(measured, dtype=float)
     if error.size == 0:

@@ -28,9 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..data import MeasuredData
-from ..errors import FmuBuilderError
 from ..progress import progress
-from .evaluate import Scoring, evaluate
+from .evaluate import Objective, Runs, Scoring
 
 # Simulations of the training data (each of its runs once) in all: the unrefined term's, then per
 # iteration one per scale and one or more trials.
@@ -45,9 +44,6 @@ DAMPING_FACTOR = 10.0
 # Converged when a step changes every scale by less than this (relative): the next would change it
 # far less (the finite difference then spans the last step, so the steps shrink faster than linearly).
 STEP_TOLERANCE = 1e-3
-
-Runs = list[tuple[MeasuredData, dict]]      # training samples and the start values of their run
-
 
 @dataclass
 class Refinement:
@@ -74,15 +70,16 @@ def refine_scales(hybrid_fmu, gates: list[str], runs: Runs, noise: dict[str, flo
     """Levenberg-Marquardt on the scales of a hybrid FMU's gates (start 1: the term as exported).
     noise: the noise level of each measured signal (per sample); output_step: the grid on which the
     sensor lag is applied (the scoring's step)."""
-    objective = _Objective(hybrid_fmu, gates, runs, noise, Scoring.accurate(output_step, ACCURATE_RTOL))
+    objective = Objective(hybrid_fmu, runs, Scoring.accurate(output_step, ACCURATE_RTOL))
+    objective.units = objective.per_signal(lambda data, name: _noise_level(noise, name, data))
     start = np.ones(len(gates))
     with progress(budget, "refining the fitted term through the simulation", "simulation", show=show) as bar:
         objective.bar = bar
-        residual = objective.residuals(start)
+        residual = _residuals(objective, gates, start)
         if residual is None:       # the term as exported does not simulate: nothing to refine from
             bar.stop("the hybrid does not simulate over the training data")
             return Refinement(gates, start.tolist(), math.inf, math.inf, objective.simulations, False)
-        scales, after, ended = _levenberg_marquardt(objective, start, residual, budget)
+        scales, after, ended = _levenberg_marquardt(objective, gates, start, residual, budget)
         bar.stop(ended)
     before = _cost(residual)
     kept = after < before
@@ -90,13 +87,13 @@ def refine_scales(hybrid_fmu, gates: list[str], runs: Runs, noise: dict[str, flo
                       objective.simulations, kept)
 
 
-def _levenberg_marquardt(objective: "_Objective", scales: np.ndarray, residual: np.ndarray, budget: int):
+def _levenberg_marquardt(objective: Objective, gates: list[str], scales: np.ndarray, residual: np.ndarray, budget: int):
     """(scales, their objective, why it ended before the budget)."""
     cost = _cost(residual)
     damping, relative_delta = DAMPING, PERTURBATION
     n = scales.size
     while objective.simulations + n + 1 <= budget:
-        jacobian = _jacobian(objective, scales, residual, relative_delta)
+        jacobian = _jacobian(objective, gates, scales, residual, relative_delta)
         if jacobian is None:
             return scales, cost, "a perturbed run failed"
         gradient, curvature = jacobian.T @ residual, jacobian.T @ jacobian
@@ -105,7 +102,7 @@ def _levenberg_marquardt(objective: "_Objective", scales: np.ndarray, residual: 
         accepted = False
         while objective.simulations < budget:
             step = np.linalg.solve(curvature + damping * np.diag(np.diag(curvature)) + 1e-300 * np.eye(n), -gradient)
-            trial = objective.residuals(scales + step)
+            trial = _residuals(objective, gates, scales + step)
             if trial is not None and _cost(trial) < cost:
                 scales, residual, cost, accepted = scales + step, trial, _cost(trial), True
                 damping /= DAMPING_FACTOR
@@ -120,54 +117,27 @@ def _levenberg_marquardt(objective: "_Objective", scales: np.ndarray, residual: 
     return scales, cost, "the budget is spent"
 
 
-def _jacobian(objective: "_Objective", scales: np.ndarray, residual: np.ndarray, relative_delta: float):
+def _jacobian(objective: Objective, gates: list[str], scales: np.ndarray, residual: np.ndarray, relative_delta: float):
     """Forward differences, one simulation per scale; None when a perturbed run fails."""
     columns = []
     for k in range(scales.size):
         delta = relative_delta * max(abs(scales[k]), 1e-3)
         perturbed = scales.copy()
         perturbed[k] += delta
-        moved = objective.residuals(perturbed)
+        moved = _residuals(objective, gates, perturbed)
         if moved is None:
             return None
         columns.append((moved - residual) / delta)
     return np.column_stack(columns)
 
 
+def _residuals(objective: Objective, gates: list[str], scales: np.ndarray) -> np.ndarray | None:
+    """The residuals in noise units with the gates at `scales`: one simulation of the training data."""
+    return objective.errors(dict(zip(gates, map(float, scales))))
+
+
 def _cost(residual: np.ndarray) -> float:
     return float(residual @ residual) / residual.size
-
-
-class _Objective:
-    """The stacked residuals in noise units of the hybrid with given gate values, over all runs."""
-
-    def __init__(self, hybrid_fmu, gates: list[str], runs: Runs, noise: dict[str, float], scoring: Scoring):
-        self.hybrid_fmu, self.gates, self.runs, self.scoring = hybrid_fmu, gates, runs, scoring
-        self.noise = noise
-        self.simulations = 0
-        self.bar = None
-
-    def residuals(self, scales: np.ndarray) -> np.ndarray | None:
-        """One simulation of the training data (of each of its runs); None where it fails."""
-        self.simulations += 1
-        try:
-            return self._residuals(scales)
-        finally:
-            if self.bar is not None:
-                self.bar.advance()
-
-    def _residuals(self, scales: np.ndarray) -> np.ndarray | None:
-        gates = dict(zip(self.gates, map(float, scales)))
-        pieces = []
-        for data, start_values in self.runs:
-            try:
-                run = evaluate(self.hybrid_fmu, data, {**start_values, **gates}, self.scoring)
-            except FmuBuilderError:
-                return None
-            for name in data.names:
-                pieces.append((run.predicted[name] - data.signals[name]) / _noise_level(self.noise, name, data))
-        residual = np.concatenate(pieces)
-        return residual if np.all(np.isfinite(residual)) else None
 
 
 def _noise_level(noise: dict[str, float], name: str, data: MeasuredData) -> float:

@@ -18,8 +18,8 @@ from fmubuilder.errors import FmuBuilderError
 from fmubuilder.export.calibrated import export_calibrated
 from fmubuilder.fmi import read_model_info
 from fmubuilder.hybridize import hybridize
-from fmubuilder.hybridize.calibrate import calibrate, calibratable_parameters, fit_parameter
-from fmubuilder.hybridize.evaluate import Scoring, read_data
+from fmubuilder.hybridize.calibrate import FIT_SIMULATIONS, calibrate, calibratable_parameters, fit_parameter
+from fmubuilder.hybridize.evaluate import Objective, Scoring, evaluate, read_data, relative_mse
 from fmubuilder.simulation import simulate
 
 TRUE_FRICTION, DECLARED_FRICTION = 0.2, 0.05
@@ -67,6 +67,38 @@ def test_the_friction_is_ranked_first_and_fitted_to_its_true_value(plant_files):
     assert best.value == pytest.approx(TRUE_FRICTION, rel=0.01)
     assert best.train_score < 0.01          # mean MSE / MSE of the declared model
     assert best.simulations <= 8
+
+
+def test_three_copies_of_a_run_fit_as_the_run_alone(plant_files):
+    """The same run thrice has the same score (each signal's MSE over all runs), so the fit takes
+    the same steps in the same number of simulations: one simulation is one pass over all runs."""
+    fmu = example_fmu("sampled_plant")
+    info, scoring, runs = runs_of(fmu, plant_files[0])
+    alone = fit_parameter(fmu, runs, scoring, "b", DECLARED_FRICTION)
+    thrice = fit_parameter(fmu, runs * 3, scoring, "b", DECLARED_FRICTION)
+    assert thrice.simulations == alone.simulations <= FIT_SIMULATIONS
+    assert thrice.value == pytest.approx(alone.value, rel=1e-9)
+    assert thrice.train_score == pytest.approx(alone.train_score, rel=1e-9)
+    # the score minimised is the workflow's, here from two separate simulations
+    data, start_values = runs[0]
+    plain = evaluate(fmu, data, start_values, scoring).errors
+    fitted = evaluate(fmu, data, {**start_values, "b": alone.value}, scoring).errors
+    assert alone.train_score == pytest.approx(relative_mse(plain, fitted), rel=1e-9)
+
+
+def test_a_failed_pass_over_the_runs_costs_one_simulation(plant_files):
+    fmu = example_fmu("sampled_plant")
+    info, scoring, runs = runs_of(fmu, plant_files[0], window=(0.0, 1.0))
+    data, start_values = runs[0]
+    broken = (data, {**start_values, "no_such_parameter": 1.0})      # it never simulates
+    for order in ([*runs, *runs, broken], [broken, *runs]):
+        objective = Objective(fmu, order, scoring)
+        assert objective.errors({}) is None and objective.simulations == 1
+    objective = Objective(fmu, runs * 3, scoring)
+    errors = objective.errors({"b": 0.1})
+    assert objective.simulations == 1
+    alone = evaluate(fmu, data, {**start_values, "b": 0.1}, scoring).predicted["w"] - data.signals["w"]
+    np.testing.assert_array_equal(errors, np.tile(alone, 3))
 
 
 def test_the_dc_drive_winding_resistance_is_recovered(tmp_path):
