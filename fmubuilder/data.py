@@ -159,11 +159,6 @@ def load_data(path: str | os.PathLike, info, *, min_samples: int = 2) -> Measure
                         start_values=dict(sidecar.get("start_values") or {}), path=path)
 
 
-def start_values_of(path: str | os.PathLike) -> dict:
-    """The start values recorded in a data file's sidecar ({} without one)."""
-    return dict((read_sidecar(path) or {}).get("start_values") or {})
-
-
 def sensor_lag_of(sidecar: dict, path: str | os.PathLike = "data") -> float:
     """The sensor lag a sidecar declares: `sensor_lag`, else the bench's `lag`, else 0."""
     value = sidecar.get("sensor_lag", (sidecar.get("bench") or {}).get("lag", 0.0))

@@ -17,6 +17,14 @@ from .errors import FmuBuilderError
 PARTIAL_SUFFIX = ".partial"
 
 
+def refuse_existing(path: str | os.PathLike, force: bool) -> Path:
+    """`path` as a Path; an error if it exists and `force` does not allow overwriting it."""
+    path = Path(path)
+    if path.exists() and not force:
+        raise FmuBuilderError(f"{path} exists; choose another output path or pass --force to overwrite it")
+    return path
+
+
 def write_atomically(target: str | os.PathLike, data: bytes | str) -> Path:
     """Write `data` (text as UTF-8) to `target` atomically."""
     payload = data.encode("utf-8") if isinstance(data, str) else data

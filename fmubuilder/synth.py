@@ -74,7 +74,7 @@ import numpy as np
 from .data import (UNCERTAINTY_SUFFIX, first_order_lag, read_sidecar, sidecar_path,  # noqa: F401
                    split_uncertainty_columns)
 from .errors import FmuBuilderError, suggestion
-from .files import file_sha256, write_atomically
+from .files import file_sha256, refuse_existing, write_atomically
 
 DEFAULT_SIGNALS = ("speed", "power", "energy")
 
@@ -385,8 +385,7 @@ def check_data_path(path: str | os.PathLike, force: bool = False) -> Path:
     for target in (path, sidecar_path(path)):
         if target.is_dir():
             raise FmuBuilderError(f"{target} is a directory; give a file name for the data, e.g. -o data.csv")
-        if target.exists() and not force:
-            raise FmuBuilderError(f"{target} exists; choose another output path or pass --force to overwrite it")
+        refuse_existing(target, force)
     if not path.parent.is_dir():
         raise FmuBuilderError(f"folder {path.parent} does not exist; create it or choose another output path")
     return path

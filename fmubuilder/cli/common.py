@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import argparse
 import math
-from pathlib import Path
 
 from ..errors import FmuBuilderError
 
@@ -37,13 +36,6 @@ def parse_names(text: str | None, option: str = "--variables") -> list[str] | No
     if not names:
         raise FmuBuilderError(f"empty {option} list: give comma-separated names, e.g. {option} h,v")
     return names
-
-
-def check_output_path(path: str | Path, force: bool) -> Path:
-    path = Path(path)
-    if path.exists() and not force:
-        raise FmuBuilderError(f"{path} exists; choose another output path or pass --force to overwrite it")
-    return path
 
 
 def positive(value: float, option: str) -> float:

@@ -5,8 +5,8 @@ import json
 import math
 
 from ..errors import FmuBuilderError
-from ..files import write_atomically
-from .common import check_output_path, parse_assignments
+from ..files import refuse_existing, write_atomically
+from .common import parse_assignments
 
 
 def add_diagnose_parser(subparsers, common=None) -> None:
@@ -35,7 +35,7 @@ def cmd_diagnose(args) -> None:
 
     if args.time_budget is not None and not (math.isfinite(args.time_budget) and args.time_budget > 0):
         raise FmuBuilderError(f"--time-budget {args.time_budget:g}: give a positive number of seconds")
-    json_path = check_output_path(args.json, args.force) if args.json else None
+    json_path = refuse_existing(args.json, args.force) if args.json else None
     result = diagnose(args.fmu, args.data, start_values=parse_assignments(args.start), plots_dir=args.plots,
                       time_budget=args.time_budget)
     print(result.report())

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import sys
 
-from .common import check_output_path, parse_assignments, parse_names
+from ..files import refuse_existing
+from .common import parse_assignments, parse_names
 
 
 def add_model_parsers(subparsers, common) -> None:
@@ -35,7 +36,7 @@ def cmd_inspect(args) -> None:
 
 def cmd_simulate(args) -> None:
     from ..simulation import simulate
-    output = check_output_path(args.output, args.force) if args.output else None
+    output = refuse_existing(args.output, args.force) if args.output else None
     result = simulate(
         args.fmu, start_time=args.start_time, stop_time=args.stop_time,
         start_values=parse_assignments(args.start), input_csv=args.input,

@@ -105,19 +105,14 @@ class MissingTerm:
 
 # -- step 1: the missing term along the measured trajectory ---------------------------------------
 
-def estimate_missing_terms(model_fmu, info, data, start_values: dict, channels: list[str], candidates: list[str],
-                           step: float, solver: str = "euler") -> MissingTerm | None:
-    """The FMU forced to the measured states over the whole run `data`; None when no channel's
-    state is measured. The sensors' lag (the data's `sensor_lag`) is undone on the forced states
-    and applied to the FMU's variables, so that both sides are compared as the sensors saw them."""
-    return MissingTermRun(model_fmu, info, data, start_values, candidates, step, solver).estimate(channels)
-
-
 class MissingTermRun:
-    """estimate_missing_terms of one run for any channels asked for, its simulations done once: the
-    forced run records the candidates and every measured channel, the plain run (needed by a channel
-    that reads an unmeasured state) every such channel. A second set of channels (the loop's
-    measured derivatives) then costs no simulation."""
+    """The missing terms of one run `data` for any channels asked for (`estimate`), from the FMU
+    forced to the measured states over the whole run. The sensors' lag (the data's `sensor_lag`) is
+    undone on the forced states and applied to the FMU's variables, so that both sides are compared
+    as the sensors saw them. The simulations are done once: the forced run records the candidates
+    and every measured channel, the plain run (needed by a channel that reads an unmeasured state)
+    every such channel. A second set of channels (the loop's measured derivatives) then costs no
+    simulation."""
 
     def __init__(self, model_fmu, info, data, start_values: dict, candidates: list[str], step: float,
                  solver: str = "euler"):
@@ -129,6 +124,7 @@ class MissingTermRun:
         self._plain = None        # {channel: plain run seen through the lag, on the forced grid}
 
     def estimate(self, channels: list[str]) -> MissingTerm | None:
+        """The missing term of each of `channels`; None when no channel's state is measured."""
         from scipy.integrate import cumulative_trapezoid
 
         from ..diagnose.trace import variable_kind

@@ -87,7 +87,8 @@ def refine_scales(hybrid_fmu, gates: list[str], runs: Runs, noise: dict[str, flo
                       objective.simulations, kept)
 
 
-def _levenberg_marquardt(objective: Objective, gates: list[str], scales: np.ndarray, residual: np.ndarray, budget: int):
+def _levenberg_marquardt(objective: Objective, gates: list[str], scales: np.ndarray, residual: np.ndarray,
+                         budget: int):
     """(scales, their objective, why it ended before the budget)."""
     cost = _cost(residual)
     damping, relative_delta = DAMPING, PERTURBATION
@@ -117,7 +118,8 @@ def _levenberg_marquardt(objective: Objective, gates: list[str], scales: np.ndar
     return scales, cost, "the budget is spent"
 
 
-def _jacobian(objective: Objective, gates: list[str], scales: np.ndarray, residual: np.ndarray, relative_delta: float):
+def _jacobian(objective: Objective, gates: list[str], scales: np.ndarray, residual: np.ndarray,
+              relative_delta: float):
     """Forward differences, one simulation per scale; None when a perturbed run fails."""
     columns = []
     for k in range(scales.size):

@@ -38,7 +38,7 @@ import numpy as np
 
 from ..data import MeasuredData
 from ..errors import FmuBuilderError
-from ..files import copy_atomically, replace_folder, staging_folder
+from ..files import copy_atomically, refuse_existing, replace_folder, staging_folder
 from ..fmi import read_model_info
 from ..progress import counted
 from .evaluate import Scoring, evaluate, read_data, relative_mse, signal_errors
@@ -569,15 +569,14 @@ def _roundtrip(chosen: Candidate, test: Part) -> dict:
 
 
 def _publish(source: Path, target: Path, force: bool) -> None:
-    _check_outputs(target, None, force)     # again: the file may have appeared while the command ran
+    refuse_existing(target, force)     # again: the file may have appeared while the command ran
     target.parent.mkdir(parents=True, exist_ok=True)
     copy_atomically(source, target)
 
 
-def _check_outputs(output_fmu: Path, report_dir: Path | None, force: bool) -> None:
-    if output_fmu.exists() and not force:
-        raise FmuBuilderError(f"{output_fmu} exists; choose another output path or pass --force to overwrite it")
-    if report_dir is not None and report_dir.exists() and any(report_dir.iterdir()) and not force:
+def _check_outputs(output_fmu: Path, report_dir: Path, force: bool) -> None:
+    refuse_existing(output_fmu, force)
+    if report_dir.exists() and any(report_dir.iterdir()) and not force:
         raise FmuBuilderError(f"report folder {report_dir} is not empty; choose another with --report or pass --force")
 
 

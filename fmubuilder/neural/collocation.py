@@ -51,7 +51,7 @@ def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solve
 
 
 def integral_samples(model: NeuralFMU, data: MeasuredData, step: float, solver: str, window: float, inputs,
-                     sensor_lag: float = 0.0, span: float = 0.5, edges: str | None = None):
+                     sensor_lag: float = 0.0, span: float = 0.5):
     """The weak-form counterpart of collocation_samples: over windows [a, b] of `span` seconds,
     x(b) - x(a) = integral of (FMU derivative + missing term) dt, with no window left out (the state
     is continuous where its derivative jumps, at a friction's sign change or a load step).
@@ -59,7 +59,7 @@ def integral_samples(model: NeuralFMU, data: MeasuredData, step: float, solver: 
     [N, C], WindowMeans of the windows, measured mean derivative (x(b) - x(a)) / (b - a) [W, C],
     mask [W, C]) or None when no channel's state is measured. The window edges are the sample times
     one sensor lag earlier (a lagging sensor shows the state then); x there is the sample itself
-    (edges="raw") or the local line's value through +-window/2 of it (edges="fit"). Consecutive
+    (EDGE_VALUES "raw") or the local line's value through +-window/2 of it ("fit"). Consecutive
     windows overlap: one starts at every sample. The states are forced to the samples interpolated,
     not to local lines: a line through a load step smears the current over the line's span, and
     the integral of the FMU's derivative over a window near the step with it (on the DC drive's
@@ -75,7 +75,7 @@ def integral_samples(model: NeuralFMU, data: MeasuredData, step: float, solver: 
     mask = np.zeros(measured.shape, dtype=bool)
     for j, state in enumerate(channel_states):
         if state in data.signals:
-            values, valid = edge_values(data.time, data.signals[state], window, edges or EDGE_VALUES)
+            values, valid = edge_values(data.time, data.signals[state], window, EDGE_VALUES)
             measured[:, j] = (values[hi] - values[lo]) / (data.time[hi] - data.time[lo])
             mask[:, j] = valid[lo] & valid[hi]
     return ann_inputs, fmu_channels, means, measured, mask

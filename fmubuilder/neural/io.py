@@ -9,7 +9,7 @@ from pathlib import Path
 import torch
 
 from ..errors import FmuBuilderError
-from ..files import file_sha256, write_atomically
+from ..files import file_sha256, refuse_existing, write_atomically
 from ..fmi import read_model_info
 from .model import NeuralFMU
 from .topology import TopologyConfig
@@ -19,9 +19,7 @@ FORMAT = "fmubuilder-neuralfmu/1"
 
 def save_neural_fmu(model: NeuralFMU, path: str | Path, *, metadata: dict | None = None, force: bool = True) -> Path:
     """Write `model` to `path` (atomically); `metadata` (JSON-able) is stored alongside."""
-    path = Path(path)
-    if path.exists() and not force:
-        raise FmuBuilderError(f"{path} exists; choose another output path or pass --force to overwrite it")
+    path = refuse_existing(path, force)
     payload = {
         "format": FORMAT,
         "config": model.config.to_dict(),

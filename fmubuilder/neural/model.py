@@ -50,9 +50,9 @@ class NeuralFMU(nn.Module):
     def guid(self) -> str:
         return self.info.guid
 
-    def instances(self, count: int) -> list[FmuInstance]:
-        """`count` instances that no element start holds (see hold)."""
-        idle = [inst for inst in self._instances if not self._held(inst)]
+    def instances(self, count: int, taken: frozenset = frozenset()) -> list[FmuInstance]:
+        """`count` instances that no element start holds (see hold), none of those in `taken` (ids)."""
+        idle = [inst for inst in self._instances if id(inst) not in taken and not self._held(inst)]
         while len(idle) < count:
             idle.append(self.fmu.instantiate())
             self._instances.append(idle[-1])
@@ -68,12 +68,8 @@ class NeuralFMU(nn.Module):
                 start.instance = None
                 del self._holders[id(inst)]
             chosen.append(inst)
-        taken = {id(inst) for inst in chosen if inst is not None}
-        idle = [inst for inst in self._instances if id(inst) not in taken and not self._held(inst)]
-        while len(idle) < sum(inst is None for inst in chosen):
-            idle.append(self.fmu.instantiate())
-            self._instances.append(idle[-1])
-        spare = iter(idle)
+        taken = frozenset(id(inst) for inst in chosen if inst is not None)
+        spare = iter(self.instances(sum(inst is None for inst in chosen), taken))
         return [inst if inst is not None else next(spare) for inst in chosen]
 
     def hold(self, instance: FmuInstance, start) -> None:

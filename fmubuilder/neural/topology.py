@@ -101,7 +101,7 @@ class TopologyConfig:
 class Topology(nn.Module):
     """The trainable part of a NeuralFMU (see the module docstring)."""
 
-    def __init__(self, config: TopologyConfig, info: ModelInfo, parameter_values: list[float] | None = None):
+    def __init__(self, config: TopologyConfig, info: ModelInfo, parameter_values: list[float]):
         super().__init__()
         config.validate(info)
         self.config = config
@@ -145,9 +145,7 @@ class Topology(nn.Module):
                 last = self.ann[-1]
                 nn.init.zeros_(last.weight)
                 nn.init.zeros_(last.bias)
-        values = parameter_values if parameter_values is not None else [
-            float(info.variable(p).start or 0.0) for p in config.parameters]
-        self.fmu_parameters = nn.Parameter(torch.tensor(values, dtype=DTYPE).reshape(len(config.parameters)),
+        self.fmu_parameters = nn.Parameter(torch.tensor(parameter_values, dtype=DTYPE).reshape(len(config.parameters)),
                                            requires_grad=bool(config.parameters))
 
     @contextmanager

@@ -77,7 +77,7 @@ import torch
 
 from ..errors import FmuBuilderError
 from ..data import MeasuredData, first_order_lag, load_data
-from ..files import write_atomically
+from ..files import refuse_existing, write_atomically
 from ..progress import Bar
 from .io import save_neural_fmu
 from .model import NeuralFMU
@@ -243,9 +243,7 @@ def _check_outputs(output, metrics_path, force: bool) -> None:
     for path in (output, metrics_path):
         if path is None:
             continue
-        path = Path(path)
-        if path.exists() and not force:
-            raise FmuBuilderError(f"{path} exists; choose another output path or pass --force to overwrite it")
+        path = refuse_existing(path, force)
         if not path.parent.is_dir():
             raise FmuBuilderError(f"cannot write {path}: directory {path.parent} does not exist; create it first")
 
@@ -441,8 +439,7 @@ class Trainer:
         return start
 
     def _reference_names(self) -> list[str]:
-        names = list(dict.fromkeys(self.model.config.inputs + self.model.config.channels + list(self.data.signals)))
-        return names
+        return list(dict.fromkeys(self.model.config.inputs + self.model.config.channels + list(self.data.signals)))
 
     def _scaling_samples(self) -> tuple[np.ndarray, np.ndarray]:
         ref, config = self.reference, self.model.config
@@ -951,31 +948,29 @@ def _variance(values: np.ndarray) -> float:
 # ------------------------------------------------------------------------------------------
 # pre-training
 
-def neutral_pretraining(model: NeuralFMU, inputs: np.ndarray, channels: np.ndarray, iterations: int = 400,
-                        batch: int = 512, learning_rate: float = 3e-3) -> float:
+# The pre-trainings' Adam fit of the ANN alone: samples per step, step size.
+PRETRAINING_BATCH = 512
+PRETRAINING_LEARNING_RATE = 3e-3
+
+
+def neutral_pretraining(model: NeuralFMU, inputs: np.ndarray, channels: np.ndarray, iterations: int) -> float:
     """NIPT: fit the ANN part so that it leaves the hybrid unchanged on the reference's inputs.
     Returns the final relative mean squared error."""
     topology = model.topology
     x = torch.from_numpy(np.ascontiguousarray(inputs))
     target = topology.neutral_target(torch.from_numpy(np.ascontiguousarray(channels)))
-    return _fit_ann(topology, x, target, iterations, batch, learning_rate)
+    return _fit_ann(topology, x, target, iterations)
 
 
-def _fit_ann(topology, x: torch.Tensor, target: torch.Tensor, iterations: int, batch: int, learning_rate: float,
-             weights: torch.Tensor | None = None) -> float:
+def _fit_ann(topology, x: torch.Tensor, target: torch.Tensor, iterations: int) -> float:
     """Least-squares fit of topology.correction(x) to target, relative to the target's spread."""
     scale = target.var(dim=0, unbiased=False).clamp_min(1e-12) if len(target) > 1 else torch.ones(target.shape[1])
-    params = [p for p in topology.ann.parameters()]
-    optimizer = torch.optim.Adam(params, lr=learning_rate)
+    optimizer = torch.optim.Adam(topology.ann.parameters(), lr=PRETRAINING_LEARNING_RATE)
     generator = torch.Generator().manual_seed(0)
     n = x.shape[0]
-    loss = torch.tensor(0.0)
     for _ in range(iterations):
-        index = torch.randint(0, n, (min(batch, n),), generator=generator)
-        error = (topology.correction(x[index]) - target[index]) ** 2 / scale
-        if weights is not None:
-            error = error * weights[index, None]
-        loss = error.mean()
+        index = torch.randint(0, n, (min(PRETRAINING_BATCH, n),), generator=generator)
+        loss = ((topology.correction(x[index]) - target[index]) ** 2 / scale).mean()
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -992,4 +987,4 @@ def collocation_pretraining(trainer: Trainer) -> float:
     if samples is None:
         return math.nan
     x, target = samples
-    return _fit_ann(trainer.model.topology, x, target, trainer.settings.ccpt_iterations, 512, 3e-3)
+    return _fit_ann(trainer.model.topology, x, target, trainer.settings.ccpt_iterations)

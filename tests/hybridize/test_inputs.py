@@ -27,7 +27,7 @@ from fmubuilder.examples_zoo import cached_data, dc_drive_data_sets
 from fmubuilder.fmi import read_model_info
 from fmubuilder.hybridize import inputs
 from fmubuilder.hybridize.inputs import (MissingTermRun, choose_inputs, contiguous_folds, cross_validated_squared_errors,
-                                         distinct_variables, estimate_missing_terms, forward_selection, outside_share,
+                                         distinct_variables, forward_selection, outside_share,
                                          paired_t, time_blocks)
 
 SPLIT = 48.0        # the workflow's split of the 60 s training run: 80 % to fit, the rest held out
@@ -46,8 +46,8 @@ def terms():
         data = load_data(path, info)
         channel = {"stribeck": "der(speed)", "speed_current_loss": "der(energy)"}[data_set.variant.key]
         step = info.default_experiment.step_size
-        found[data_set.variant.key] = (channel, estimate_missing_terms(fmu, info, data, data.start_values, [channel],
-                                                                       candidate_variables(info), step))
+        run = MissingTermRun(fmu, info, data, data.start_values, candidate_variables(info), step)
+        found[data_set.variant.key] = (channel, run.estimate([channel]))
     return found
 
 
@@ -104,7 +104,7 @@ def test_a_second_set_of_channels_reuses_the_runs_and_equals_a_fresh_estimate(mo
     channels = ["der(speed)", "der(energy)", "der(current)"]
     shared = run.estimate(channels)
     assert len(simulations) == 2
-    fresh = estimate_missing_terms(fmu, info, data, data.start_values, channels, candidate_variables(info), step)
+    fresh = MissingTermRun(fmu, info, data, data.start_values, candidate_variables(info), step).estimate(channels)
     assert len(simulations) == 4
     assert list(shared.missing) == list(fresh.missing) == channels
     for c in channels:

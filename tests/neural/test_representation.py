@@ -23,7 +23,7 @@ def default_topology(info, speeds: np.ndarray) -> Topology:
     """The ANN hybridize builds (default size and activation, residual), its input scaled as the
     trainer scales it, its output to the effect's size."""
     torch.manual_seed(0)
-    topology = Topology(TopologyConfig(channels=["der(speed)"], inputs=["speed"], kind="residual"), info)
+    topology = Topology(TopologyConfig(channels=["der(speed)"], inputs=["speed"], kind="residual"), info, [])
     topology.initialise_scaling(speeds[:, None], 47.0 * np.sin(speeds / 30.0)[:, None])
     with torch.no_grad():
         topology.post_scale.fill_(AMPLITUDE)
