@@ -258,6 +258,7 @@ class FmuEvaluator:
         B = len(self.instances)
         self._pre = [None] * B   # FMU-state snapshots, reused in place
         self._post = [None] * B
+        self._here = [None] * B  # the nominal state while the shadows are read between events
         self._shadows: list[list] = [[] for _ in range(B)]     # (snapshot, discrete deviation) per element
         self._pools: list[list[list]] = [[[], []] for _ in range(B)]  # two alternating snapshot pools
         self._turn = [0] * B
@@ -281,11 +282,11 @@ class FmuEvaluator:
     def free(self) -> None:
         """Release the snapshots (the instances belong to the caller)."""
         for b, inst in enumerate(self.instances):
-            handles = [self._pre[b], self._post[b]] + self._pools[b][0] + self._pools[b][1]
+            handles = [self._pre[b], self._post[b], self._here[b]] + self._pools[b][0] + self._pools[b][1]
             for handle in handles:
                 if handle is not None:
                     inst.free_fmu_state(handle)
-            self._pre[b] = self._post[b] = None
+            self._pre[b] = self._post[b] = self._here[b] = None
             self._pools[b] = [[], []]
             self._shadows[b] = []
 
@@ -465,6 +466,23 @@ class FmuEvaluator:
         dz_dt = (inst.get_event_indicators()[j] - z0) / ((t + dt) - t)
         inst.set_time(t)
         return grad, dz_dt
+
+    def indicator_discrete_gradient(self, b: int, t: float, x: np.ndarray, j: int, u: np.ndarray | None = None):
+        """dz_j/dd [q] at (t, x) on the span of element b's shadows (each shadow's indicator against
+        the nominal one: the shadows differ in their discrete states only), or None without
+        shadows; leaves the instance as it was."""
+        shadows = self._shadows[b]
+        if not shadows:
+            return None
+        inst = self.instances[b]
+        z0 = self.indicators(b, t, x, u)[j]
+        self._here[b] = inst.get_fmu_state(self._here[b])
+        dz = np.empty(len(shadows))
+        for m, (handle, _) in enumerate(shadows):
+            inst.set_fmu_state(handle)
+            dz[m] = self.indicators(b, t, x, u)[j] - z0
+        inst.set_fmu_state(self._here[b])
+        return dz @ _pinv(np.array([deviation for _, deviation in shadows]).T)
 
     # -- events ------------------------------------------------------------------------------
     def handle_event(self, b: int, t: float, x_minus: np.ndarray, u: np.ndarray | None = None,

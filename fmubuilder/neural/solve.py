@@ -83,8 +83,9 @@ from .system import NumpyTopology
 
 SOLVERS = ("euler", "rk4")
 # The batched step whose ends the elements' sequences are sent: the elements' rows in it, the states
-# before (every element's), its first stages, the states after (tensor and numpy), the corrections.
-_Stepping = namedtuple("_Stepping", "position x dx1 x_new x_np c")
+# before (every element's), its first stages, the states after (tensor and numpy), the corrections,
+# the discrete-state carriers (every element's, or None).
+_Stepping = namedtuple("_Stepping", "position x dx1 x_new x_np c dd")
 
 
 @dataclass
@@ -510,7 +511,7 @@ class _Run:
                 for b in rows:
                     self._resume(walks, requests, b, None)
                 continue
-            x, recorded = self._step(walks, requests, x, c, every=record and first_stage is None)
+            x, recorded = self._step(walks, requests, x, c, dd, every=record and first_stage is None)
             if first_stage is None:
                 first_stage = recorded
         return x, dd, c, first_stage
@@ -522,7 +523,7 @@ class _Run:
         except StopIteration:
             requests.pop(b, None)
 
-    def _step(self, walks, requests, x, c, every: bool):
+    def _step(self, walks, requests, x, c, dd, every: bool):
         """One batched step of the elements asking to step (with `every`, of all: the others by zero),
         each sequence sent where its step ended; returns (x, the record of the first stage or None)."""
         asking = sorted(requests)
@@ -537,7 +538,7 @@ class _Run:
         if self.forcing is not None:
             x_new = self._forced(end, x_new)
         self.counts["steps"] += 1
-        self.stepping = _Stepping(position, x, dx1, x_new, x_new.detach().numpy(), c)
+        self.stepping = _Stepping(position, x, dx1, x_new, x_new.detach().numpy(), c, dd)
         self.cuts, self.signs = {}, {}
         for b in asking:
             self.t_grad.pop(b, None)
@@ -755,6 +756,13 @@ class _Run:
         if zdot == 0.0 or not math.isfinite(zdot):
             return x_star, t_star, None
         z_dev = (torch.from_numpy(gz) * (x_star - x_star.detach())).sum()
+        dd = self.stepping.dd
+        if dd is not None and self.ev.q:
+            # the indicator may depend on the held discrete states too (the VLDM's start margin on
+            # the held driver error): the event time moves with them
+            gzd = self.ev.indicator_discrete_gradient(b, t_star, x_np, j, self._u(b, t_star))
+            if gzd is not None:
+                z_dev = z_dev + (torch.from_numpy(gzd) * dd[b]).sum()
         shift = -z_dev / zdot  # zero in value: the dense output is taken at exactly the located theta
         t_e = t_star + shift
         x_minus = dense(theta + shift / h)
