@@ -17,7 +17,10 @@ Gradients across events:
    is evaluated with grad: its value is t* exactly and its gradient is the implicit-function
    (saltation) sensitivity -z_x dx/dtheta / zdot. The pre-event state is the dense output at t_e,
    the step after the event has length t_next - t_e, so autograd carries dt_e/dtheta into both.
-   The indicator gradient z_x (and dz/dt) come from finite differences, at state events only.
+   The indicator gradient z_x (and dz/dt) come from finite differences, at state events only. An
+   indicator may also depend on discrete states held since the last event (the VLDM's start margin
+   on the held driver error): with shadows (3b) its gradient z_d on their span is read from their
+   indicators at (t*, x(t*)), and z_d dd (dd the element's carrier) joins z_x dx in the shift.
 2. Reset map. If the FMU reports valuesOfContinuousStatesChanged, x+ = x+_value + R (x- - x-.detach())
    with R = dx+/dx- by finite differences through the event iteration; otherwise x+ is x- itself.
 3. Discrete states. Sampled controllers and relays keep discrete states d inside the FMU that are
@@ -48,8 +51,12 @@ Gradients across events:
    A held sample (the VLDM's driver error) is memoryless at the ticks that resample it but has
    memory across a state event between two ticks (A = 1 there): shadows are therefore kept until
    they have been propagated through a state event, and for good once they show memory. A shadow
-   that takes another branch at the event (its indicators' signs differ from the nominal ones: the
-   VLDM's start from standstill depends on the held error) measures a jump, and is left out.
+   that takes another branch at a state event (its indicators' signs differ from the nominal ones:
+   the VLDM's start from standstill depends on the held error, so the shadow has not crossed yet
+   at the nominal event time, item 1) would measure a jump: it is measured on the nominal branch,
+   the shadow and the nominal event redone with x- pushed further across (the perturbations'
+   orientation), their difference taken; left out only if no push up to 2^10 steps brings it
+   across without moving the nominal off its branch.
    Limits: an event of an element restarts its memoryless M (case a), which drops a held sample's
    path at a state event between ticks; an FMU that cannot save its state gets no discrete-state
    path (a warning says so). `benchmarks/bench_gradient.py` checks the whole gradient against
