@@ -635,9 +635,9 @@ class FmuEvaluator:
         """A shadow's deviations on the nominal branch of the event: the shadow and the nominal
         event redone at x- + s push (push: the perturbations oriented beyond the crossing), s
         doubled until the shadow crosses too; their difference is the shadow's effect at first
-        order (the push acts on both alike). The leave-instance state is the shadow's; None when
-        no s up to 2^MAX_PUSH_DOUBLINGS brings it across or the push moves the nominal off its
-        branch."""
+        order (the push acts on both alike). Leaves the instance in the shadow's post-event state
+        (continuous states nominal), the next shadow's snapshot. None when no s up to
+        2^MAX_PUSH_DOUBLINGS brings it across or the push moves the nominal off its branch."""
         inst = self.instances[b]
         scale = 1.0
         for _ in range(MAX_PUSH_DOUBLINGS):
