@@ -59,8 +59,11 @@ Gradients across events:
    across without moving the nominal off its branch.
    Limits: an event of an element restarts its memoryless M (case a), which drops a held sample's
    path at a state event between ticks; an FMU that cannot save its state gets no discrete-state
-   path (a warning says so). `benchmarks/bench_gradient.py` checks the whole gradient against
-   central differences.
+   path (a warning says so); G (and M) are measured at the event's x+ and held until the next
+   event, so where d(der)/dd varies with x in between (the VLDM's power from loss maps piecewise
+   linear in the torque) the inner solver stages get it slightly wrong: over 107.5-109.5 s the
+   slope of a loss on the recorded power is exact, on the energy (its integral) 1e-3 off.
+   `benchmarks/bench_gradient.py` checks the whole gradient against central differences.
 4. Initial state. For a fresh initialization with x0 or FMU parameters requiring grad, the same is
    done for the initialization: one re-initialization per perturbed start value (needs fmi2Reset);
    its perturbed states seed the shadows.
