@@ -38,6 +38,8 @@ from ..simulation.events import event_mode
 
 # Relative step of the one-sided finite differences (about sqrt of the float64 resolution).
 FD_RELATIVE_STEP = 1e-7
+# How far a shadow that has not crossed at a state event is pushed across: up to 2^10 steps.
+MAX_PUSH_DOUBLINGS = 10
 
 
 def fd_steps(x: np.ndarray, nominal: np.ndarray) -> np.ndarray:
@@ -258,6 +260,7 @@ class FmuEvaluator:
         B = len(self.instances)
         self._pre = [None] * B   # FMU-state snapshots, reused in place
         self._post = [None] * B
+        self._here = [None] * B  # the nominal state while the shadows are read between events
         self._shadows: list[list] = [[] for _ in range(B)]     # (snapshot, discrete deviation) per element
         self._pools: list[list[list]] = [[[], []] for _ in range(B)]  # two alternating snapshot pools
         self._turn = [0] * B
@@ -281,11 +284,11 @@ class FmuEvaluator:
     def free(self) -> None:
         """Release the snapshots (the instances belong to the caller)."""
         for b, inst in enumerate(self.instances):
-            handles = [self._pre[b], self._post[b]] + self._pools[b][0] + self._pools[b][1]
+            handles = [self._pre[b], self._post[b], self._here[b]] + self._pools[b][0] + self._pools[b][1]
             for handle in handles:
                 if handle is not None:
                     inst.free_fmu_state(handle)
-            self._pre[b] = self._post[b] = None
+            self._pre[b] = self._post[b] = self._here[b] = None
             self._pools[b] = [[], []]
             self._shadows[b] = []
 
@@ -466,6 +469,23 @@ class FmuEvaluator:
         inst.set_time(t)
         return grad, dz_dt
 
+    def indicator_discrete_gradient(self, b: int, t: float, x: np.ndarray, j: int, u: np.ndarray | None = None):
+        """dz_j/dd [q] at (t, x) on the span of element b's shadows (each shadow's indicator against
+        the nominal one: the shadows differ in their discrete states only), or None without
+        shadows; leaves the instance as it was."""
+        shadows = self._shadows[b]
+        if not shadows:
+            return None
+        inst = self.instances[b]
+        z0 = self.indicators(b, t, x, u)[j]
+        self._here[b] = inst.get_fmu_state(self._here[b])
+        dz = np.empty(len(shadows))
+        for m, (handle, _) in enumerate(shadows):
+            inst.set_fmu_state(handle)
+            dz[m] = self.indicators(b, t, x, u)[j] - z0
+        inst.set_fmu_state(self._here[b])
+        return dz @ _pinv(np.array([deviation for _, deviation in shadows]).T)
+
     # -- events ------------------------------------------------------------------------------
     def handle_event(self, b: int, t: float, x_minus: np.ndarray, u: np.ndarray | None = None,
                      sensitivity: EventSensitivity | None = None, signs: np.ndarray | None = None,
@@ -530,7 +550,7 @@ class FmuEvaluator:
         outcome.R, outcome.B = R, B
         if self.q:
             self._propagate_shadows(b, t, x_minus, u, outcome, base, d0, candidates, pool, sensitivity, shadows,
-                                    state_event, modes)
+                                    state_event, modes, amounts[:n])
 
     def _column(self, b, i, delta, measured, R, B, d0, candidates: _Candidates, pool) -> None:
         """Column i of R and B from the deviations `measured` after perturbing known i by delta;
@@ -570,15 +590,17 @@ class FmuEvaluator:
         return dd, row - base, dx
 
     def _propagate_shadows(self, b, t, x_minus, u, outcome, base, d0, candidates, pool, sensitivity, keep,
-                           state_event: bool = False, modes: np.ndarray | None = None):
+                           state_event: bool = False, modes: np.ndarray | None = None, push=None):
         """Redo the event on each shadow (nominal continuous state, perturbed discrete state from the
         previous event): gives A (and Rd) on the shadows' span; then G by regression over all
         candidates, and at most q independent candidates become the new shadows.
 
         A shadow whose event indicators (signs `modes` of the nominal ones) differ after the event
-        took another branch (the VLDM's start from standstill depends on the held driver error):
-        its difference is a jump, not a derivative, and it is left out (its path is dropped there,
-        as an event without shadows drops it)."""
+        took another branch: at a state event whose indicator depends on the discrete state (the
+        VLDM's start from standstill on the held driver error) the shadow has not crossed yet at
+        the nominal event time. Its difference there is a jump, not a derivative; it is measured
+        on the nominal branch instead (see _beyond), and left out only where that fails (its path
+        is dropped there, as an event without shadows drops it)."""
         inst = self.instances[b]
         d_in, d_out, x_out = [], [], []
         for handle, deviation in self._shadows[b]:
@@ -588,7 +610,11 @@ class FmuEvaluator:
             dd, df, dx = self._measure(b, outcome.x_plus, base, d0, outcome.values_changed)
             sensitivity.propagations += 1
             if modes is not None and not np.array_equal(np.sign(inst.get_event_indicators()), modes):
-                continue
+                measured = None if push is None else self._beyond(b, handle, t, x_minus, u, outcome, base, d0,
+                                                                  modes, push, sensitivity)
+                if measured is None:
+                    continue
+                dd, df, dx = measured
             d_in.append(deviation)
             d_out.append(dd)
             x_out.append(dx)
@@ -604,6 +630,34 @@ class FmuEvaluator:
                 outcome.Rd = np.array(x_out).T @ inverse
         outcome.G = _regression(candidates, self.width, self.q)
         self._shadows[b] = _independent(candidates, self.q) if keep else []
+
+    def _beyond(self, b, handle, t, x_minus, u, outcome, base, d0, modes, push, sensitivity):
+        """A shadow's deviations on the nominal branch of the event: the shadow and the nominal
+        event redone at x- + s push (push: the perturbations oriented beyond the crossing), s
+        doubled until the shadow crosses too; their difference is the shadow's effect at first
+        order (the push acts on both alike). Leaves the instance in the shadow's post-event state
+        (continuous states nominal), the next shadow's snapshot. None when no s up to
+        2^MAX_PUSH_DOUBLINGS brings it across or the push moves the nominal off its branch."""
+        inst = self.instances[b]
+        scale = 1.0
+        for _ in range(MAX_PUSH_DOUBLINGS):
+            scale *= 2.0
+            x_pushed = x_minus + scale * push
+            inst.set_fmu_state(self._pre[b])
+            inst.set_continuous_states(x_pushed)
+            event_mode(inst, resume_on_terminate=True)
+            sensitivity.propagations += 1
+            if not np.array_equal(np.sign(inst.get_event_indicators()), modes):
+                return None
+            nominal = self._measure(b, outcome.x_plus, base, d0, outcome.values_changed)
+            inst.set_fmu_state(handle)
+            self.set_point(b, t, x_pushed, u)
+            event_mode(inst, resume_on_terminate=True)
+            sensitivity.propagations += 1
+            if np.array_equal(np.sign(inst.get_event_indicators()), modes):
+                shadow = self._measure(b, outcome.x_plus, base, d0, outcome.values_changed)
+                return tuple(None if s is None else s - n for s, n in zip(shadow, nominal))
+        return None
 
     def init_sensitivity(self, b: int, x_init: np.ndarray, restarts) -> EventOutcome:
         """Linearisation of the initialization with respect to (x0, p): `restarts[i]()` re-initializes
