@@ -71,12 +71,17 @@ class Fmu:
         except Exception:
             self.archive.close()
             raise
+        self.live_instances = 0
 
     @property
     def path(self) -> Path:
         return self.archive.path
 
     def instantiate(self, name: str | None = None, *, logging: bool = False) -> "FmuInstance":
+        if self.live_instances and self.info.capabilities.can_be_instantiated_only_once_per_process:
+            # each Fmu is its own extracted copy of the library, so another load is another "process"
+            raise FmuBuilderError(f"{self.info.model_name} declares canBeInstantiatedOnlyOncePerProcess and this "
+                                  "loaded copy already has an instance; free it or load the FMU again")
         return FmuInstance(self, name or f"{self.info.model_identifier}_{next(_instance_counter)}", logging=logging)
 
     def close(self) -> None:
@@ -116,6 +121,7 @@ class FmuInstance:
         if self.component == ffi.NULL:
             detail = f": {self.messages[-1]}" if self.messages else ""
             raise FmuBuilderError(f"fmi2Instantiate failed for {self.info.model_name}{detail}")
+        fmu.live_instances += 1
         n, nz = self.info.n_states, self.info.n_event_indicators
         self._n_states, self._n_indicators = n, nz   # read in every hot-path call
         self._x = ffi.new("double[]", max(n, 1))
@@ -176,6 +182,7 @@ class FmuInstance:
             self._lib.fmi2FreeInstance(self.component)
             CALL[0] = -CODE["fmi2FreeInstance"]
             self.component = ffi.NULL
+            self.fmu.live_instances -= 1
 
     def __enter__(self):
         return self

@@ -35,6 +35,7 @@ class NeuralFMU(nn.Module):
         parameter_values = [float(self.start_values.get(p, self.info.variable(p).start or 0.0)) for p in config.parameters]
         self.topology = Topology(config, self.info, parameter_values)
         self._instances: list[FmuInstance] = []
+        self._extra_loads: list[Fmu] = []   # one per further instance where the FMU allows one per process
         self._holders: dict[int, weakref.ref] = {}   # id(instance) -> the element start it stands at
         self.replays = {"runs": 0, "simulated_seconds": 0.0}   # element starts replayed (solve.Replay)
         n_knowns = self.info.n_states + len(config.parameters)
@@ -54,9 +55,19 @@ class NeuralFMU(nn.Module):
         """`count` instances that no element start holds (see hold), none of those in `taken` (ids)."""
         idle = [inst for inst in self._instances if id(inst) not in taken and not self._held(inst)]
         while len(idle) < count:
-            idle.append(self.fmu.instantiate())
+            idle.append(self.loaded_copy().instantiate())
             self._instances.append(idle[-1])
         return idle[:count]
+
+    def loaded_copy(self) -> Fmu:
+        """The loaded FMU a new instance comes from: the one load, or for an FMU that allows one
+        instance per process (global state in its binary) a load without a live instance."""
+        if not self.info.capabilities.can_be_instantiated_only_once_per_process:
+            return self.fmu
+        free = [fmu for fmu in [self.fmu] + self._extra_loads if not fmu.live_instances]
+        if not free:
+            self._extra_loads.append(Fmu(self.fmu_path))
+        return free[0] if free else self._extra_loads[-1]
 
     def instances_for(self, starts) -> list[FmuInstance]:
         """One instance per element start: the instance a start holds (taken from it: the run moves
@@ -102,7 +113,9 @@ class NeuralFMU(nn.Module):
             inst.free()
         self._instances.clear()
         self._holders.clear()
-        self.fmu.close()
+        for fmu in self._extra_loads + [self.fmu]:
+            fmu.close()
+        self._extra_loads.clear()
 
     def __enter__(self):
         return self

@@ -121,7 +121,7 @@ class NeuralFmuSystem(FmuSystem):
                  inputs: InputSignals | None = None, tolerance: float | None = None):
         values = model.start_values_with_parameters()
         values.update(start_values or {})
-        super().__init__(model.fmu, variables=variables, start_values=values, inputs=inputs, tolerance=tolerance)
+        super().__init__(model.loaded_copy(), variables=variables, start_values=values, inputs=inputs, tolerance=tolerance)
         self.kernel = NumpyTopology(model.topology)
         info = model.info
         self._read_variables = self.instance.real_getter(
