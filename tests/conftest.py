@@ -1,9 +1,9 @@
 """Shared fixtures: example FMUs built on demand (cached between runs).
 
 The suite runs on every core (pytest-xdist, `-n auto --dist loadgroup` in pyproject.toml):
-- one worker per core, each keeping torch (and the OpenMP/BLAS pools of what it starts) to one
-  thread, so a machine with many cores runs that many single-threaded workers, not that many
-  squared threads;
+- one worker per core, at most MAX_AUTO_WORKERS, each keeping torch (and the OpenMP/BLAS pools
+  of what it starts) to one thread, so a machine with many cores runs single-threaded workers,
+  not that many squared threads;
 - the tests that share a module-scoped fixture (a build, a data set, a training) run on one
   worker, so the fixture is made once; every other test goes to whichever worker is free."""
 import os
@@ -12,6 +12,15 @@ import pytest
 
 ONE_THREAD = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 SHARED_SCOPES = ("module", "package", "class")
+
+
+MAX_AUTO_WORKERS = 8   # each worker holds torch and the FMUs (about 1 GB): more cores than this rarely help
+
+
+def pytest_xdist_auto_num_workers(config):
+    """`-n auto`: one worker per core this process may use, at most MAX_AUTO_WORKERS."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(cores, MAX_AUTO_WORKERS))
 
 
 def pytest_configure(config):
