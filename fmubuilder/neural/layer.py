@@ -642,10 +642,7 @@ class FmuEvaluator:
         scale = 1.0
         for _ in range(MAX_PUSH_DOUBLINGS):
             scale *= 2.0
-            x_pushed = x_minus + scale * push
-            inst.set_fmu_state(self._pre[b])
-            inst.set_continuous_states(x_pushed)
-            event_mode(inst, resume_on_terminate=True)
+            x_pushed = self._redo_event(b, x_minus, None, scale * push)
             sensitivity.propagations += 1
             if not np.array_equal(np.sign(inst.get_event_indicators()), modes):
                 return None

@@ -64,10 +64,11 @@ class NeuralFMU(nn.Module):
         instance per process (global state in its binary) a load without a live instance."""
         if not self.info.capabilities.can_be_instantiated_only_once_per_process:
             return self.fmu
-        free = [fmu for fmu in [self.fmu] + self._extra_loads if not fmu.live_instances]
-        if not free:
-            self._extra_loads.append(Fmu(self.fmu_path))
-        return free[0] if free else self._extra_loads[-1]
+        free = next((fmu for fmu in [self.fmu, *self._extra_loads] if not fmu.live_instances), None)
+        if free is None:
+            free = Fmu(self.fmu_path)
+            self._extra_loads.append(free)
+        return free
 
     def instances_for(self, starts) -> list[FmuInstance]:
         """One instance per element start: the instance a start holds (taken from it: the run moves
