@@ -15,13 +15,13 @@ candidate was not built (no significant effect, no term). The seconds are the ca
 The work is counted: `--budget` is the NeuralFMU's loss evaluations (each a simulation of all
 training elements with gradient; the diagnosis' work is fixed), so the numbers do not depend on how
 busy the machine is. `--optimizer` trains with another optimizer than hybridize's default, on the
-same budget (`adam`, `lbfgs`, or `adam-lbfgs:N`: L-BFGS after N Adam steps), to compare them;
+same budget (`adam` or `lbfgs`), to compare them;
 `--elements N` cuts the training data into at least N elements (hybridize: MIN_ELEMENTS).
 `--warm-start-target pointwise|integral` and `--integral-window S` set the NeuralFMU's warm start
 target (neural/warm_start.py). `--truth-only` scores the truth FMU alone: a quick check of the scoring.
 
     python benchmarks/bench_effects.py [--cases dc_drive,vldm | dc_drive:stribeck,...] [--budget EVALUATIONS]
-                                       [--optimizer adam|lbfgs|adam-lbfgs:N] [--elements N]
+                                       [--optimizer adam|lbfgs] [--elements N]
                                        [--warm-start-target pointwise|integral] [--integral-window S]
                                        [--truth-only]
 """
@@ -50,7 +50,7 @@ def main() -> None:
     parser.add_argument("--cases", default="dc_drive,vldm",
                         help="examples, or example:variant, comma-separated")
     parser.add_argument("--budget", type=int, default=DEFAULT_BUDGET, help="NeuralFMU loss evaluations per training")
-    parser.add_argument("--optimizer", default=None, metavar="adam|lbfgs|adam-lbfgs:N",
+    parser.add_argument("--optimizer", default=None, choices=["adam", "lbfgs"],
                         help="the training's optimizer (default: hybridize's)")
     parser.add_argument("--elements", type=int, default=None,
                         help="at least this many training elements (default: hybridize's)")
@@ -64,7 +64,7 @@ def main() -> None:
     try:
         cases = _cases(args.cases)
         if args.optimizer:
-            workflow.OPTIMIZER, workflow.ADAM_STEPS = _optimizer(args.optimizer)
+            workflow.OPTIMIZER = args.optimizer
         if args.warm_start_target:
             workflow.WARM_START_TARGET = args.warm_start_target
         if args.integral_window is not None:
@@ -90,7 +90,7 @@ def main() -> None:
         seconds = time.perf_counter() - started
         rows += _rows(f"{example} {variant}", truth, report, read_sidecar(test), seconds)
         print(f"done: {example} {variant} ({seconds:.0f} s), {scoring.describe()}", flush=True)
-    optimizer = workflow.OPTIMIZER + (f" after {workflow.ADAM_STEPS} Adam steps" if workflow.ADAM_STEPS else "")
+    optimizer = workflow.OPTIMIZER
     print(f"\nTest MSE / noise variance of the measured value (1 = noise floor), {args.budget} loss evaluations "
           f"({optimizer}, at least {workflow.MIN_ELEMENTS} elements, warm start target {workflow.WARM_START_TARGET}"
           + (f" over {workflow.INTEGRAL_WINDOW:g} s" if workflow.WARM_START_TARGET == "integral" else "") + "):\n")
@@ -112,15 +112,6 @@ def _cases(spec: str) -> list[tuple[str, str]]:
             raise ValueError(f"--cases: {example} has no variant '{variant}'; choose among {', '.join(variants)}")
         cases += [(example, v) for v in variants if not variant or v == variant]
     return cases
-
-
-def _optimizer(spec: str) -> tuple[str, int]:
-    name, _, steps = spec.partition(":")
-    if name in ("adam", "lbfgs") and not steps:
-        return name, 0
-    if name == "adam-lbfgs" and steps.isdigit():
-        return "lbfgs", int(steps)
-    raise ValueError(f"--optimizer: '{spec}' is none of adam, lbfgs, adam-lbfgs:N")
 
 
 def _truth_errors(example: str, variant: str, train: Path, test: Path) -> tuple[Scoring, dict]:

@@ -125,8 +125,7 @@ def training(evaluations: int, optimizer: str) -> None:
     span = train.stop - train.start
     settings = dict(element_length=min(workflow.MAX_ELEMENT_LENGTH, span / workflow.MIN_ELEMENTS),
                     loss_signals=list(train.names), warm_start=workflow.WARM_START,
-                    ccpt_window=workflow.COLLOCATION_WINDOW, optimizer=optimizer,
-                    adam_steps=workflow.ADAM_STEPS if optimizer == "lbfgs" else 0, solver="rk4", step_size=STEP)
+                    ccpt_window=workflow.COLLOCATION_WINDOW, optimizer=optimizer, solver="rk4", step_size=STEP)
     print(f"(b) training on {train_csv.name} [{train.start:g}, {train.stop:g}] s, testing on {test_csv.name} "
           f"({generated} data set(s) generated first): ANN on {', '.join(TARGETS)} reading {', '.join(INPUTS)}, "
           f"loss on {', '.join(train.names)}, {optimizer}, {evaluations} loss evaluations, sensor lag {lag} s")

@@ -16,8 +16,8 @@ floor per signal.
 
     python benchmarks/bench_representation.py [--cases stribeck,coulomb,speed_current_loss]
         [--hidden 16,16] [--activation tanh] [--iterations N] [--weight-decay D] [--input-scale std|maxabs|F]
-        [--inputs speed,current] [--collocation [--target pointwise|integral] [--integral-window S]
-        [--edges raw|fit]] [--unbounded]
+        [--inputs speed,current] [--collocation [--target pointwise|integral] [--integral-window S]]
+        [--unbounded]
 """
 from __future__ import annotations
 
@@ -141,13 +141,11 @@ def samples(model, variant: str, data_set, train, collocation: bool, args):
     effect on the truth's trajectory, or the collocation estimate from the measured data (its
     pointwise or its integral form)."""
     if collocation:
-        from fmubuilder.neural import collocation as collocation_module
         from fmubuilder.neural.train import Trainer
         from fmubuilder.neural.warm_start import collocation_targets, integral_targets
         settings = TrainSettings(solver="rk4", step_size=STEP, ccpt_window=0.5, progress=False,
                                  sensor_lag=train.sensor_lag, warm_start_target=args.target,
                                  integral_window=args.integral_window)
-        collocation_module.EDGE_VALUES = args.edges
         trainer = Trainer(model, train, settings, 0.0)
         trainer.inputs = train.input_signals(model.info)
         if args.target == "integral":
@@ -212,8 +210,6 @@ def main() -> None:
                         help="with --collocation: local slopes (pointwise) or window increments (integral)")
     parser.add_argument("--integral-window", type=float, default=TrainSettings().integral_window,
                         help="seconds per window of the integral target")
-    parser.add_argument("--edges", default="raw", choices=["raw", "fit"],
-                        help="the integral target's state at the window edges: the samples or their local lines")
     parser.add_argument("--unbounded", action="store_true", help="without the fit's range bound")
     args = parser.parse_args()
     rows = []
@@ -222,7 +218,7 @@ def main() -> None:
     source = "true effect"
     if args.collocation:
         source = "collocation estimate" if args.target == "pointwise" else \
-            f"integral collocation target ({args.integral_window:g} s windows, {args.edges} edges)"
+            f"integral collocation target ({args.integral_window:g} s windows)"
     source += ", unbounded" if args.unbounded else ""
     print(f"\nANN {args.hidden} {args.activation}, input scale {args.input_scale}, {args.iterations} L-BFGS "
           f"iterations, weight decay {args.weight_decay:g}, fitted to the {source}; MSE / noise variance (1 = floor):\n")

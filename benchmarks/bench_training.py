@@ -9,8 +9,8 @@ its batching; an L-BFGS loss evaluation, line search included, is one pass), as 
 budget of loss evaluations (one per batch), which it spends exactly. Per method: the
 held-out MSE of each measured signal relative to the plain FMU's, averaged (below 1: better), the
 optimizer steps, the passes used, and the wall time relative to the first method, measured in the
-same run. The warm starts (collocation: warm_start.py; Gauss-Newton on the last layer through the
-solver: gauss_newton.py, 2 steps) come before and are counted apart, in simulations without gradient.
+same run. The collocation warm start (warm_start.py) comes before and is counted apart, in
+simulations without gradient.
 
     python benchmarks/bench_training.py [--passes 12]
 """
@@ -50,10 +50,9 @@ def measured(folder: Path, window, seed: int) -> Path:
     return path
 
 
-WARM_STARTS = {"none": {}, "collocation": {"warm_start": True}, "Gauss-Newton": {"gauss_newton_iterations": 2}}
+WARM_STARTS = {"none": {}, "collocation": {"warm_start": True}}
 COMBINATIONS = [("none", name) for name in METHODS] + [
-    ("collocation", "Adam, 1 batch of 8 elements"), ("collocation", "L-BFGS, 1 batch of 8 elements"),
-    *(("Gauss-Newton", name) for name in METHODS)]
+    ("collocation", "Adam, 1 batch of 8 elements"), ("collocation", "L-BFGS, 1 batch of 8 elements")]
 
 
 def run(fmu, train, test, passes: int, warm_start: dict, elements: int, settings: dict) -> dict:
@@ -68,7 +67,7 @@ def run(fmu, train, test, passes: int, warm_start: dict, elements: int, settings
     errors = result.metrics["test_errors"]
     ratio = float(np.mean([errors["after"][s]["mse"] / errors["before"][s]["mse"] for s in SIGNALS]))
     evaluations = result.metrics["loss_evaluations"]
-    warm = result.metrics["gauss_newton"] or result.metrics["warm_start"]
+    warm = result.metrics["warm_start"]
     warm_simulations = warm["simulations"] if warm else 0
     result.model.close()
     return {"warm_simulations": warm_simulations, "held_out": ratio, "steps": result.metrics["epochs"] * (1 if lbfgs else batches),

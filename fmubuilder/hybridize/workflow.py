@@ -49,13 +49,12 @@ VALIDATION_SHARE = 0.2
 # The NeuralFMU training's work: loss evaluations, each a simulation of all training elements with
 # its gradient (an Adam step costs one, an L-BFGS step its line search's, see neural.train.Trainer.fit).
 DEFAULT_BUDGET = 10
-# The optimizer through the solver: "adam" or "lbfgs" (after ADAM_STEPS Adam steps). On the DC
-# drive's truths, 5 evaluations each, with the bounded warm start (benchmarks/bench_effects.py
-# --optimizer; the NeuralFMU's worst test signal / noise, L-BFGS against Adam): Coulomb 303 / 391,
-# speed-current loss 218 / 4.18e4, two effects 1690 / 7.17e4, but Stribeck 318 / 51.8 and windage
-# 24.4 / 4.24. Three Adam steps first landed in between on both frictions (before the bounded warm start).
+# The optimizer through the solver: "adam" or "lbfgs". On the DC drive's truths, 5 evaluations
+# each, with the bounded warm start (benchmarks/bench_effects.py --optimizer; the NeuralFMU's worst
+# test signal / noise, L-BFGS against Adam): Coulomb 303 / 391, speed-current loss 218 / 4.18e4, two
+# effects 1690 / 7.17e4, but Stribeck 318 / 51.8 and windage 24.4 / 4.24. Three Adam steps before
+# L-BFGS landed in between on both frictions (docs/MEASUREMENTS.md) and are no longer an option.
 OPTIMIZER = "lbfgs"
-ADAM_STEPS = 0
 # Seconds of the test data replayed by the round-trip validation (fmpy Euler and CVode).
 ROUNDTRIP_SPAN = 60.0
 # ANN inputs when they cannot be chosen on held-out data (hybridize.inputs, which decides how many
@@ -68,8 +67,7 @@ MAX_ELEMENT_LENGTH = 100.0
 MIN_ELEMENTS = 8
 # Warm start of the NeuralFMU before its training through the solver: the ANN fitted to the collocation estimate of the
 # effect, kept if it lowers the training loss (neural/warm_start.py). benchmarks/bench_training.py:
-# it halves the held-out error of 8 epochs on the DC drive; the Gauss-Newton warm start
-# (neural/gauss_newton.py) fits the training data better but extrapolates worse.
+# it halves the held-out error of 8 epochs on the DC drive.
 WARM_START = True
 # Seconds of data per local line of the warm start's collocation (neural/collocation.py): on the DC
 # drive's training data (10 Hz), 0.5 s windows, those across steps left out, estimate the Coulomb
@@ -536,14 +534,11 @@ def _training_settings(data: MeasuredData, diagnosis) -> dict:
     showing = [e.signal for e in diagnosis.errors if e.significant]
     return {"element_length": min(MAX_ELEMENT_LENGTH, span / MIN_ELEMENTS), "loss_signals": showing or None,
             "warm_start": WARM_START, "ccpt_window": COLLOCATION_WINDOW, "warm_start_target": WARM_START_TARGET,
-            "integral_window": INTEGRAL_WINDOW, "optimizer": OPTIMIZER,
-            "adam_steps": ADAM_STEPS if OPTIMIZER == "lbfgs" else 0}
+            "integral_window": INTEGRAL_WINDOW, "optimizer": OPTIMIZER}
 
 
 def _optimizer_text(settings: dict) -> str:
-    if settings["optimizer"] == "adam":
-        return "Adam"
-    return f"L-BFGS after {settings['adam_steps']} Adam steps" if settings["adam_steps"] else "L-BFGS"
+    return {"adam": "Adam", "lbfgs": "L-BFGS"}[settings["optimizer"]]
 
 
 def _roundtrip(chosen: Candidate, test: Part) -> dict:

@@ -24,8 +24,6 @@ MAX_SAMPLES = 50_000
 # A window whose local line leaves more than this many times the typical residual spans a step or a
 # kink (see smooth_windows).
 ROUGHNESS_LIMIT = 2.0
-# The integral target's window edges: the raw samples ("raw") or their local lines' values ("fit").
-EDGE_VALUES = "raw"
 
 
 def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solver: str, window: float, inputs,
@@ -50,7 +48,7 @@ def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solve
     return ann_inputs, fmu_channels, measured, mask
 
 
-def integral_samples(model: NeuralFMU, data: MeasuredData, step: float, solver: str, window: float, inputs,
+def integral_samples(model: NeuralFMU, data: MeasuredData, step: float, solver: str, inputs,
                      sensor_lag: float = 0.0, span: float = 0.5):
     """The weak-form counterpart of collocation_samples: over windows [a, b] of `span` seconds,
     x(b) - x(a) = integral of (FMU derivative + missing term) dt, with no window left out (the state
@@ -59,8 +57,8 @@ def integral_samples(model: NeuralFMU, data: MeasuredData, step: float, solver: 
     [N, C], WindowMeans of the windows, measured mean derivative (x(b) - x(a)) / (b - a) [W, C],
     mask [W, C]) or None when no channel's state is measured. The window edges are the sample times
     one sensor lag earlier (a lagging sensor shows the state then); x there is the sample itself
-    (EDGE_VALUES "raw") or the local line's value through +-window/2 of it ("fit"). Consecutive
-    windows overlap: one starts at every sample. The states are forced to the samples interpolated,
+    (the local lines' values there were worse: docs/MEASUREMENTS.md). Consecutive windows overlap:
+    one starts at every sample. The states are forced to the samples interpolated,
     not to local lines: a line through a load step smears the current over the line's span, and
     the integral of the FMU's derivative over a window near the step with it (on the DC drive's
     Coulomb data the target's rms error over 0.5 s windows was 2.34 with 0.5 s lines, 0.74 with
@@ -75,9 +73,9 @@ def integral_samples(model: NeuralFMU, data: MeasuredData, step: float, solver: 
     mask = np.zeros(measured.shape, dtype=bool)
     for j, state in enumerate(channel_states):
         if state in data.signals:
-            values, valid = edge_values(data.time, data.signals[state], window, EDGE_VALUES)
+            values = data.signals[state]
             measured[:, j] = (values[hi] - values[lo]) / (data.time[hi] - data.time[lo])
-            mask[:, j] = valid[lo] & valid[hi]
+            mask[:, j] = True
     return ann_inputs, fmu_channels, means, measured, mask
 
 
@@ -91,16 +89,6 @@ def window_edges(edge_times: np.ndarray, first: float, last: float, span: float)
     hi = np.maximum(np.searchsorted(t, t + span - 1e-9, side="left"), np.arange(1, len(t) + 1))
     complete = hi < len(t)
     return inside[complete], inside[hi[complete]]
-
-
-def edge_values(time: np.ndarray, values: np.ndarray, window: float, edges: str):
-    """(the state at each sample, valid): the sample itself, or its local line's value."""
-    if edges == "raw":
-        return values, np.ones(values.shape, dtype=bool)
-    if edges == "fit":
-        fitted, _, valid = local_fit(time, values, time, window)
-        return fitted, valid
-    raise ValueError(f"unknown window edge values '{edges}': use raw or fit")
 
 
 class WindowMeans:

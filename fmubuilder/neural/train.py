@@ -33,10 +33,7 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    warm_start.py) fits the same target full-batch with L-BFGS instead of Adam on minibatches, with
    the forced states smoothed and read a sensor lag later, and keeps the fit only if it lowers the
    training loss; with `warm_start_target="integral"` it fits the ANN's integrals over windows of
-   `integral_window` seconds to the measured states' increments instead of slopes. Where the
-   model's controllers make collocation unreliable, the Gauss-Newton warm start
-   (`gauss_newton_iterations`, gauss_newton.py) fits the ANN's last layer through the solver to
-   the closed-loop response itself.
+   `integral_window` seconds to the measured states' increments instead of slopes.
 4. Training: the data are cut into elements (default 100 s) simulated side by side; the loss is the
    MSE per measured signal (weighted by the uncertainty band when the CSV has <signal>_std columns)
    divided by the plain FMU's MSE on the same elements, averaged over the signals: every signal
@@ -50,7 +47,7 @@ Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
    lowest loss at the end. Elements in random order, `batch_size` side by side, or sequential (time
    order, one at a time, each continuing the state just computed). Or `optimizer="lbfgs"`: one
    L-BFGS step over all elements per epoch, its line search on fixed element starts, the
-   pre-/post-processing fixed (see network_parameters), after `adam_steps` Adam steps if asked. The
+   pre-/post-processing fixed (see network_parameters). The
    work is `epochs`, or with `budget` a number of loss evaluations, each a simulation of a batch with
    its gradient (an Adam step costs one, an L-BFGS step what its line search takes), spent exactly:
    the way to compare optimizers on equal work. With
@@ -97,7 +94,6 @@ class TrainSettings:
     solver: str = "euler"
     learning_rate: float = 3e-3
     optimizer: str = "adam"           # "adam" (one step per batch) or "lbfgs" (full batch, line search)
-    adam_steps: int = 0               # with "lbfgs": Adam steps (one batch each) before the L-BFGS steps
     processing_step_factor: float = 0.1   # step size of the pre-/post-processing relative to the ANN's (0: fixed)
     decay: float = 0.95               # step-size factor per epoch
     backtrack: bool = True            # an epoch worse than the best: back to the best, half the step size
@@ -109,11 +105,9 @@ class TrainSettings:
     warm_start_iterations: int = 300  # L-BFGS iterations of the warm start
     warm_start_target: str = "pointwise"  # "pointwise": local slopes; "integral": window increments (warm_start.py)
     integral_window: float = 0.5      # seconds per window of the integral target
-    gauss_newton_iterations: int = 0  # Gauss-Newton steps on the ANN's last layer before training (gauss_newton.py)
     time_budget: float | None = None  # seconds for the whole training call
     seed: int = 0
     loss_signals: list[str] | None = None  # default: every measured signal
-    loss_scale: str = "reference"     # per-signal MSE divided by: "reference" (the plain FMU's) or "variance"
     sensor_lag: float | None = None   # s, first-order lag of the sensors, applied to the simulated signals
                                       # before they meet the data; None: the data's sidecar (synth), else 0
     checkpoint: str | None = None     # default: <output>.ckpt when an output is given
@@ -189,7 +183,7 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
                    "loss": trainer.history[-1]["loss"] if trainer.history else None,
                    "settings": asdict(settings), "element_start_replays": dict(model.replays),
                    "loss_evaluations": trainer.loss_evaluations, "warm_start": trainer.warm_start,
-                   "gauss_newton": trainer.gauss_newton, "validation": trainer.validation_summary()}
+                   "validation": trainer.validation_summary()}
         if test_data is not None:
             test = test_data if isinstance(test_data, MeasuredData) else load_data(test_data, model.info)
             if test_start_values is None:
@@ -214,8 +208,6 @@ def _settings(settings: TrainSettings | None, overrides: dict) -> TrainSettings:
     if unknown:
         raise FmuBuilderError(f"unknown training settings {sorted(unknown)}; known: {sorted(TrainSettings.__dataclass_fields__)}")
     settings = dataclasses.replace(settings or TrainSettings(), **overrides)
-    if settings.loss_scale not in ("reference", "variance"):
-        raise FmuBuilderError(f"unknown loss scale '{settings.loss_scale}': use reference or variance")
     if settings.optimizer not in ("adam", "lbfgs"):
         raise FmuBuilderError(f"unknown optimizer '{settings.optimizer}': use adam or lbfgs")
     if settings.warm_start_target not in ("pointwise", "integral"):
@@ -228,8 +220,6 @@ def _settings(settings: TrainSettings | None, overrides: dict) -> TrainSettings:
         raise FmuBuilderError(f"epochs must be >= 0, got {settings.epochs}")
     if settings.budget is not None and settings.budget < 0:
         raise FmuBuilderError(f"the budget must be >= 0 loss evaluations, got {settings.budget}")
-    if settings.adam_steps < 0:
-        raise FmuBuilderError(f"adam_steps must be >= 0, got {settings.adam_steps}")
     if not settings.element_length > 0:
         raise FmuBuilderError(f"element length must be positive, got {settings.element_length}")
     if settings.sensor_lag is not None and not settings.sensor_lag >= 0:
@@ -344,7 +334,6 @@ class Trainer:
         self.elements: list[_Element] = []
         self.reference = None
         self.warm_start: dict | None = None   # what the warm start did (see warm_start.py)
-        self.gauss_newton: dict | None = None  # what the Gauss-Newton warm start did (gauss_newton.py)
         self.best_loss, self.best_state, self._best = math.inf, None, None   # see _keep_best
         self._lbfgs_seen: list = []   # ((parameters, element starts), loss, gradients) of recent L-BFGS evaluations
         self._lbfgs_tried: list = []  # (parameters, loss) of the points the current L-BFGS step asked for
@@ -376,10 +365,6 @@ class Trainer:
             from .warm_start import warm_start
             self.warm_start = warm_start(self)
             self._track_validation(0)
-        if self.settings.gauss_newton_iterations and self.model.topology.has_ann:
-            from .gauss_newton import gauss_newton_warm_start
-            self.gauss_newton = gauss_newton_warm_start(self, self.settings.gauss_newton_iterations)
-            self._track_validation(0)
         if not self.model.topology.is_neutral():
             self._capture_starts(plain=False)
 
@@ -400,8 +385,7 @@ class Trainer:
         for index, element_start in enumerate(self._captured):
             self.elements.append(_Element(index, element_start, self._targets(element_start.t0),
                                           self._sensor_start(element_start.t0)))
-        if self.settings.loss_scale == "reference":
-            self.scale = self._reference_scale()
+        self.scale = self._reference_scale()
         return ref
 
     def _reference_scale(self) -> dict:
@@ -487,7 +471,7 @@ class Trainer:
             return
         state = self._read_checkpoint(checkpoint) if settings.resume and checkpoint is not None and checkpoint.is_file() else None
         first_epoch = self._resume_from(state) if state is not None else 0
-        optimizer = self._optimizer(parameters, lbfgs=self._lbfgs_now())
+        optimizer = self._optimizer(parameters, lbfgs=settings.optimizer == "lbfgs")
         scheduler = self._scheduler(optimizer)
         if state is not None:
             optimizer.load_state_dict(state["optimizer"])
@@ -504,9 +488,6 @@ class Trainer:
                 if self.out_of_time():
                     bar.stop("time budget used up")
                     break
-                if isinstance(optimizer, torch.optim.Adam) and self._lbfgs_now():   # the Adam steps are done
-                    optimizer = self._optimizer(parameters, lbfgs=True)
-                    scheduler = self._scheduler(optimizer)
                 before = (_copy_state(model.topology), copy.deepcopy(optimizer.state_dict()),
                           [element.start for element in self.elements])
                 evaluations = self.loss_evaluations
@@ -556,10 +537,6 @@ class Trainer:
         budget = self.settings.budget
         return math.inf if budget is None else budget - self.loss_evaluations
 
-    def _lbfgs_now(self) -> bool:
-        """Whether the steps are L-BFGS's: with optimizer="lbfgs", after the first adam_steps loss evaluations."""
-        return self.settings.optimizer == "lbfgs" and self.loss_evaluations >= self.settings.adam_steps
-
     def _scheduler(self, optimizer):
         decay = self.settings.decay if isinstance(optimizer, torch.optim.Adam) else 1.0
         return torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=decay)
@@ -575,7 +552,7 @@ class Trainer:
             return self._lbfgs_step(optimizer, bar, epoch)
         losses = []
         for batch in self._epoch_batches(rng):
-            if self.out_of_time() or self._evaluations_left() <= 0 or (losses and self._lbfgs_now()):
+            if self.out_of_time() or self._evaluations_left() <= 0:
                 break
             optimizer.zero_grad()
             loss = self.batch_loss(batch)

@@ -56,8 +56,8 @@ def integral_targets(trainer):
     target of the ANN part's mean over each window [W, C], WindowMeans mapping the ANN part on the
     grid to its window means), or None when no channel's state is measured."""
     model, settings = trainer.model, trainer.settings
-    samples = integral_samples(model, trainer.data, trainer.step, settings.solver, settings.ccpt_window,
-                               trainer.inputs, settings.sensor_lag or 0.0, span=settings.integral_window)
+    samples = integral_samples(model, trainer.data, trainer.step, settings.solver, trainer.inputs,
+                               settings.sensor_lag or 0.0, span=settings.integral_window)
     if samples is None:
         return None
     inputs, fmu_channels, means, measured, mask = samples
