@@ -67,7 +67,8 @@ class Sensitivity:
     declared: float
     explained: float          # share of the score the best linear step along this parameter removes
     direction: np.ndarray | None = field(default=None, repr=False)   # the scaled sensitivity
-    equivalent: list = field(default_factory=list)   # names of later-ranked parameters that act alike
+    equivalent: list = field(default_factory=list)   # names of the parameters that act alike, not fitted
+    declared_at: int = 0      # position in the model description (the tie-break between twins)
 
     def acts_like(self, other: "Sensitivity") -> bool:
         """The two change the signals alike: their sensitivities are parallel (EQUIVALENT_SINE2)."""
@@ -147,7 +148,7 @@ def screen_parameters(model_fmu, info, runs: Runs, scoring: Scoring) -> list[Sen
     if total == 0.0:
         return []          # the plain model fits the data exactly: nothing to explain
     ranked = []
-    for var in calibratable_parameters(info, set(start_values)):
+    for position, var in enumerate(calibratable_parameters(info, set(start_values))):
         declared = float(var.start)
         delta = PERTURBATION * declared
         perturbed = objective.errors({var.name: declared + delta})
@@ -157,20 +158,26 @@ def screen_parameters(model_fmu, info, runs: Runs, scoring: Scoring) -> list[Sen
         gg = float(gradient @ gradient)
         if gg == 0.0:
             continue
-        ranked.append(Sensitivity(var.name, declared, float(gradient @ residual) ** 2 / (gg * total), gradient))
+        ranked.append(Sensitivity(var.name, declared, float(gradient @ residual) ** 2 / (gg * total), gradient,
+                                  declared_at=position))
     return sorted(ranked, key=lambda s: s.explained, reverse=True)
 
 
 def distinct(ranked: list[Sensitivity]) -> list[Sensitivity]:
-    """The ranked parameters less those that act like a higher-ranked one (recorded in its
-    `equivalent`): fitting both would give the same model twice."""
+    """The ranked parameters less those that act like a higher-ranked one: fitting both would give
+    the same model twice. Of twins the one declared first in the model description is kept (the
+    others recorded in its `equivalent`): twins explain the same share up to round-off, so the
+    ranking between them is no choice."""
     kept = []
     for sensitivity in ranked:
-        twin = next((k for k in kept if k.acts_like(sensitivity)), None)
-        if twin is None:
+        at = next((i for i, k in enumerate(kept) if k.acts_like(sensitivity)), None)
+        if at is None:
             kept.append(sensitivity)
-        else:
-            twin.equivalent.append(sensitivity.name)
+            continue
+        first, second = sorted((kept[at], sensitivity), key=lambda s: s.declared_at)
+        first.equivalent += [second.name] + second.equivalent
+        second.equivalent = []
+        kept[at] = first
     return kept
 
 

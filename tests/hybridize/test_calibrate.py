@@ -18,7 +18,8 @@ from fmubuilder.errors import FmuBuilderError
 from fmubuilder.export.calibrated import export_calibrated
 from fmubuilder.fmi import read_model_info
 from fmubuilder.hybridize import hybridize
-from fmubuilder.hybridize.calibrate import FIT_SIMULATIONS, calibrate, calibratable_parameters, fit_parameter
+from fmubuilder.hybridize.calibrate import (FIT_SIMULATIONS, Sensitivity, calibrate, calibratable_parameters, distinct,
+                                            fit_parameter)
 from fmubuilder.hybridize.evaluate import Objective, Scoring, evaluate, read_data, relative_mse
 from fmubuilder.simulation import simulate
 
@@ -137,13 +138,28 @@ def test_parameters_that_act_alike_are_fitted_once(tmp_path):
     leading = [s.name for s in ranked[:2]]
     products = ({"drag_coefficient", "frontal_area", "air_density"}, {"rolling_coefficient", "gravity"})
     assert any(set(leading) <= factors for factors in products)
-    first = ranked[0]
-    assert first.equivalent == [leading[1]]
+    # of the twins the one declared first is fitted, however round-off ranked them
+    first, twin = sorted(ranked[:2], key=lambda s: s.declared_at)
+    assert [v.name for v in info.parameters].index(first.name) < [v.name for v in info.parameters].index(twin.name)
+    assert first.equivalent == [twin.name]
     assert [f.name for f in fits] == [first.name]          # the twin is neither fitted nor scored
-    assert fits[0].details(ranked, "vldm.csv", fmu, 0.01)["equivalent_parameters"] == [leading[1]]
+    assert fits[0].details(ranked, "vldm.csv", fmu, 0.01)["equivalent_parameters"] == [twin.name]
     # the reference: fitted on its own the twin reaches the same training score
-    twin = fit_parameter(fmu, runs, scoring, leading[1], ranked[1].declared)
-    assert twin.train_score == pytest.approx(fits[0].train_score, rel=1e-3)
+    alone = fit_parameter(fmu, runs, scoring, twin.name, twin.declared)
+    assert alone.train_score == pytest.approx(fits[0].train_score, rel=1e-3)
+
+
+@pytest.mark.parametrize("later_ranked_first", [True, False])
+def test_of_twins_the_first_declared_is_kept_whatever_their_rank(later_ranked_first):
+    direction = np.array([1.0, -2.0, 0.5])
+    early = Sensitivity("rolling_coefficient", 0.01, 0.5, direction, declared_at=3)
+    late = Sensitivity("gravity", 9.81, 0.5 + (1e-15 if later_ranked_first else -1e-15),
+                       direction * (1 + 1e-9), declared_at=7)
+    other = Sensitivity("mass", 1000.0, 0.4, np.array([0.0, 1.0, 1.0]), declared_at=5)
+    ranked = sorted([early, late, other], key=lambda s: s.explained, reverse=True)
+    kept = distinct(ranked)
+    assert [s.name for s in kept] == ["rolling_coefficient", "mass"]
+    assert kept[0].equivalent == ["gravity"] and late.equivalent == []
 
 
 def test_only_free_real_parameters_are_calibrated():
