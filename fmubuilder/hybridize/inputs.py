@@ -12,7 +12,9 @@ per choice:
        missing = slope of the measured state  -  the FMU's derivative of it (averaged alike)
 
    both by the same local linear fit (on the measured state and on the integral of the model's
-   derivative), so that the sensor noise and the events' steps are smoothed the same way.
+   derivative), so that the sensor noise and the events' steps are smoothed the same way. The
+   states the data do not measure follow the plain run. Where the data measure an output the model
+   equals to the derivative (a power and der(energy)), missing = that output - the model's, no slope.
 2. Samples: those of the training and validation windows where the model's derivative is settled
    (its swing within the slope window at most the SETTLED_QUANTILE of all swings): at steps and
    events the local fits straddle two regimes, and the estimate there follows the step, not the
@@ -27,7 +29,9 @@ per choice:
    it would on new data. A variable is admitted only if it lowers the cross-validated error by
    MIN_GAIN and a paired test over time blocks of BLOCK_SECONDS (the log-ratio of each block's
    error with and without it; t >= MIN_T) says the gain is no chance. A product of two variables
-   needs both: the smoother sees the pair. At most MAX_INPUTS.
+   needs both: the smoother sees the pair, and a pair is admitted at once when it passes both tests
+   against the best single variable (a proxy of the two would be taken first otherwise). At most
+   MAX_INPUTS.
 5. A closed loop: a controller that holds the channel's state compensates the missing term, so the
    channel's own estimate shows nothing (its integrator, unmeasured, holds the difference). The
    compensation shows in the measured derivatives the controller drives (an energy): the inputs
@@ -142,8 +146,9 @@ class MissingTermRun:
         grid, values, seen = self._forced_run(candidates)
         seen = dict(seen)
         # A channel whose derivative reads an unmeasured state (a controller's integrator) is compared
-        # with the plain model's run instead: the forced run's unmeasured states drift away from the
-        # truth's, the plain run's are right as long as the effect does not feed back into them.
+        # with the plain model's run instead: its unmeasured states are right as long as the effect
+        # does not feed back into them (the forced run takes them from it too, see
+        # collocation.with_plain_unmeasured), and its measured ones are the closed loop's own.
         unforced = [c for c in channels if not _reads_measured_only(info, c, data)]
         if unforced:
             seen.update(self._plain_run(unforced))
