@@ -35,7 +35,7 @@ def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solve
     run = forced_channel_run(model, data, step, solver, window, inputs, sensor_lag)
     if run is None:
         return None
-    times, ann_inputs, fmu_channels, channel_states = run
+    times, ann_inputs, fmu_channels, channel_states, aliases = run
     every = max(1, len(times) // MAX_SAMPLES)
     keep = slice(0, len(times), every)
     times, ann_inputs, fmu_channels = times[keep], ann_inputs[keep], fmu_channels[keep]
@@ -44,7 +44,12 @@ def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solve
     forced = [s for s in model.state_names() if s in data.signals]
     smooth = smooth_windows(data, forced, times + sensor_lag, window)
     for j, state in enumerate(channel_states):
-        if state in data.signals:
+        if aliases[j] is not None:
+            # the derivative is measured itself: its local line's value, no slope (on the DC drive's
+            # loss data the energy's slope left 2.5 W rms of noise against a loss of rms 4.9 W)
+            value, _, valid = local_fit(data.time, data.signals[aliases[j]], times + sensor_lag, window)
+            measured[:, j], mask[:, j] = value, valid & smooth
+        elif state in data.signals:
             _, slope, valid = local_fit(data.time, data.signals[state], times + sensor_lag, window)
             measured[:, j], mask[:, j] = slope, valid & smooth
     return ann_inputs, fmu_channels, measured, mask
@@ -68,7 +73,7 @@ def integral_samples(model: NeuralFMU, data: MeasuredData, step: float, solver: 
     run = forced_channel_run(model, data, step, solver, 0.0, inputs, sensor_lag)
     if run is None:
         return None
-    times, ann_inputs, fmu_channels, channel_states = run
+    times, ann_inputs, fmu_channels, channel_states, _ = run
     lo, hi = window_edges(data.time - sensor_lag, times[0], times[-1], span)
     means = WindowMeans(times, (data.time - sensor_lag)[lo], (data.time - sensor_lag)[hi])
     measured = np.zeros((len(lo), len(channel_states)))
@@ -170,11 +175,20 @@ def forced_channel_run(model: NeuralFMU, data: MeasuredData, step: float, solver
         t = np.atleast_1d(np.asarray(t, dtype=float)) + sensor_lag
         return np.stack([fit(t)[0] for fit in fits], axis=1)
 
-    names = list(dict.fromkeys(config.inputs + config.channels))
+    outputs = [v.name for v in model.info.outputs if v.name in data.signals and v.name not in state_names]
+    names = list(dict.fromkeys(config.inputs + config.channels + outputs))
     run = forced_run(model, data, step, solver, forced, values, names, inputs)
     ann_inputs = np.stack([run.numpy(n)[:, 0] for n in config.inputs], axis=1)
     fmu_channels = np.stack([run.numpy(c)[:, 0] for c in config.channels], axis=1)
-    return data.start + run.times, ann_inputs, fmu_channels, channel_states
+    aliases = [_equal_output(run, outputs, fmu_channels[:, j]) for j in range(len(config.channels))]
+    return data.start + run.times, ann_inputs, fmu_channels, channel_states, aliases
+
+
+def _equal_output(run, outputs: list[str], derivative: np.ndarray) -> str | None:
+    """The first measured output equal to `derivative` along the run (a power the model sets to
+    der(energy)), or None."""
+    tolerance = 1e-9 * max(float(np.max(np.abs(derivative))), 1e-300)
+    return next((n for n in outputs if float(np.max(np.abs(run.numpy(n)[:, 0] - derivative))) <= tolerance), None)
 
 
 def smooth_windows(data: MeasuredData, states: list[str], at: np.ndarray, window: float) -> np.ndarray:

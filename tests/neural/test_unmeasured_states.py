@@ -21,8 +21,9 @@ LOSS_COEFFICIENT = 0.01     # examples/dc_drive/model.c, SPEED_CURRENT_LOSS
 def loss_data(tmp_path_factory):
     """The DC drive's 30 s profile logged from the loss truth at 10 Hz with the bench's sensor lag and
     its coloured noise (the bundled data's levels)."""
-    settings = synth.BenchSettings(signals=("speed", "current", "temperature", "energy"),
-                                   noise_std={"speed": 0.1, "current": 0.02, "temperature": 0.02, "energy": 1.0},
+    settings = synth.BenchSettings(signals=("speed", "current", "power", "energy", "temperature"),
+                                   noise_std={"speed": 0.1, "current": 0.02, "power": 1.0, "energy": 1.0,
+                                              "temperature": 0.02},
                                    seed=3, **SENSOR_NOISE)
     truth = example_fmu("dc_drive_truth_speed_current_loss")
     path = tmp_path_factory.mktemp("loss") / "loss.csv"
@@ -30,12 +31,17 @@ def loss_data(tmp_path_factory):
     return truth, path
 
 
-def test_the_energy_estimate_follows_the_loss_not_the_integrators_drift(dc_drive_fmu, loss_data):
+# with the power measured the estimate is its difference (its noise about 1 W rms); without it, the
+# energy's slope (about 2.5 W rms over 0.5 s lines, more at the run's ends)
+@pytest.mark.parametrize("power, rms_share", [(True, 0.4), (False, 0.7)])
+def test_the_energy_estimate_follows_the_loss_not_the_integrators_drift(dc_drive_fmu, loss_data, power, rms_share):
     truth_fmu, path = loss_data
     model = NeuralFMU(dc_drive_fmu, TopologyConfig(channels=["der(energy)"], inputs=["speed"], hidden=[4],
                                                    kind="residual"))
     try:
         data = load_data(path, model.info)
+        if not power:
+            del data.signals["power"]
         inputs, fmu_channels, measured, mask = collocation_samples(
             model, data, 0.01, "rk4", 0.5, data.input_signals(model.info), data.sensor_lag or 0.0)
         # the forced run's grid: the sample times the estimate stands for (collocation_samples keeps all)
@@ -52,7 +58,6 @@ def test_the_energy_estimate_follows_the_loss_not_the_integrators_drift(dc_drive
     assert kept.mean() > 0.3
     error = (measured[:, 0] - fmu_channels[:, 0] - loss)[kept]
     size = np.sqrt(np.mean(loss[kept] ** 2))
-    # the energy's slope carries its sensor noise (about 2.5 W rms over 0.5 s lines); with the
-    # integrator left to integrate the measured speed, the error was several times the loss
+    # with the integrator left to integrate the measured speed, the error was 16 W on average
     assert abs(np.mean(error)) < 0.1 * size
-    assert np.sqrt(np.mean(error ** 2)) < 0.7 * size
+    assert np.sqrt(np.mean(error ** 2)) < rms_share * size
