@@ -173,9 +173,12 @@ def warm_start(trainer) -> dict:
             for p, saved in zip(topology.ann.parameters(), before_fit):
                 p.copy_(saved)
         _loss_from_own_starts(trainer)      # the element starts back at the kept parameters
-    # simulations without gradient: the forced run, and a capture and a loss per evaluation
+    # simulations without gradient: the forced run (and the plain run its unmeasured states follow),
+    # and a capture and a loss per evaluation
+    unmeasured = any(s not in trainer.data.signals for s in trainer.model.state_names())
     return {"samples": int(target.shape[0]), "target": trainer.settings.warm_start_target, "fit_error": error,
-            "loss_before": loss_before, "loss_after": loss_after, "kept": kept, "simulations": 5 if kept else 7}
+            "loss_before": loss_before, "loss_after": loss_after, "kept": kept,
+            "simulations": (5 if kept else 7) + unmeasured}
 
 
 def scale_output_to_effect(topology, target: torch.Tensor) -> None:
