@@ -233,13 +233,16 @@ def forced_run(model: NeuralFMU, data: MeasuredData, step: float, solver: str, f
 
 def with_plain_unmeasured(model: NeuralFMU, data: MeasuredData, step: float, solver: str, forced: list[str],
                           values, inputs):
-    """(forced states, values(t)) extended by the states the data do not measure, at the plain run's
-    values. Left free along the measured run, such a state (a controller's integrator) integrates
-    the measured states' noise: a random walk. On the DC drive's loss data the speed controller's
-    integrator drifted by 0.58 rms (its range 5.6), which put the model's der(energy) off by 16 W
-    on average against a loss of rms 4.9 W. The plain run's is the truth's where the effect does
-    not feed back into it, and close where it does (0.03-0.09 rms on the DC drive's frictions)."""
-    others = [s for s in model.state_names() if s not in forced]
+    """(forced states, values(t)) extended by the integrators the data do not measure, at the plain
+    run's values. Left free along the measured run, a state whose derivative does not read the state
+    itself (a controller's integrator) integrates the measured states' noise: a random walk. On the
+    DC drive's loss data the speed controller's integrator drifted by 0.58 rms (its range 5.6),
+    which put the model's der(energy) off by 16 W on average against a loss of rms 4.9 W. The plain
+    run's is the truth's where the effect does not feed back into it, and close where it does
+    (0.03-0.09 rms on the DC drive's frictions). A state that reads itself (a current through an
+    inductance) forgets its past and follows the forced states as the truth's did: it stays free,
+    as do the states of a model that declares no dependencies."""
+    others = [s for s in model.state_names() if s not in forced and is_integrator(model.info, s)]
     if not others:
         return forced, values
     plain = _run(model, data, step, solver, [], None, others, inputs)
@@ -251,6 +254,13 @@ def with_plain_unmeasured(model: NeuralFMU, data: MeasuredData, step: float, sol
         measured = np.asarray(values(t), dtype=float).reshape(len(t), len(forced))
         return np.concatenate([measured, np.stack([np.interp(t, grid, c) for c in columns], axis=1)], axis=1)
     return [*forced, *others], extended
+
+
+def is_integrator(info, state: str) -> bool:
+    """Whether the state's derivative, by the declared dependencies, does not read the state."""
+    derivative = info.derivatives[[v.name for v in info.states].index(state)].name
+    dependencies = info.dependencies.get(derivative)
+    return dependencies is not None and state not in dependencies
 
 
 def _run(model: NeuralFMU, data: MeasuredData, step: float, solver: str, forced: list[str], values,
