@@ -13,7 +13,7 @@ per choice:
 
    both by the same local linear fit (on the measured state and on the integral of the model's
    derivative), so that the sensor noise and the events' steps are smoothed the same way. The
-   states the data do not measure follow the plain run. Where the data measure an output the model
+   integrators the data do not measure follow the plain run. Where the data measure an output the model
    equals to the derivative (a power and der(energy)), missing = that output - the model's, no slope.
 2. Samples: those of the training and validation windows where the model's derivative is settled
    (its swing within the slope window at most the SETTLED_QUANTILE of all swings): at steps and
@@ -147,7 +147,7 @@ class MissingTermRun:
         seen = dict(seen)
         # A channel whose derivative reads an unmeasured state (a controller's integrator) is compared
         # with the plain model's run instead: its unmeasured states are right as long as the effect
-        # does not feed back into them (the forced run takes them from it too, see
+        # does not feed back into them (the forced run takes its integrators from it too, see
         # collocation.with_plain_unmeasured), and its measured ones are the closed loop's own.
         unforced = [c for c in channels if not _reads_measured_only(info, c, data)]
         if unforced:
