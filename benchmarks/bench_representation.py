@@ -47,7 +47,7 @@ NEAR_ZERO = 5.0     # rad/s: the band around speed 0 where the sign-type frictio
 WORKFLOW_CHOICE = {
     "stribeck": (["der(speed)"], ["speed"]),
     "coulomb": (["der(speed)"], ["speed"]),
-    "speed_current_loss": (["der(energy)"], ["speed_error_integral"]),
+    "speed_current_loss": (["der(energy)"], ["current", "speed"]),
     "two_effects": (["der(energy)", "der(speed)"], ["current", "speed"]),
 }
 INERTIA, SMOOTHING = 0.01, 1.0     # examples/dc_drive/model.c

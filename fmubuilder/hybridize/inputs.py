@@ -12,7 +12,9 @@ per choice:
        missing = slope of the measured state  -  the FMU's derivative of it (averaged alike)
 
    both by the same local linear fit (on the measured state and on the integral of the model's
-   derivative), so that the sensor noise and the events' steps are smoothed the same way.
+   derivative), so that the sensor noise and the events' steps are smoothed the same way. The
+   integrators the data do not measure follow the plain run. Where the data measure an output the model
+   equals to the derivative (a power and der(energy)), missing = that output - the model's, no slope.
 2. Samples: those of the training and validation windows where the model's derivative is settled
    (its swing within the slope window at most the SETTLED_QUANTILE of all swings): at steps and
    events the local fits straddle two regimes, and the estimate there follows the step, not the
@@ -27,7 +29,9 @@ per choice:
    it would on new data. A variable is admitted only if it lowers the cross-validated error by
    MIN_GAIN and a paired test over time blocks of BLOCK_SECONDS (the log-ratio of each block's
    error with and without it; t >= MIN_T) says the gain is no chance. A product of two variables
-   needs both: the smoother sees the pair. At most MAX_INPUTS.
+   needs both: the smoother sees the pair, and a pair is admitted at once when it passes both tests
+   against the best single variable (a proxy of the two would be taken first otherwise). At most
+   MAX_INPUTS.
 5. A closed loop: a controller that holds the channel's state compensates the missing term, so the
    channel's own estimate shows nothing (its integrator, unmeasured, holds the difference). The
    compensation shows in the measured derivatives the controller drives (an energy): the inputs
@@ -66,6 +70,8 @@ SETTLED_QUANTILE = 0.7
 TIE = 0.05
 # Seconds of data per local fit of the measured state's slope.
 SLOPE_WINDOW = 0.6
+# Pairs are tried among this many variables of lowest cross-validated error alone.
+PAIR_POOL = 8
 # Preference among copies of one variable: states, then outputs, inputs, locals, derivatives last.
 KIND_ORDER = {"state": 0, "output": 1, "input": 2, "local": 3, "derivative": 4}
 
@@ -140,22 +146,30 @@ class MissingTermRun:
         grid, values, seen = self._forced_run(candidates)
         seen = dict(seen)
         # A channel whose derivative reads an unmeasured state (a controller's integrator) is compared
-        # with the plain model's run instead: the forced run's unmeasured states drift away from the
-        # truth's, the plain run's are right as long as the effect does not feed back into them.
+        # with the plain model's run instead: its unmeasured states are right as long as the effect
+        # does not feed back into them (the forced run takes its integrators from it too, see
+        # collocation.with_plain_unmeasured), and its measured ones are the closed loop's own.
         unforced = [c for c in channels if not _reads_measured_only(info, c, data)]
         if unforced:
             seen.update(self._plain_run(unforced))
         at = data.time
+        sampled = {n: np.interp(at, grid, values[n]) for n in candidates}
+        aliases = {c: equal_to(sampled, c) for c in channels}
         missing = {}
         for c in channels:
+            measured_alias = next((n for n in aliases[c] if n in data.signals), None)
+            if measured_alias is not None:
+                # The derivative is measured itself (a power the model equals to der(energy)): the
+                # difference needs no slope, whose noise on the DC drive's energy (1.8 W rms) was a
+                # third of the loss it estimates; the power's is 0.7 W.
+                missing[c] = data.signals[measured_alias] - np.interp(at, grid, seen[c])
+                continue
             # The same local fit on the measured state and on the integral of the model's derivative:
             # one linear operator on both, so that steps at events cancel instead of leaving spikes.
             slope, valid = local_slope(at, data.signals[channel_states[c]], at, SLOPE_WINDOW)
             model_integral = np.interp(at, grid, cumulative_trapezoid(seen[c], grid, initial=0.0))
             model_slope, _ = local_slope(at, model_integral, at, SLOPE_WINDOW)
             missing[c] = np.where(valid, slope - model_slope, np.nan)
-        sampled = {n: np.interp(at, grid, values[n]) for n in candidates}
-        aliases = {c: equal_to(sampled, c) for c in channels}
         sampled = {n: np.interp(at, grid, seen[n]) for n in candidates}
         return MissingTerm(at, missing, sampled, {n: variable_kind(info, n) for n in candidates},
                            {n for n in candidates if n in data.signals}, aliases)
@@ -249,7 +263,8 @@ def choose_inputs(term: MissingTerm, channel: str, train: np.ndarray, validation
     candidates.sort(key=lambda n: (n not in term.measured, KIND_ORDER.get(term.kinds.get(n), 5)))
     kept, duplicates = distinct_variables(term.variables, candidates, train)
     samples = (train | validation) & settled_samples(term.time, term.variables.get(channel), train | validation)
-    selection = forward_selection({n: term.variables[n][samples] for n in kept}, target[samples], term.time[samples])
+    selection = forward_selection({n: term.variables[n][samples] for n in kept}, target[samples], term.time[samples],
+                                  term.measured)
     return InputChoice(channel, selection.inputs, selection.error, selection.baseline, selection.steps,
                        selection.rejected, out_of_range, duplicates)
 
@@ -274,35 +289,76 @@ class Selection:
     rejected: dict
 
 
-def forward_selection(variables: dict[str, np.ndarray], target: np.ndarray, time: np.ndarray) -> Selection:
+def forward_selection(variables: dict[str, np.ndarray], target: np.ndarray, time: np.ndarray,
+                      measured: frozenset | set = frozenset()) -> Selection:
     """Admit, one at a time, the variable whose addition lowers the cross-validated error most
     among those that pass both tests (MIN_GAIN and the paired test); samples in time order, the
-    variables in order of preference (ties go to the earlier one)."""
+    variables in order of preference (ties go to the earlier one). A pair is admitted at once when
+    it beats the best single addition by both tests too (see better_pair); `measured`: the variables
+    the data measure."""
     names = list(variables)
     standardised = {n: (v - np.mean(v)) / (np.std(v) or 1.0) for n, v in variables.items()}
     blocks = time_blocks(time)
     current = cross_validated_squared_errors(None, target)
     baseline = error = float(np.mean(current)) if target.size else 0.0
     chosen, steps, rejected = [], [], {}
+
+    def trial(added):
+        squared = cross_validated_squared_errors(np.column_stack([standardised[n] for n in [*chosen, *added]]), target)
+        return float(np.mean(squared)), paired_t(squared, current, blocks), squared
+
     while len(chosen) < MAX_INPUTS and target.size >= 2 * FOLDS:
-        trials = {}
-        for name in names:
-            if name not in chosen:
-                squared = cross_validated_squared_errors(np.column_stack([standardised[n] for n in [*chosen, name]]),
-                                                         target)
-                trials[name] = (float(np.mean(squared)), paired_t(squared, current, blocks), squared)
+        trials = {(n,): trial([n]) for n in names if n not in chosen}
         passing = {n: t for n, t in trials.items() if t[0] <= (1.0 - MIN_GAIN) * error and t[1] >= MIN_T}
+        if len(chosen) + 2 <= MAX_INPUTS:
+            pair = better_pair(trials, passing, trial, blocks, error, measured)
+            if pair is not None:
+                passing = {pair[0]: pair[1]}
         if not passing:
             if trials:
                 best = min(trials, key=lambda n: trials[n][0])
-                rejected = {"variable": best, "cv_error": trials[best][0], "t": trials[best][1]}
+                rejected = {"variable": best[0], "cv_error": trials[best][0], "t": trials[best][1]}
             break
         lowest = min(t[0] for t in passing.values())
         best = next(n for n in passing if passing[n][0] <= (1.0 + TIE) * lowest)   # dicts keep the preference order
+        if len(best) == 2:      # a pair: its first variable's step is that variable's addition alone
+            steps.append({"variable": best[0], "cv_error": trials[best[:1]][0], "t": trials[best[:1]][1]})
         error, t, current = passing[best]
-        chosen.append(best)
-        steps.append({"variable": best, "cv_error": error, "t": t})
+        chosen.extend(best)
+        steps.append({"variable": best[-1], "cv_error": error, "t": t})
     return Selection(chosen, error, baseline, steps, rejected)
+
+
+def better_pair(trials: dict, passing: dict, trial, blocks: np.ndarray, error: float, measured=frozenset()):
+    """(pair, its trial) of two further variables that together beat the best single addition (or,
+    none passing, the error so far) by MIN_GAIN with t >= MIN_T against it, or None. An effect of
+    two variables together (a product) is not found one variable at a time when a third variable,
+    a proxy of both (a controller's integrator, which holds the voltage the load and speed ask
+    for), predicts more than either alone: taken first, it leaves the pair no room. The pairs are
+    those among the PAIR_POOL variables of lowest error alone, in order of preference; a pair the data
+    measure wins over one the model computes whenever it passes (on the DC drive's loss a copper loss,
+    R(T) i^2, with the speed fitted the smoother closer than the current with it: the square folds
+    the current's sign, which |speed * current| ignores, onto half the samples' space)."""
+    pool = sorted(trials, key=lambda n: trials[n][0])[:PAIR_POOL]
+    pool = [n for n in trials if n in pool]                 # back in the order of preference
+    if len(pool) < 2:
+        return None
+    # against the best single addition that passes; none passing: against the error so far, as a single
+    reference = min(passing.values(), key=lambda t: t[0]) if passing else None
+    pairs = {}
+    for i, first in enumerate(pool):
+        for second in pool[i + 1:]:
+            pair_error, t, squared = trial([*first, *second])
+            if reference is not None:
+                t = paired_t(squared, reference[2], blocks)
+            if pair_error <= (1.0 - MIN_GAIN) * (reference[0] if reference else error) and t >= MIN_T:
+                pairs[first + second] = (pair_error, t, squared)
+    if not pairs:
+        return None
+    pairs = {p: v for p, v in pairs.items() if set(p) <= set(measured)} or pairs
+    lowest = min(v[0] for v in pairs.values())
+    best = next(p for p in pairs if pairs[p][0] <= (1.0 + TIE) * lowest)
+    return best, pairs[best]
 
 
 def cross_validated_squared_errors(x: np.ndarray | None, target: np.ndarray) -> np.ndarray:

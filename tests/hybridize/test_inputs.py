@@ -66,6 +66,25 @@ def test_a_product_of_two_variables_gets_both_as_inputs(terms):
     assert "power" not in choice.inputs          # equal to der(energy) in the model: its own output
 
 
+def test_the_estimated_loss_is_the_truths_within_the_power_sensors_noise(terms):
+    """The estimate of der(energy) against the loss along the truth's own run (seen through the
+    sensors' lag, as the estimate compares): the measured power, equal to der(energy) in the model,
+    gives it without the energy's slope, whose noise was 0.3 of the loss' size."""
+    from fmubuilder.simulation import simulate
+    channel, term = terms["speed_current_loss"]
+    data_set = next(s for s in dc_drive_data_sets() if s.cycle.role == "train" and s.variant.key == "speed_current_loss")
+    truth_fmu = example_fmu("dc_drive_truth_speed_current_loss")
+    truth = simulate(truth_fmu, start_time=term.time[0], stop_time=term.time[-1], variables=["speed", "current"],
+                     start_values=data_set.start_values, solver="rk4", step_size=0.001, output_interval=0.001)
+    time = np.asarray(truth.time)
+    loss = 0.01 * np.abs(np.asarray(truth["speed"]) * np.asarray(truth["current"]))   # model.c SPEED_CURRENT_LOSS
+    seen = np.interp(term.time, time, first_order_lag(time, loss, 0.1))                 # the bench's sensor lag
+    error = term.missing[channel] - seen
+    assert np.all(np.isfinite(error))
+    assert abs(np.mean(error)) < 0.05 * np.sqrt(np.mean(seen ** 2))
+    assert np.sqrt(np.mean(error ** 2)) < 0.2 * np.sqrt(np.mean(seen ** 2))
+
+
 def test_a_friction_of_speed_gets_speed_alone_and_no_cumulative_variable(terms):
     channel, term = terms["stribeck"]
     train, validation = _masks(term)
@@ -162,6 +181,23 @@ def test_synthetic_product_of_two_variables_gets_both_and_no_distractor(seed):
     target = effect + 0.1 * np.std(effect) * _coloured_noise(rng)
     variables = {"speed": speed, "current": current, "other": other, "noise": _coloured_noise(rng)}
     selection = forward_selection(variables, target, TIME)
+    assert sorted(selection.inputs) == ["current", "speed"]
+    assert all(step["t"] >= 3.0 for step in selection.steps)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_synthetic_product_gets_the_measured_pair_over_a_square_the_model_computes(seed):
+    """|speed * current| with the model's copper loss (~ current^2) among the candidates: the square
+    folds the current's sign, which the effect ignores, so the smoother fits closer with it; the
+    variables the data measure win when they pass both tests too."""
+    rng = np.random.default_rng(seed)
+    speed, current = _smooth_signal(rng), _smooth_signal(rng)
+    effect = np.abs(speed * current)
+    target = effect + 0.1 * np.std(effect) * _coloured_noise(rng)
+    variables = {"speed": speed, "current": current, "copper_loss": 1.2 * current ** 2,
+                 "speed_error_integral": 0.1 * speed + 1.2 * current}
+    assert sorted(forward_selection(variables, target, TIME).inputs) == ["copper_loss", "speed"]
+    selection = forward_selection(variables, target, TIME, measured={"speed", "current"})
     assert sorted(selection.inputs) == ["current", "speed"]
     assert all(step["t"] >= 3.0 for step in selection.steps)
 
