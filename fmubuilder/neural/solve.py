@@ -463,7 +463,7 @@ class _Run:
         # the ANN folded once per run (its gradient gathers here); none when it cannot act
         active = self.topology.has_ann and bool(self.topology.gate_ann.count_nonzero())
         if self.grad and self.topology.has_ann:
-            self.ann = self.topology.folded()
+            self.ann = self.topology.folded(transposed=True)
         elif active:
             self.kernel = NumpyTopology(self.topology)
         x, dd, c = self.initialise()
