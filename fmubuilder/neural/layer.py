@@ -25,6 +25,7 @@ by redoing the event on "shadow" snapshots that carry perturbed discrete states.
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from typing import Sequence
@@ -89,17 +90,29 @@ class JacobianSparsity:
                 continue
             self.computed[[index[d] for d in deps if d in index]] = True
         self.probe_weights = _probe_weights(n)
+        self._index()
+
+    def _index(self) -> None:
+        """The column lists, kept between changes: they are asked for at every FMU evaluation."""
+        self._columns = np.flatnonzero(self.computed)
+        self._unchecked = np.zeros(0, dtype=int) if self.complete else np.flatnonzero(~self.computed)
+        self._unchecked_weights = self.probe_weights[self._unchecked]
 
     def columns(self) -> np.ndarray:
         """The columns computed one by one."""
-        return np.flatnonzero(self.computed)
+        return self._columns
 
     def unchecked(self) -> np.ndarray:
         """The columns to probe together (empty when the ModelStructure declares every unknown)."""
-        return np.zeros(0, dtype=int) if self.complete else np.flatnonzero(~self.computed)
+        return self._unchecked
+
+    def unchecked_weights(self) -> np.ndarray:
+        """probe_weights of the unchecked columns."""
+        return self._unchecked_weights
 
     def found(self, columns: np.ndarray) -> None:
         self.computed[columns] = True
+        self._index()
 
     @property
     def skipped(self) -> list[int]:
@@ -326,7 +339,7 @@ class FmuEvaluator:
             ur = None if u is None else u[r]
             self.set_point(b, float(t[r]), x[r], ur)
             self.read(b, out[r])
-            if not (np.isfinite(x[r]).all() and np.isfinite(out[r]).all()):
+            if not (_finite(x[r]) and _finite(out[r])):
                 # A diverged simulation (a line-search trial far out): no derivative exists there,
                 # and finite differences of inf - inf only flood the log with numpy warnings.
                 for J in (Jx, Jp):
@@ -345,35 +358,42 @@ class FmuEvaluator:
         J[:] = 0.0
         sparsity = self.sparsity
         unchecked = sparsity.unchecked()
-        if unchecked.size and self._probe(b, x, base, unchecked, sparsity.probe_weights[unchecked]):
-            sparsity.found(unchecked[self._state_columns(b, x, base, unchecked).any(axis=0)])
+        steps = None if self._directional_x else fd_steps(x, self.nominal)   # one perturbation size per state
+        if unchecked.size and self._probe(b, x, base, unchecked, sparsity.unchecked_weights(), steps):
+            sparsity.found(unchecked[self._state_columns(b, x, base, unchecked, steps).any(axis=0)])
         columns = sparsity.columns()
         if columns.size:
-            J[:, columns] = self._state_columns(b, x, base, columns)
+            J[:, columns] = self._state_columns(b, x, base, columns, steps)
         self.n_jacobian_columns += len(columns)
 
-    def _state_columns(self, b: int, x: np.ndarray, base: np.ndarray, columns: np.ndarray) -> np.ndarray:
-        """The Jacobian columns d out / dx_i, i in columns: [n+k, len(columns)]."""
+    def _state_columns(self, b: int, x: np.ndarray, base: np.ndarray, columns: np.ndarray,
+                       steps: np.ndarray | None = None) -> np.ndarray:
+        """The Jacobian columns d out / dx_i, i in columns: [n+k, len(columns)]; `steps`: fd_steps at x."""
         if self._directional_x:
             try:
                 return self._directional(b, [self.state_vrs[i] for i in columns], np.eye(len(columns)))
             except FmuCallError:
                 self._directional_x = False  # the FMU rejects some pair: use finite differences from now on
         inst = self.instances[b]
-        steps = fd_steps(x, self.nominal)
+        if steps is None:
+            steps = fd_steps(x, self.nominal)
+        # Python floats in the loop (the same IEEE sums as numpy's scalars, without their overhead).
+        x_values, step_values = x.tolist(), steps.tolist()
         xp = x.copy()
         row = np.empty(self.width)
         result = np.empty((self.width, len(columns)))
-        for j, i in enumerate(columns):
-            xp[i] = x[i] + steps[i]
+        for j, i in enumerate(columns.tolist()):
+            xp[i] = perturbed = x_values[i] + step_values[i]
             inst.set_continuous_states(xp)
             self.read(b, row)
-            result[:, j] = (row - base) / (xp[i] - x[i])
-            xp[i] = x[i]
+            np.subtract(row, base, out=row)
+            result[:, j] = row / (perturbed - x_values[i])
+            xp[i] = x_values[i]
         inst.set_continuous_states(x)
         return result
 
-    def _probe(self, b: int, x: np.ndarray, base: np.ndarray, columns: np.ndarray, weights: np.ndarray) -> bool:
+    def _probe(self, b: int, x: np.ndarray, base: np.ndarray, columns: np.ndarray, weights: np.ndarray,
+               steps: np.ndarray | None = None) -> bool:
         """Whether perturbing the states `columns` together (distinct weights, so that exact
         cancellation of their effects is not to be expected) changes any unknown."""
         if self._directional_x:
@@ -382,13 +402,15 @@ class FmuEvaluator:
             except FmuCallError:
                 self._directional_x = False
         inst = self.instances[b]
+        if steps is None:
+            steps = fd_steps(x, self.nominal)
         xp = x.copy()
-        xp[columns] += weights * fd_steps(x, self.nominal)[columns]
+        xp[columns] += weights * steps[columns]
         inst.set_continuous_states(xp)
         row = np.empty(self.width)
         self.read(b, row)
         inst.set_continuous_states(x)
-        return bool((row != base).any())
+        return not np.array_equal(row, base)
 
     def _directional(self, b: int, knowns: Sequence[int], seeds: np.ndarray) -> np.ndarray:
         """One directional derivative of the unknowns per seed row: [n+k, len(seeds)]."""
@@ -687,6 +709,12 @@ class FmuEvaluator:
             return inst.get_fmu_state(pool[slot])
         pool.append(inst.get_fmu_state())
         return pool[-1]
+
+
+def _finite(values: np.ndarray) -> bool:
+    """Whether every value is finite; for the few values of one FMU evaluation a Python loop is
+    cheaper than numpy's isfinite().all()."""
+    return all(map(math.isfinite, values.tolist()))
 
 
 def _identity_reset(n: int, knowns: int) -> np.ndarray:
