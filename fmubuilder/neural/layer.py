@@ -252,7 +252,7 @@ class FmuEvaluator:
                            [info.variable(name).value_reference for name in self.variables]
         self.input_vrs = [info.variable(name).value_reference for name in self.inputs]
         self.param_vrs = [info.variable(name).value_reference for name in self.parameters]
-        self._getters = [inst.real_getter([info.variable(v).value_reference for v in self.variables])
+        self._readers = [inst.real_reader([info.variable(v).value_reference for v in self.variables])
                          for inst in self.instances]
         self._input_setters = [inst.real_setter(self.input_vrs) for inst in self.instances]
         self.nominal = np.ones(self.n)
@@ -321,9 +321,9 @@ class FmuEvaluator:
         """Derivatives and variables of instance b at its current point into out[:n+k]."""
         n = self.n
         if n:
-            out[:n] = self.instances[b].get_derivatives()
+            self.instances[b].derivatives_into(out[:n])
         if self.k:
-            out[n:] = self._getters[b]()
+            self._readers[b](out[n:])
 
     def evaluate(self, rows: Sequence[int], t: np.ndarray, x: np.ndarray, u: np.ndarray | None = None,
                  jac_x: bool = False, jac_p: bool = False):
@@ -363,15 +363,20 @@ class FmuEvaluator:
             sparsity.found(unchecked[self._state_columns(b, x, base, unchecked, steps).any(axis=0)])
         columns = sparsity.columns()
         if columns.size:
-            J[:, columns] = self._state_columns(b, x, base, columns, steps)
+            self._state_columns(b, x, base, columns, steps, J)
         self.n_jacobian_columns += len(columns)
 
     def _state_columns(self, b: int, x: np.ndarray, base: np.ndarray, columns: np.ndarray,
-                       steps: np.ndarray | None = None) -> np.ndarray:
-        """The Jacobian columns d out / dx_i, i in columns: [n+k, len(columns)]; `steps`: fd_steps at x."""
+                       steps: np.ndarray | None = None, J: np.ndarray | None = None) -> np.ndarray:
+        """The Jacobian columns d out / dx_i, i in columns: [n+k, len(columns)]; `steps`: fd_steps at x.
+        With `J` ([n+k, n]) they are written into its columns instead (and J returned)."""
         if self._directional_x:
             try:
-                return self._directional(b, [self.state_vrs[i] for i in columns], np.eye(len(columns)))
+                result = self._directional(b, [self.state_vrs[i] for i in columns], np.eye(len(columns)))
+                if J is None:
+                    return result
+                J[:, columns] = result
+                return J
             except FmuCallError:
                 self._directional_x = False  # the FMU rejects some pair: use finite differences from now on
         inst = self.instances[b]
@@ -381,13 +386,13 @@ class FmuEvaluator:
         x_values, step_values = x.tolist(), steps.tolist()
         xp = x.copy()
         row = np.empty(self.width)
-        result = np.empty((self.width, len(columns)))
+        result = np.empty((self.width, len(columns))) if J is None else J
         for j, i in enumerate(columns.tolist()):
             xp[i] = perturbed = x_values[i] + step_values[i]
             inst.set_continuous_states(xp)
             self.read(b, row)
             np.subtract(row, base, out=row)
-            result[:, j] = row / (perturbed - x_values[i])
+            np.divide(row, perturbed - x_values[i], out=result[:, j if J is None else i])
             xp[i] = x_values[i]
         inst.set_continuous_states(x)
         return result
