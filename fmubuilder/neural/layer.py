@@ -153,6 +153,12 @@ class EventSensitivity:
         self.propagations = 0
         self.seconds = 0.0
         self._run_events = 0
+        self._index()
+
+    def _index(self) -> None:
+        """The column lists of the next event, kept until an event changes them."""
+        self._columns = np.flatnonzero(self.recent)
+        self._unchecked = np.flatnonzero(~self.recent)
 
     @property
     def events(self) -> int:
@@ -168,11 +174,11 @@ class EventSensitivity:
 
     def columns(self) -> np.ndarray:
         """The knowns perturbed one by one."""
-        return np.flatnonzero(self.recent)
+        return self._columns
 
     def unchecked(self) -> np.ndarray:
         """The knowns probed together."""
-        return np.flatnonzero(~self.recent)
+        return self._unchecked
 
     @property
     def skipped(self) -> list[int]:
@@ -182,6 +188,7 @@ class EventSensitivity:
         self.uses += 1
         self.recent[:] = False
         self.recent[columns[nonzero]] = True
+        self._index()
         self.seen |= self.recent
         self._run_events += 1
         self.perturbations += len(columns) + probes
