@@ -531,7 +531,7 @@ class FmuEvaluator:
         inst = self.instances[b]
         self.set_point(b, t, x_minus, u)
         # No linearisation of an event at a diverged (non-finite) state: see evaluate.
-        want = sensitivity is not None and self.can_snapshot and bool(np.isfinite(x_minus).all())
+        want = sensitivity is not None and self.can_snapshot and _finite(x_minus)
         if want:
             self._pre[b] = inst.get_fmu_state(self._pre[b])
         info = event_mode(inst, resume_on_terminate=True)
@@ -579,7 +579,7 @@ class FmuEvaluator:
             delta = x_perturbed[i] - x_minus[i] if i < n else (params[i - n] + amounts[i]) - params[i - n]
             dd, df, dx = self._measure(b, x_plus, base, d0, changed)
             self._column(b, i, delta, (dd, df, dx), R, B, d0, candidates, pool if shadows else None)
-            nonzero[c] = df.any() or (self.q and dd.any()) or not (R is None or _identity_column(R, i, n))
+            nonzero[c] = _any(df) or (self.q and _any(dd)) or not (R is None or _identity_column(R, i, n))
         sensitivity.observe(columns, nonzero, probes=int(unchecked.size > 0))
         outcome.R, outcome.B = R, B
         if self.q:
@@ -603,9 +603,9 @@ class FmuEvaluator:
         inst, n = self.instances[b], self.n
         inst.set_fmu_state(self._pre[b])
         x_perturbed = x_minus + perturbation[:n]
-        if perturbation[:n].any():
+        if _any(perturbation[:n]):
             inst.set_continuous_states(x_perturbed)
-        if perturbation[n:].any():
+        if _any(perturbation[n:]):
             event_mode(inst, before_iteration=lambda: inst.set_real(self.param_vrs, params + perturbation[n:]),
                        after_iteration=lambda: inst.set_real(self.param_vrs, params), resume_on_terminate=True)
         else:
@@ -727,6 +727,11 @@ def _finite(values: np.ndarray) -> bool:
     """Whether every value is finite; for the few values of one FMU evaluation a Python loop is
     cheaper than numpy's isfinite().all()."""
     return all(map(math.isfinite, values.tolist()))
+
+
+def _any(values: np.ndarray) -> bool:
+    """values.any() without its Python-level wrapper (called several times per event)."""
+    return np.count_nonzero(values) > 0
 
 
 def _identity_reset(n: int, knowns: int) -> np.ndarray:
