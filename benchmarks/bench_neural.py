@@ -18,7 +18,17 @@ fitted to the true effect.
     uses (target <= 3). Both end with the paper's table (energy MSE, max and final error, FMU against
     the hybrid, whole training and test cycles, Euler h = 0.01 s, solver steps and events).
 
-    python benchmarks/bench_neural.py [--part a|b|all] [--repeats R] [--evaluations N] [--optimizer lbfgs|adam]
+(cost) What the training's loss evaluation (all elements side by side, forward and backward, as
+    `hybridize` trains: RK4 at h = 0.01 s, the residual ANN on der(speed) reading speed, elements of
+    1/8 of the training data, at most 100 s) and a scoring simulation (the plain FMU by the engine,
+    RK4 at h = 0.01 s, recorded every step and around events, as `hybridize` scores every model)
+    cost on the DC drive (Stribeck data, the 48 s training part) and the VLDM (extra resistance, the
+    first --vldm-span seconds of CADC in elements of 100 s), as a ratio against fmpy's plain FMU
+    simulation (explicit Euler, h = 0.01 s) over the same span, measured in the same run: the
+    ratios compare versions of fmubuilder on a busy machine. Best of --repeats, CPU and wall time.
+
+    python benchmarks/bench_neural.py [--part a|b|cost|all] [--repeats R] [--evaluations N]
+                                      [--optimizer lbfgs|adam] [--vldm-span S]
 """
 from __future__ import annotations
 
@@ -198,18 +208,89 @@ def paper_table(model, data_sets: dict, lag: float, title: str) -> None:
                   f"{before / errors['mse']:.1f} | {stats.steps} | {stats.time_events} | {stats.state_events} |")
 
 
+COST_CASES = (("dc_drive", "stribeck"), ("vldm", "extra_resistance"))
+
+
+def best_clocks(repeats: int, function) -> tuple[float, float]:
+    """(CPU seconds, wall seconds) of `function`, each the best of `repeats` calls."""
+    cpu = wall = float("inf")
+    for _ in range(repeats):
+        cpu_started, wall_started = time.process_time(), time.perf_counter()
+        function()
+        cpu, wall = min(cpu, time.process_time() - cpu_started), min(wall, time.perf_counter() - wall_started)
+    return cpu, wall
+
+
+def cost(repeats: int, vldm_span: float) -> None:
+    import fmpy
+    from fmubuilder.data import read_sidecar
+    from fmubuilder.examples_zoo import cached_data, example_data_sets
+    from fmubuilder.fmi import read_model_info
+    from fmubuilder.hybridize import workflow
+    from fmubuilder.hybridize.evaluate import Scoring, evaluate, read_data
+    from fmubuilder.neural.train import Trainer, TrainSettings
+
+    print(f"(cost) a loss evaluation and a scoring simulation against fmpy's Euler over the same span "
+          f"(best of {repeats}; CPU / wall seconds)")
+    print("| model | span [s] | elements | fmpy Euler | loss evaluation | ratio | scoring (RK4) | ratio |")
+    print("|---|---|---|---|---|---|---|---|")
+    for example, variant in COST_CASES:
+        sets = [s for s in example_data_sets(example) if s.variant.key == variant]
+        paths, _ = cached_data(sets)
+        train_csv = next(path for s, path in zip(sets, paths) if s.cycle.role == "train")
+        fmu = example_fmu(example)
+        whole = read_data(train_csv, read_model_info(fmu))
+        stop = whole.start + (1.0 - workflow.VALIDATION_SHARE) * (whole.stop - whole.start)
+        if example == "vldm":
+            stop = min(stop, whole.start + vldm_span)
+        data = whole.window(whole.start, float(whole.time[np.searchsorted(whole.time, stop, side="right") - 1]))
+        start_values = read_sidecar(train_csv)["start_values"]
+        span = data.stop - data.start
+
+        def plain_fmpy():
+            fmpy.simulate_fmu(str(fmu), start_time=data.start, stop_time=data.stop, solver="Euler", step_size=STEP,
+                              output_interval=STEP, start_values=start_values, output=list(data.names))
+
+        element_length = min(workflow.MAX_ELEMENT_LENGTH, (whole.stop - whole.start) * (1.0 - workflow.VALIDATION_SHARE)
+                             / workflow.MIN_ELEMENTS)
+        settings = TrainSettings(element_length=element_length, solver="rk4", step_size=STEP, optimizer="lbfgs",
+                                 progress=False, sensor_lag=data.sensor_lag)
+        torch.manual_seed(0)
+        model = NeuralFMU(fmu, TopologyConfig(channels=TARGETS, inputs=INPUTS, hidden=[16, 16], kind="residual"),
+                          start_values)
+        trainer = Trainer(model, data, settings, time.perf_counter())
+        trainer.prepare()
+
+        def loss_evaluation():
+            trainer.batch_loss(trainer.elements, carry=False).backward()
+            model.zero_grad()
+
+        t_fmpy = best_clocks(max(repeats, 5), plain_fmpy)    # the baseline is short: more repeats
+        t_loss = best_clocks(repeats, loss_evaluation)
+        t_score = best_clocks(repeats, lambda: evaluate(fmu, data, start_values, Scoring("rk4", STEP)))
+        model.close()
+        print(f"| {example} | {span:.0f} | {len(trainer.elements)} | {t_fmpy[0]:.2f} / {t_fmpy[1]:.2f} | "
+              f"{t_loss[0]:.2f} / {t_loss[1]:.2f} | {t_loss[0] / t_fmpy[0]:.2f} / {t_loss[1] / t_fmpy[1]:.2f} | "
+              f"{t_score[0]:.2f} / {t_score[1]:.2f} | {t_score[0] / t_fmpy[0]:.2f} / {t_score[1] / t_fmpy[1]:.2f} |",
+              flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--part", choices=["a", "b", "all"], default="all")
+    parser.add_argument("--part", choices=["a", "b", "cost", "all"], default="all")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--evaluations", type=int, default=10, help="the training's budget of loss evaluations")
     parser.add_argument("--optimizer", choices=["lbfgs", "adam"], default="lbfgs")
+    parser.add_argument("--vldm-span", type=float, default=200.0,
+                        help="seconds of the VLDM's training data in the cost part (elements of 100 s)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     if args.part in ("a", "all"):
         forward(args.repeats)
     if args.part in ("b", "all"):
         training(args.evaluations, args.optimizer)
+    if args.part in ("cost", "all"):
+        cost(args.repeats, args.vldm_span)
 
 
 if __name__ == "__main__":

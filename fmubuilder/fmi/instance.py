@@ -241,6 +241,16 @@ class FmuInstance:
 
     def real_getter(self, vrs: Sequence[int]):
         """A fast reader of a fixed set of Real variables: returns a function giving a new array."""
+        fill = self.real_reader(vrs)
+
+        def read() -> np.ndarray:
+            return fill(None).copy()
+        return read
+
+    def real_reader(self, vrs: Sequence[int]):
+        """A fast reader of a fixed set of Real variables into a given array: returns a function
+        fill(out) that writes the values into `out` (a float64 array of len(vrs)), or with out None
+        returns a view of its own buffer, valid until the next call."""
         n = len(vrs)
         c_vrs = ffi.new("fmi2ValueReference[]", list(vrs) or [0])
         out = ffi.new("double[]", max(n, 1))
@@ -248,15 +258,18 @@ class FmuInstance:
         get_real, component, fail = self._lib.fmi2GetReal, self.component, self._fail
         code, done = CODE["fmi2GetReal"], -CODE["fmi2GetReal"]
 
-        def read() -> np.ndarray:
+        def fill(into: np.ndarray | None) -> np.ndarray:
             if n:
                 CALL[0] = code
                 status = get_real(component, c_vrs, n, out)
                 CALL[0] = done
                 if status > 1:
                     fail(status, "fmi2GetReal")
-            return view.copy()
-        return read
+            if into is None:
+                return view
+            into[:] = view
+            return into
+        return fill
 
     def real_setter(self, vrs: Sequence[int]):
         """A fast writer of a fixed set of Real variables: returns a function taking the values."""
@@ -317,6 +330,17 @@ class FmuInstance:
         if status > 1:
             self._fail(status, "fmi2GetDerivatives")
         return self._dx_view.copy()
+
+    def derivatives_into(self, out: np.ndarray) -> None:
+        """get_derivatives() written into `out` (a float64 array of n_states), without a new array."""
+        if not self._n_states:
+            return
+        CALL[0] = _GETDERIVATIVES
+        status = self._lib.fmi2GetDerivatives(self.component, self._dx, self._n_states)
+        CALL[0] = _GETDERIVATIVES_DONE
+        if status > 1:
+            self._fail(status, "fmi2GetDerivatives")
+        out[:] = self._dx_view
 
     def get_event_indicators(self) -> np.ndarray:
         if not self._n_indicators:

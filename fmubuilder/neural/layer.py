@@ -25,6 +25,7 @@ by redoing the event on "shadow" snapshots that carry perturbed discrete states.
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from typing import Sequence
@@ -89,17 +90,29 @@ class JacobianSparsity:
                 continue
             self.computed[[index[d] for d in deps if d in index]] = True
         self.probe_weights = _probe_weights(n)
+        self._index()
+
+    def _index(self) -> None:
+        """The column lists, kept between changes: they are asked for at every FMU evaluation."""
+        self._columns = np.flatnonzero(self.computed)
+        self._unchecked = np.zeros(0, dtype=int) if self.complete else np.flatnonzero(~self.computed)
+        self._unchecked_weights = self.probe_weights[self._unchecked]
 
     def columns(self) -> np.ndarray:
         """The columns computed one by one."""
-        return np.flatnonzero(self.computed)
+        return self._columns
 
     def unchecked(self) -> np.ndarray:
         """The columns to probe together (empty when the ModelStructure declares every unknown)."""
-        return np.zeros(0, dtype=int) if self.complete else np.flatnonzero(~self.computed)
+        return self._unchecked
+
+    def unchecked_weights(self) -> np.ndarray:
+        """probe_weights of the unchecked columns."""
+        return self._unchecked_weights
 
     def found(self, columns: np.ndarray) -> None:
         self.computed[columns] = True
+        self._index()
 
     @property
     def skipped(self) -> list[int]:
@@ -140,6 +153,12 @@ class EventSensitivity:
         self.propagations = 0
         self.seconds = 0.0
         self._run_events = 0
+        self._index()
+
+    def _index(self) -> None:
+        """The column lists of the next event, kept until an event changes them."""
+        self._columns = np.flatnonzero(self.recent)
+        self._unchecked = np.flatnonzero(~self.recent)
 
     @property
     def events(self) -> int:
@@ -155,11 +174,11 @@ class EventSensitivity:
 
     def columns(self) -> np.ndarray:
         """The knowns perturbed one by one."""
-        return np.flatnonzero(self.recent)
+        return self._columns
 
     def unchecked(self) -> np.ndarray:
         """The knowns probed together."""
-        return np.flatnonzero(~self.recent)
+        return self._unchecked
 
     @property
     def skipped(self) -> list[int]:
@@ -169,6 +188,7 @@ class EventSensitivity:
         self.uses += 1
         self.recent[:] = False
         self.recent[columns[nonzero]] = True
+        self._index()
         self.seen |= self.recent
         self._run_events += 1
         self.perturbations += len(columns) + probes
@@ -239,7 +259,7 @@ class FmuEvaluator:
                            [info.variable(name).value_reference for name in self.variables]
         self.input_vrs = [info.variable(name).value_reference for name in self.inputs]
         self.param_vrs = [info.variable(name).value_reference for name in self.parameters]
-        self._getters = [inst.real_getter([info.variable(v).value_reference for v in self.variables])
+        self._readers = [inst.real_reader([info.variable(v).value_reference for v in self.variables])
                          for inst in self.instances]
         self._input_setters = [inst.real_setter(self.input_vrs) for inst in self.instances]
         self.nominal = np.ones(self.n)
@@ -308,9 +328,9 @@ class FmuEvaluator:
         """Derivatives and variables of instance b at its current point into out[:n+k]."""
         n = self.n
         if n:
-            out[:n] = self.instances[b].get_derivatives()
+            self.instances[b].derivatives_into(out[:n])
         if self.k:
-            out[n:] = self._getters[b]()
+            self._readers[b](out[n:])
 
     def evaluate(self, rows: Sequence[int], t: np.ndarray, x: np.ndarray, u: np.ndarray | None = None,
                  jac_x: bool = False, jac_p: bool = False):
@@ -326,7 +346,7 @@ class FmuEvaluator:
             ur = None if u is None else u[r]
             self.set_point(b, float(t[r]), x[r], ur)
             self.read(b, out[r])
-            if not (np.isfinite(x[r]).all() and np.isfinite(out[r]).all()):
+            if not (_finite(x[r]) and _finite(out[r])):
                 # A diverged simulation (a line-search trial far out): no derivative exists there,
                 # and finite differences of inf - inf only flood the log with numpy warnings.
                 for J in (Jx, Jp):
@@ -345,35 +365,47 @@ class FmuEvaluator:
         J[:] = 0.0
         sparsity = self.sparsity
         unchecked = sparsity.unchecked()
-        if unchecked.size and self._probe(b, x, base, unchecked, sparsity.probe_weights[unchecked]):
-            sparsity.found(unchecked[self._state_columns(b, x, base, unchecked).any(axis=0)])
+        steps = None if self._directional_x else fd_steps(x, self.nominal)   # one perturbation size per state
+        if unchecked.size and self._probe(b, x, base, unchecked, sparsity.unchecked_weights(), steps):
+            sparsity.found(unchecked[self._state_columns(b, x, base, unchecked, steps).any(axis=0)])
         columns = sparsity.columns()
         if columns.size:
-            J[:, columns] = self._state_columns(b, x, base, columns)
+            self._state_columns(b, x, base, columns, steps, J)
         self.n_jacobian_columns += len(columns)
 
-    def _state_columns(self, b: int, x: np.ndarray, base: np.ndarray, columns: np.ndarray) -> np.ndarray:
-        """The Jacobian columns d out / dx_i, i in columns: [n+k, len(columns)]."""
+    def _state_columns(self, b: int, x: np.ndarray, base: np.ndarray, columns: np.ndarray,
+                       steps: np.ndarray | None = None, J: np.ndarray | None = None) -> np.ndarray:
+        """The Jacobian columns d out / dx_i, i in columns: [n+k, len(columns)]; `steps`: fd_steps at x.
+        With `J` ([n+k, n]) they are written into its columns instead (and J returned)."""
         if self._directional_x:
             try:
-                return self._directional(b, [self.state_vrs[i] for i in columns], np.eye(len(columns)))
+                result = self._directional(b, [self.state_vrs[i] for i in columns], np.eye(len(columns)))
+                if J is None:
+                    return result
+                J[:, columns] = result
+                return J
             except FmuCallError:
                 self._directional_x = False  # the FMU rejects some pair: use finite differences from now on
         inst = self.instances[b]
-        steps = fd_steps(x, self.nominal)
+        if steps is None:
+            steps = fd_steps(x, self.nominal)
+        # Python floats in the loop (the same IEEE sums as numpy's scalars, without their overhead).
+        x_values, step_values = x.tolist(), steps.tolist()
         xp = x.copy()
         row = np.empty(self.width)
-        result = np.empty((self.width, len(columns)))
-        for j, i in enumerate(columns):
-            xp[i] = x[i] + steps[i]
+        result = np.empty((self.width, len(columns))) if J is None else J
+        for j, i in enumerate(columns.tolist()):
+            xp[i] = perturbed = x_values[i] + step_values[i]
             inst.set_continuous_states(xp)
             self.read(b, row)
-            result[:, j] = (row - base) / (xp[i] - x[i])
-            xp[i] = x[i]
+            np.subtract(row, base, out=row)
+            np.divide(row, perturbed - x_values[i], out=result[:, j if J is None else i])
+            xp[i] = x_values[i]
         inst.set_continuous_states(x)
         return result
 
-    def _probe(self, b: int, x: np.ndarray, base: np.ndarray, columns: np.ndarray, weights: np.ndarray) -> bool:
+    def _probe(self, b: int, x: np.ndarray, base: np.ndarray, columns: np.ndarray, weights: np.ndarray,
+               steps: np.ndarray | None = None) -> bool:
         """Whether perturbing the states `columns` together (distinct weights, so that exact
         cancellation of their effects is not to be expected) changes any unknown."""
         if self._directional_x:
@@ -382,13 +414,15 @@ class FmuEvaluator:
             except FmuCallError:
                 self._directional_x = False
         inst = self.instances[b]
+        if steps is None:
+            steps = fd_steps(x, self.nominal)
         xp = x.copy()
-        xp[columns] += weights * fd_steps(x, self.nominal)[columns]
+        xp[columns] += weights * steps[columns]
         inst.set_continuous_states(xp)
         row = np.empty(self.width)
         self.read(b, row)
         inst.set_continuous_states(x)
-        return bool((row != base).any())
+        return not np.array_equal(row, base)
 
     def _directional(self, b: int, knowns: Sequence[int], seeds: np.ndarray) -> np.ndarray:
         """One directional derivative of the unknowns per seed row: [n+k, len(seeds)]."""
@@ -497,7 +531,7 @@ class FmuEvaluator:
         inst = self.instances[b]
         self.set_point(b, t, x_minus, u)
         # No linearisation of an event at a diverged (non-finite) state: see evaluate.
-        want = sensitivity is not None and self.can_snapshot and bool(np.isfinite(x_minus).all())
+        want = sensitivity is not None and self.can_snapshot and _finite(x_minus)
         if want:
             self._pre[b] = inst.get_fmu_state(self._pre[b])
         info = event_mode(inst, resume_on_terminate=True)
@@ -545,7 +579,7 @@ class FmuEvaluator:
             delta = x_perturbed[i] - x_minus[i] if i < n else (params[i - n] + amounts[i]) - params[i - n]
             dd, df, dx = self._measure(b, x_plus, base, d0, changed)
             self._column(b, i, delta, (dd, df, dx), R, B, d0, candidates, pool if shadows else None)
-            nonzero[c] = df.any() or (self.q and dd.any()) or not (R is None or _identity_column(R, i, n))
+            nonzero[c] = _any(df) or (self.q and _any(dd)) or not (R is None or _identity_column(R, i, n))
         sensitivity.observe(columns, nonzero, probes=int(unchecked.size > 0))
         outcome.R, outcome.B = R, B
         if self.q:
@@ -569,9 +603,9 @@ class FmuEvaluator:
         inst, n = self.instances[b], self.n
         inst.set_fmu_state(self._pre[b])
         x_perturbed = x_minus + perturbation[:n]
-        if perturbation[:n].any():
+        if _any(perturbation[:n]):
             inst.set_continuous_states(x_perturbed)
-        if perturbation[n:].any():
+        if _any(perturbation[n:]):
             event_mode(inst, before_iteration=lambda: inst.set_real(self.param_vrs, params + perturbation[n:]),
                        after_iteration=lambda: inst.set_real(self.param_vrs, params), resume_on_terminate=True)
         else:
@@ -687,6 +721,17 @@ class FmuEvaluator:
             return inst.get_fmu_state(pool[slot])
         pool.append(inst.get_fmu_state())
         return pool[-1]
+
+
+def _finite(values: np.ndarray) -> bool:
+    """Whether every value is finite; for the few values of one FMU evaluation a Python loop is
+    cheaper than numpy's isfinite().all()."""
+    return all(map(math.isfinite, values.tolist()))
+
+
+def _any(values: np.ndarray) -> bool:
+    """values.any() without its Python-level wrapper (called several times per event)."""
+    return np.count_nonzero(values) > 0
 
 
 def _identity_reset(n: int, knowns: int) -> np.ndarray:

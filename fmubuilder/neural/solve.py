@@ -463,7 +463,7 @@ class _Run:
         # the ANN folded once per run (its gradient gathers here); none when it cannot act
         active = self.topology.has_ann and bool(self.topology.gate_ann.count_nonzero())
         if self.grad and self.topology.has_ann:
-            self.ann = self.topology.folded()
+            self.ann = self.topology.folded(transposed=True)
         elif active:
             self.kernel = NumpyTopology(self.topology)
         x, dd, c = self.initialise()
@@ -673,19 +673,20 @@ class _Run:
         (see EventOutcome): x+ = x+_value + R dev + Rd dd,  dd+ = B dev + A dd,  c = G dd+."""
         B, n, K, Q = x.shape[0], self.n, self.n + self.ev.P, self.ev.carrier_width
         memory = self.ev.q > 0
-        x_val = x.detach().numpy().copy()
-        R = np.zeros((B, n, K))
-        R[:, np.arange(n), np.arange(n)] = 1.0
+        any_reset = any(o.values_changed for o in outcomes.values())
+        if any_reset:      # the reset map (identity for the elements without a reset)
+            x_val = x.detach().numpy().copy()
+            R = np.zeros((B, n, K))
+            R[:, np.arange(n), np.arange(n)] = 1.0
         history = memory and dd is not None   # a carrier from earlier events exists
         Rd = np.zeros((B, n, Q)) if history else None
         A = np.zeros((B, Q, Q)) if history else None
         Bm = np.zeros((B, Q, K))
         G = np.zeros((B, self.ev.width, Q)) if memory else None
-        any_reset = any_rd = any_a = False
+        any_rd = any_a = False
         for b, o in outcomes.items():
             if o.values_changed:
                 x_val[b] = o.x_plus
-                any_reset = True
                 if o.R is not None:
                     R[b] = o.R
                 if o.Rd is not None and Rd is not None:

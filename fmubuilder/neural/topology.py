@@ -198,14 +198,17 @@ class Topology(nn.Module):
         r = z * self.post_scale + self.post_shift
         return r if self.base is None else r + self.base(inputs)
 
-    def folded(self) -> list:
+    def folded(self, transposed: bool = False) -> list:
         """The ANN with the pre-processing folded into its first Linear layer and the post-processing
         and the ANN gate into its last: [(W, b) or activation, ...], differentiable; with it a hybrid
         evaluation is a few matrix products (`mix`). Fold once per simulation, not per step.
 
             W1' = W1 diag(pre_scale)                b1' = b1 - W1' pre_shift
             WL' = diag(gate_ann post_scale) WL      bL' = gate_ann (post_scale bL + post_shift)
-        """
+
+        `transposed` gives (W'^T, b') pairs, the form `mix` takes: F.linear transposes W at every
+        call, a node of the autograd graph per layer and solver stage; transposed once here, a
+        stage is addmm(b, z, W^T) alone, the same product (F.linear calls exactly that)."""
         linears = [i for i, layer in enumerate(self.ann) if isinstance(layer, nn.Linear)]
         layers = []
         for i, layer in enumerate(self.ann):
@@ -219,15 +222,16 @@ class Topology(nn.Module):
             if i == linears[-1]:
                 W = (self.gate_ann * self.post_scale)[:, None] * W
                 b = self.gate_ann * (self.post_scale * b + self.post_shift)
-            layers.append((W, b))
+            layers.append((W.t(), b) if transposed else (W, b))
         return layers
 
     def mix(self, layers: list, x: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
         """Hybrid state derivatives [B, n] from states x, FMU results out = [der | variables] and
-        the folded ANN `layers`: dx_c = ANN'(inputs) + gate_fmu der_fmu_c (see the module docstring)."""
+        the folded ANN `layers` (folded(transposed=True)): dx_c = ANN'(inputs) + gate_fmu der_fmu_c
+        (see the module docstring)."""
         raw = z = self.ann_inputs(x, out)
         for layer in layers:
-            z = F.linear(z, *layer) if isinstance(layer, tuple) else layer(z)
+            z = torch.addmm(layer[1], z, layer[0]) if isinstance(layer, tuple) else layer(z)
         if self.base is not None:        # not foldable: the term on the raw inputs, through the gate
             z = z + self.gate_ann * self.base(raw)
         derivatives = out[:, : self.n_states]
@@ -241,7 +245,7 @@ class Topology(nn.Module):
             return derivatives
         if not torch.is_grad_enabled() and self.gate_ann.count_nonzero() == 0:
             return derivatives  # 0 * ann + 1 * der: the FMU's derivatives (the untrained hybrid)
-        return self.mix(self.folded(), x, out)
+        return self.mix(self.folded(transposed=True), x, out)
 
     # -- initialisation from a reference simulation of the plain FMU -------------------------
     def initialise_scaling(self, inputs: np.ndarray, channels: np.ndarray) -> None:

@@ -173,7 +173,7 @@ class _Loop:
         return self.system.indicators(t, self.solver.interpolate(t))
 
     def _record_now(self, t, x) -> None:
-        self.recorder.add([t], self.system.outputs(np.array([t]), np.reshape(x, (1, -1))))
+        self.recorder.add([t], self.system.outputs((t,), np.reshape(x, (1, -1))))
 
     def _finish(self, t, x, terminated: bool) -> None:
         self.t, self.terminated = t, terminated

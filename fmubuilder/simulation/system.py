@@ -147,10 +147,11 @@ class FmuSystem:
 
     def outputs(self, times: np.ndarray, states: np.ndarray) -> np.ndarray:
         columns = self._columns
+        if len(times) == 1:
+            return self._output_row(times[0], states[0])[None, :]
         parts = [states]
         if columns.n_discrete:
-            discrete = columns.discrete_values()[None, :]
-            parts.append(discrete if len(times) == 1 else discrete.repeat(len(times), axis=0))
+            parts.append(columns.discrete_values()[None, :].repeat(len(times), axis=0))
         if columns.n_computed:
             computed, read = np.empty((len(times), columns.n_computed)), columns.read_computed
             for row, t in enumerate(times):
@@ -161,6 +162,22 @@ class FmuSystem:
         # The parts side by side are [all states | discrete | computed]; order picks the columns.
         table = np.concatenate(parts, axis=1) if len(parts) > 1 else np.array(states, dtype=float)
         return table if columns.in_order(table.shape[1]) else table.take(columns.order, axis=1)
+
+    def _output_row(self, t: float, x: np.ndarray) -> np.ndarray:
+        """outputs() of one point, the usual call (the engine records every output time and both
+        sides of each event one by one): the same values, written into one row instead of joined
+        from parts, which costs several numpy calls per recorded point."""
+        columns = self._columns
+        n, n_discrete = self.n_states, columns.n_discrete
+        row = np.empty(n + n_discrete + columns.n_computed)
+        row[:n] = x
+        if n_discrete:
+            row[n:n + n_discrete] = columns.discrete_values()
+        if columns.n_computed:
+            if self._continuous_mode:       # in event mode the FMU already holds (t, x)
+                self._at(t, x)
+            row[n + n_discrete:] = columns.read_computed()
+        return row if columns.in_order(row.size) else row.take(columns.order)
 
     # -- events ------------------------------------------------------------------------------
     def handle_event(self, t: float, x: np.ndarray) -> tuple[np.ndarray, float, bool]:

@@ -46,6 +46,7 @@ def test_values_agree_with_fmpy(fmu, bouncing_ball_fmu):
     ours = initialized(fmu, h=2.0)
     theirs = fmpy_initialized(bouncing_ball_fmu, str(fmu.archive.directory), md, h=2.0)
     n, nz = fmu.info.n_states, fmu.info.n_event_indicators
+    state_vrs = [v.value_reference for v in fmu.info.states]
     for x in ([2.0, 0.0], [0.5, -3.0], [1.25, 4.0]):
         ours.set_time(0.1)
         ours.set_continuous_states(x)
@@ -54,6 +55,11 @@ def test_values_agree_with_fmpy(fmu, bouncing_ball_fmu):
         np.testing.assert_array_equal(ours.get_continuous_states(), x)
         np.testing.assert_array_equal(ours.get_derivatives(), _fmpy_derivatives(theirs, n))
         np.testing.assert_array_equal(ours.get_event_indicators(), _fmpy_indicators(theirs, nz))
+        # the readers that write into a given array (the NeuralFMU's evaluation row)
+        row = np.full(n + 2, np.nan)
+        ours.derivatives_into(row[:n])
+        ours.real_reader(state_vrs)(row[n:])
+        np.testing.assert_array_equal(row, np.concatenate([_fmpy_derivatives(theirs, n), theirs.getReal(state_vrs)]))
     ours.free()
     theirs.terminate()
     theirs.freeInstance()

@@ -164,6 +164,14 @@ class _SwitchingInstance:
     def real_getter(self, vrs):
         return lambda: np.zeros(len(vrs))
 
+    def real_reader(self, vrs):
+        def fill(out):
+            if out is None:
+                return np.zeros(len(vrs))
+            out[:] = 0.0
+            return out
+        return fill
+
     def real_setter(self, vrs):
         return lambda values: None
 
@@ -175,6 +183,9 @@ class _SwitchingInstance:
 
     def get_derivatives(self):
         return np.array([self.x[1] if self.x[0] > 0 else 0.0, -self.x[0]])
+
+    def derivatives_into(self, out):
+        out[:] = self.get_derivatives()
 
 
 @pytest.mark.parametrize("declared", [False, True])

@@ -206,6 +206,29 @@ def test_a_system_with_its_own_derivatives_reuses_the_loop(example):
     np.testing.assert_allclose(hybrid["h"][away], reference["h"][away], atol=1e-8)
 
 
+def test_one_recorded_point_holds_what_the_fmu_reports(example):
+    """outputs() of one point (the engine's usual call, written into one row) and of several
+    points (joined from parts) against the FMU's own getters, with the recorded columns in an
+    order that mixes states, discrete Real and Boolean variables and computed outputs."""
+    names = ["power", "driver.held_error", "speed", "standstill", "acceleration", "energy"]
+    with Fmu(example("vldm")) as fmu:
+        system = FmuSystem(fmu, variables=names, start_values={"cycle": 1})
+        try:
+            x0, _, _ = system.initialize(0.0, 10.0)
+            x = x0 + np.linspace(0.5, 3.0, x0.size)     # moving: the computed outputs are not zero
+            one = system.outputs((0.25,), x[None, :])
+            several = system.outputs(np.array([0.25, 0.25]), np.array([x, x]))
+            system.instance.set_time(0.25)
+            system.instance.set_continuous_states(x)
+            reported = np.array(system.instance.get(names), dtype=float)
+        finally:
+            system.close()
+    assert one.shape == (1, len(names)) and several.shape == (2, len(names))
+    assert reported[0] != 0.0      # the power, computed from the state
+    np.testing.assert_array_equal(one[0], reported)
+    np.testing.assert_array_equal(several, np.array([reported, reported]))
+
+
 # ---------------------------------------------------------------------------------------
 # Fixed-step convergence on the sampled plant, against its exact sampled-data solution
 
