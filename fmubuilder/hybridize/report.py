@@ -78,8 +78,7 @@ def write_report(folder: Path, *, model_fmu, diagnosis, plain, candidates, chose
         # The file validated was the candidate in a work folder, since deleted; the published FMU is
         # its byte copy, so the table names that.
         roundtrip = {**roundtrip, "table": roundtrip["table"].replace(str(chosen.fmu), str(hybrid_fmu))}
-    report["plots"], report["plot_notes"] = _plots(folder, report, diagnosis, plain, chosen, roles, scoring,
-                                                   model_fmu, units)
+    report["plots"], report["plot_notes"] = _plots(folder, diagnosis, plain, chosen, roles, scoring, model_fmu, units)
     page = markdown(report, roundtrip)
     write_atomically(folder / "report.json", json.dumps(report, indent=2, default=_json_default) + "\n")
     write_atomically(folder / "report.md", page)
@@ -321,17 +320,19 @@ PLOT_CAPTIONS = {"train.png": "training data: measured, declared FMU and hybrid"
 
 # -- plots ------------------------------------------------------------------------------------
 
-def _plots(folder: Path, report, diagnosis, plain, chosen, roles, scoring, model_fmu, units) -> tuple[list, list]:
+def _plots(folder: Path, diagnosis, plain, chosen, roles, scoring, model_fmu, units) -> tuple[list, list]:
     from .plots import plot_effect, plot_signals
     first, test = roles.train[0], roles.test
     label = f"hybrid ({chosen.name})" if chosen else None
     held_out = roles.validation[0].window if roles.held_out_of_training else None
-    paths = [plot_signals(folder / "train.png", first.data, plain.runs[id(first.data)],
-                          chosen.scores.runs[id(first.data)] if chosen else None, label, units,
-                          f"Training run {first.file_name}", held_out),
-             plot_signals(folder / "test.png", test.data, plain.runs[id(test.data)],
-                          chosen.scores.runs[id(test.data)] if chosen else None, label, units,
-                          f"Test run {test.file_name} (touched once)")]
+
+    def signals(name: str, part, title: str, shaded=None) -> Path:
+        run = id(part.data)
+        return plot_signals(folder / name, part.data, plain.runs[run], chosen.scores.runs[run] if chosen else None,
+                            label, units, title, shaded)
+
+    paths = [signals("train.png", first, f"Training run {first.file_name}", held_out),
+             signals("test.png", test, f"Test run {test.file_name} (touched once)")]
     notes = []
     if chosen is not None:
         try:

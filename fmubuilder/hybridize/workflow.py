@@ -499,8 +499,9 @@ def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], ali
     fmu = export_hybrid(spec, folder / "hybrid.fmu")
     metrics = trained.metrics
     if not base_terms:         # the report's training summary is the plain NeuralFMU's
+        optimizer = {"adam": "Adam", "lbfgs": "L-BFGS"}[settings["optimizer"]]
         ctx.training = {"budget": ctx.budget, "loss_evaluations": metrics.get("loss_evaluations"),
-                        "steps": metrics.get("epochs"), "optimizer": {"adam": "Adam", "lbfgs": "L-BFGS"}[settings["optimizer"]], "seed": ctx.seed,
+                        "steps": metrics.get("epochs"), "optimizer": optimizer, "seed": ctx.seed,
                         "time_budget": ctx.time_budget,
                         "cut_short_by_time_budget": bool(metrics.get("cut_short_by_time_budget")),
                         "trained_on": first.label}
