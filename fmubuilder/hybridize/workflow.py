@@ -272,10 +272,8 @@ def score(scores: Scores, roles: Roles, scoring: Scoring, which: tuple[str, ...]
 
 
 def _select(candidates: list[Candidate], plain: Scores, validation: list[Part] = ()) -> dict:
-    """The candidate chosen on the validation data (hybridize/choice.py): the lowest geometric mean
-    over the signals of MSE / noise variance, an ANN only when it beats the simpler candidates by
-    more than the noise allows, published if it beats the plain model. Without `validation` parts
-    (their noise and length) the floors are the plain model's MSE and there is no margin."""
+    """The candidate chosen on the validation data (choice.py; the rule: the README's "The candidates").
+    Without `validation` parts the floors are the plain model's MSE and there is no margin."""
     from .choice import RULE, choose, floors_of, noise_margin, validation_score
     errors = plain.errors["validation"]
     noise = {name: validation[0].data.noise_variance(name) for name in errors} if validation else {}
@@ -379,10 +377,8 @@ def channel_aliases(model_fmu, info, channel: str, start_values: dict, data_time
 
 
 def _ann_channels_and_inputs(ctx: _Context, diagnosis) -> tuple[list[str], list[str]]:
-    """The derivatives the ANN corrects and the variables it reads, chosen by cross-validated error
-    with a test against noise (hybridize.inputs; where a closed loop hides the term in the channel,
-    on the measured derivative where its compensation shows); the diagnosis' leading variable when
-    that choice has nothing to go on."""
+    """The derivatives the ANN corrects and the variables it reads, chosen on held-out error
+    (hybridize.inputs); the diagnosis' leading variable when that choice has nothing to go on."""
     from .inputs import choose_ann
     choice = choose_ann(ctx.model_fmu, ctx.info, ctx.roles.train, ctx.roles.validation, diagnosis.channel,
                         list(diagnosis.ambiguous_channels), ctx.scoring.step, ctx.scoring.solver)
