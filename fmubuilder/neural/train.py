@@ -330,7 +330,6 @@ class Trainer:
         starts = plan_elements(self.data.start, self.data.stop, self.settings.element_length, self.step)
         self.element_duration = min(self.settings.element_length, self.data.stop - self.data.start)
         self.reference = self._reference(starts)
-        self._check_finite_scale()
         self.model.topology.initialise_scaling(*self._scaling_samples())
         self._track_validation(0)      # the start: the plain FMU, or the base term alone
         if self.settings.nipt_iterations and self.model.topology.has_ann and self.model.config.kind == "gates":
@@ -344,16 +343,6 @@ class Trainer:
         if not self.model.topology.is_neutral():
             self._capture_starts(plain=False)
 
-    def _check_finite_scale(self) -> None:
-        """A loss scale that overflowed (values near the float range) makes every loss inf or nan:
-        stop before training on it."""
-        broken = [name for name, value in self.scale.items() if not math.isfinite(value)]
-        if broken:
-            raise FmuBuilderError(
-                f"the plain FMU's error on {', '.join(broken)} in {self.data.source} is not a finite number "
-                "(values far outside the float range, or a simulation that diverged); check the data's values "
-                "and units")
-
     def _reference(self, starts: list[float]):
         """Plain-FMU simulation over the data; FMU states saved at the element starts."""
         self.start_times = starts
@@ -366,10 +355,18 @@ class Trainer:
 
     def _reference_scale(self) -> dict:
         """Per-signal MSE of the plain FMU on the elements, floored at 1e-6 of the signal's variance
-        (a signal the FMU already matches exactly must not dominate the loss)."""
+        (a signal the FMU already matches exactly must not dominate the loss). One that overflowed
+        (values near the float range) would make every loss inf or nan: an error before training."""
         with torch.no_grad(), self.model.topology.ann_off():
             errors = self._signal_errors(self.elements, keep_final_state=False)
-        return {name: max(float(errors[name]), 1e-6 * self.scale[name]) for name in self.loss_signals}
+        scale = {name: max(float(errors[name]), 1e-6 * self.scale[name]) for name in self.loss_signals}
+        broken = [name for name, value in scale.items() if not math.isfinite(value)]
+        if broken:
+            raise FmuBuilderError(
+                f"the plain FMU's error on {', '.join(broken)} in {self.data.source} is not a finite number "
+                "(values far outside the float range, or a simulation that diverged); check the data's values "
+                "and units")
+        return scale
 
     def _capture_starts(self, plain: bool):
         """Simulate over the whole data (no gradient) and save the FMU state at each element start;
