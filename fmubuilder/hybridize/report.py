@@ -78,8 +78,7 @@ def write_report(folder: Path, *, model_fmu, diagnosis, plain, candidates, chose
         # The file validated was the candidate in a work folder, since deleted; the published FMU is
         # its byte copy, so the table names that.
         roundtrip = {**roundtrip, "table": roundtrip["table"].replace(str(chosen.fmu), str(hybrid_fmu))}
-    report["plots"], report["plot_notes"] = _plots(folder, report, diagnosis, plain, chosen, roles, scoring,
-                                                   model_fmu, units)
+    report["plots"], report["plot_notes"] = _plots(folder, diagnosis, plain, chosen, roles, scoring, model_fmu, units)
     page = markdown(report, roundtrip)
     write_atomically(folder / "report.json", json.dumps(report, indent=2, default=_json_default) + "\n")
     write_atomically(folder / "report.md", page)
@@ -103,8 +102,6 @@ def _json_default(value):
         return value.item()
     if isinstance(value, np.ndarray):
         return value.tolist()
-    if isinstance(value, tuple):
-        return list(value)
     return str(value)
 
 
@@ -161,10 +158,10 @@ def markdown(report: dict, roundtrip: dict | None) -> str:
 def _data_section(report: dict) -> list[str]:
     data = report["data"]
     return ["## Data and their roles", "",
-            f"- training (the diagnosis and the fit): {', '.join(f'`{x}`' for x in data['train'])}",
+            f"- training (the diagnosis and the fit): {_code_list(data['train'])}",
             f"- validation (the choice and the decision to publish; {data['validation_from']}): "
-            f"{', '.join(f'`{x}`' for x in data['validation'])}",
-            f"- test (touched once, after everything was decided): {', '.join(f'`{x}`' for x in data['test'])}",
+            f"{_code_list(data['validation'])}",
+            f"- test (touched once, after everything was decided): {_code_list(data['test'])}",
             f"- every model simulated the same way: {report['scoring']}"]
 
 
@@ -209,6 +206,10 @@ def _candidates_section(report: dict) -> list[str]:
     lines.append(f"\nChosen on the validation data: **{selection['chosen'] or 'none (no candidate improved it)'}** "
                  f"({selection['rule']}). {report['test_note']}")
     return lines
+
+
+def _code_list(names) -> str:
+    return ", ".join(f"`{name}`" for name in names)
 
 
 def _cell(text: str) -> str:
@@ -258,28 +259,25 @@ def _errors_section(report: dict) -> list[str]:
              + ("; hybrid: the published FMU. Factor: MSE FMU / MSE hybrid (above 1: the hybrid is better)."
                 if hybrid else "; no hybrid was published.")]
     final = bool(cumulative)
-    header = ["signal", "RMS FMU"] + (["RMS hybrid", "factor"] if hybrid else []) + ["max abs FMU"] + \
-        (["max abs hybrid"] if hybrid else [])
-    if final:
-        header += ["final FMU"] + (["final hybrid"] if hybrid else [])
+
+    def columns(fmu: str, *hybrid_columns: str) -> list[str]:
+        return [fmu, *hybrid_columns] if hybrid else [fmu]
+
+    header = ["signal", *columns("RMS FMU", "RMS hybrid", "factor"), *columns("max abs FMU", "max abs hybrid"),
+              *(columns("final FMU", "final hybrid") if final else [])]
     for role in ROLES:
         errors = report["errors"][role]
-        files = report["data"][role]
-        lines += ["", f"### {ROLE_TITLES[role]}", "", "Data: " + ", ".join(f"`{x}`" for x in files), "",
+        lines += ["", f"### {ROLE_TITLES[role]}", "", f"Data: {_code_list(report['data'][role])}", "",
                   "| " + " | ".join(header) + " |", "|:---|" + "---:|" * (len(header) - 1)]
         for signal, b in errors["before"].items():
             a = errors["after"][signal]
-            row = [_with_unit(signal, units), f"{np.sqrt(b['mse']):.4g}"]
-            if hybrid:
-                row += [f"{np.sqrt(a['mse']):.4g}", _factor(report["mse_factor"][role][signal])]
-            row.append(f"{b['max_abs']:.4g}")
-            if hybrid:
-                row.append(f"{a['max_abs']:.4g}")
+            row = [_with_unit(signal, units),
+                   *columns(f"{np.sqrt(b['mse']):.4g}", f"{np.sqrt(a['mse']):.4g}",
+                            _factor(report["mse_factor"][role][signal])),
+                   *columns(f"{b['max_abs']:.4g}", f"{a['max_abs']:.4g}")]
             if final:
-                shown = signal in cumulative
-                row.append(f"{b['final']:.4g}" if shown else "–")
-                if hybrid:
-                    row.append(f"{a['final']:.4g}" if shown else "–")
+                row += (columns(f"{b['final']:.4g}", f"{a['final']:.4g}") if signal in cumulative
+                        else columns("–", "–"))
             lines.append("| " + " | ".join(row) + " |")
     if final:
         lines.append(f"\nFinal: the error at the last sample, shown for the signals that accumulate "
@@ -322,17 +320,19 @@ PLOT_CAPTIONS = {"train.png": "training data: measured, declared FMU and hybrid"
 
 # -- plots ------------------------------------------------------------------------------------
 
-def _plots(folder: Path, report, diagnosis, plain, chosen, roles, scoring, model_fmu, units) -> tuple[list, list]:
+def _plots(folder: Path, diagnosis, plain, chosen, roles, scoring, model_fmu, units) -> tuple[list, list]:
     from .plots import plot_effect, plot_signals
     first, test = roles.train[0], roles.test
     label = f"hybrid ({chosen.name})" if chosen else None
     held_out = roles.validation[0].window if roles.held_out_of_training else None
-    paths = [plot_signals(folder / "train.png", first.data, plain.runs[id(first.data)],
-                          chosen.scores.runs[id(first.data)] if chosen else None, label, units,
-                          f"Training run {_file_name(first.data)}", held_out),
-             plot_signals(folder / "test.png", test.data, plain.runs[id(test.data)],
-                          chosen.scores.runs[id(test.data)] if chosen else None, label, units,
-                          f"Test run {_file_name(test.data)} (touched once)")]
+
+    def signals(name: str, part, title: str, shaded=None) -> Path:
+        run = id(part.data)
+        return plot_signals(folder / name, part.data, plain.runs[run], chosen.scores.runs[run] if chosen else None,
+                            label, units, title, shaded)
+
+    paths = [signals("train.png", first, f"Training run {first.file_name}", held_out),
+             signals("test.png", test, f"Test run {test.file_name} (touched once)")]
     notes = []
     if chosen is not None:
         try:
@@ -351,10 +351,6 @@ def _plots(folder: Path, report, diagnosis, plain, chosen, roles, scoring, model
     plots = [str(p.relative_to(folder)) for p in paths] + \
         [str(Path("diagnosis") / Path(p).name) for p in diagnosis.plots]
     return plots, notes
-
-
-def _file_name(data) -> str:
-    return Path(str(data.path)).name if data.path else data.source
 
 
 # -- HTML ---------------------------------------------------------------------------------------

@@ -1,30 +1,18 @@
-"""`fmubuilder hybridize`: diagnose, add the effect, train, export, validate, report.
+"""`fmubuilder hybridize`: diagnose, build the candidates, choose one on the validation data,
+validate its round trip, score the test data once, report.
 
-The data play three roles, and each number in the report comes from one of them:
-
-    training   -> the diagnosis and the NeuralFMU's fit see only these samples
-    validation -> chooses among the candidates and decides whether one is published: a late share
-                  of each training run held out of the fit, or a separate run (`validation_csv`)
-    test       -> touched once, after everything is decided; every candidate's test numbers are
-                  reported, the chosen one's and the others'
-
-    diagnosis  -> is there an effect beyond noise? which derivative, which variables?
-    candidates -> a NeuralFMU with the ANN at the traced channel and inputs, the fitted
-                  symbolic term when the diagnosis offers one (its coefficient refined through the
-                  simulation, hybridize/refine_term.py), the FMU with a parameter calibrated
-                  (hybridize/calibrate.py), and an ANN added to the fitted term (term_started.py);
-                  each exported as an FMU. The ANN on the term ends with its best epoch on the
-                  validation data, the start included
-    selection  -> the candidate with the lowest validation score (MSE over the noise floor, geometric
-                  mean over the signals), an ANN only by a noise margin over the simpler ones, if it
-                  beats the plain FMU there (hybridize/choice.py)
-    round trip -> of the chosen hybrid FMU (fmpy vs the Python reference)
-    report     -> DIR/report.json, DIR/report.md, DIR/report.html (plots inline) and the plots
+The data's roles and the candidates are the README's "Data and their roles in `hybridize`" and "The
+candidates"; each number in the report comes from one role. The stages: the diagnosis (diagnose/);
+the candidates, each exported as an FMU: the fitted term, its coefficient refined through the
+simulation (refine_term.py), the FMU with a parameter calibrated (calibrate.py), a NeuralFMU, and an
+ANN added to the fitted term (term_started.py); the choice (choice.py); the round trip of the chosen
+FMU (fmpy vs the Python reference); the report (report.py: report.json, report.md, report.html and
+the plots).
 
 The work is counted, not timed: the diagnosis traces a fixed span of data and the NeuralFMU trains
 for a fixed number of loss evaluations (`budget`), so the same command gives the same numbers on an
-idle and a busy machine.
-`time_budget` is an optional wall-clock cap on the training; the report says when it cut it short.
+idle and a busy machine. `time_budget` is an optional wall-clock cap on the training; the report
+says when it cut it short.
 """
 from __future__ import annotations
 
@@ -52,8 +40,7 @@ DEFAULT_BUDGET = 10
 # The optimizer through the solver: "adam" or "lbfgs". On the DC drive's truths, 5 evaluations
 # each, with the bounded warm start (benchmarks/bench_effects.py --optimizer; the NeuralFMU's worst
 # test signal / noise, L-BFGS against Adam): Coulomb 303 / 391, speed-current loss 218 / 4.18e4, two
-# effects 1690 / 7.17e4, but Stribeck 318 / 51.8 and windage 24.4 / 4.24. Three Adam steps before
-# L-BFGS landed in between on both frictions (docs/MEASUREMENTS.md) and are no longer an option.
+# effects 1690 / 7.17e4, but Stribeck 318 / 51.8 and windage 24.4 / 4.24.
 OPTIMIZER = "lbfgs"
 # Seconds of the test data replayed by the round-trip validation (fmpy Euler and CVode).
 ROUNDTRIP_SPAN = 60.0
@@ -91,10 +78,13 @@ class Part:
     window: tuple[float, float]
 
     @property
+    def file_name(self) -> str:
+        return Path(self.data.path).name if self.data.path else self.data.source
+
+    @property
     def label(self) -> str:
-        name = Path(self.data.path).name if self.data.path else self.data.source
         whole = self.window == (self.data.start, self.data.stop)
-        return name if whole else f"{name} [{self.window[0]:g}, {self.window[1]:g}] s"
+        return self.file_name if whole else f"{self.file_name} [{self.window[0]:g}, {self.window[1]:g}] s"
 
     def samples(self) -> MeasuredData:
         return self.data.window(*self.window)
@@ -282,10 +272,8 @@ def score(scores: Scores, roles: Roles, scoring: Scoring, which: tuple[str, ...]
 
 
 def _select(candidates: list[Candidate], plain: Scores, validation: list[Part] = ()) -> dict:
-    """The candidate chosen on the validation data (hybridize/choice.py): the lowest geometric mean
-    over the signals of MSE / noise variance, an ANN only when it beats the simpler candidates by
-    more than the noise allows, published if it beats the plain model. Without `validation` parts
-    (their noise and length) the floors are the plain model's MSE and there is no margin."""
+    """The candidate chosen on the validation data (choice.py; the rule: the README's "The candidates").
+    Without `validation` parts the floors are the plain model's MSE and there is no margin."""
     from .choice import RULE, choose, floors_of, noise_margin, validation_score
     errors = plain.errors["validation"]
     noise = {name: validation[0].data.noise_variance(name) for name in errors} if validation else {}
@@ -389,10 +377,8 @@ def channel_aliases(model_fmu, info, channel: str, start_values: dict, data_time
 
 
 def _ann_channels_and_inputs(ctx: _Context, diagnosis) -> tuple[list[str], list[str]]:
-    """The derivatives the ANN corrects and the variables it reads, chosen by cross-validated error
-    with a test against noise (hybridize.inputs; where a closed loop hides the term in the channel,
-    on the measured derivative where its compensation shows); the diagnosis' leading variable when
-    that choice has nothing to go on."""
+    """The derivatives the ANN corrects and the variables it reads, chosen on held-out error
+    (hybridize.inputs); the diagnosis' leading variable when that choice has nothing to go on."""
     from .inputs import choose_ann
     choice = choose_ann(ctx.model_fmu, ctx.info, ctx.roles.train, ctx.roles.validation, diagnosis.channel,
                         list(diagnosis.ambiguous_channels), ctx.scoring.step, ctx.scoring.solver)
@@ -509,8 +495,9 @@ def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], ali
     fmu = export_hybrid(spec, folder / "hybrid.fmu")
     metrics = trained.metrics
     if not base_terms:         # the report's training summary is the plain NeuralFMU's
+        optimizer = {"adam": "Adam", "lbfgs": "L-BFGS"}[settings["optimizer"]]
         ctx.training = {"budget": ctx.budget, "loss_evaluations": metrics.get("loss_evaluations"),
-                        "steps": metrics.get("epochs"), "optimizer": _optimizer_text(settings), "seed": ctx.seed,
+                        "steps": metrics.get("epochs"), "optimizer": optimizer, "seed": ctx.seed,
                         "time_budget": ctx.time_budget,
                         "cut_short_by_time_budget": bool(metrics.get("cut_short_by_time_budget")),
                         "trained_on": first.label}
@@ -535,10 +522,6 @@ def _training_settings(data: MeasuredData, diagnosis) -> dict:
     return {"element_length": min(MAX_ELEMENT_LENGTH, span / MIN_ELEMENTS), "loss_signals": showing or None,
             "warm_start": WARM_START, "ccpt_window": COLLOCATION_WINDOW, "warm_start_target": WARM_START_TARGET,
             "integral_window": INTEGRAL_WINDOW, "optimizer": OPTIMIZER}
-
-
-def _optimizer_text(settings: dict) -> str:
-    return {"adam": "Adam", "lbfgs": "L-BFGS"}[settings["optimizer"]]
 
 
 def _roundtrip(chosen: Candidate, test: Part) -> dict:

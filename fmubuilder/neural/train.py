@@ -2,57 +2,36 @@
 
 Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
 1. Reference simulation of the plain FMU over the data, with the same fixed-step solver. It gives the
-   pre-/post-processing scales (ANN inputs roughly standard normal, outputs at the channel's
-   magnitude) and the start of every batch element: the measured data hold no controller states, so
-   each element starts from the FMU state saved by the reference (fmi2GetFMUstate, serialized; it
-   carries the discrete states), with the measured states set to their measured values (the run's
-   own value where the data's first samples agree with it, see measured_initial_states; read one
-   sensor lag later, where a lagging sensor shows the state at the element's start).
+   pre-/post-processing scales and the start of every batch element: the data hold no controller
+   states, so each element starts from the FMU state the reference saved there (discrete states
+   included), with the measured states set to their measured values (measured_initial_states).
    Unmeasured states of the plain FMU can be far from the truth (a controller integral that
    compensates an unmodelled load), and their transient at each element start would dominate the
    loss. So after pre-training the starts are captured again from a simulation of the hybrid, and
    during training each element's final FMU state becomes the next element's start (carry-over),
-   so the starts follow the model as it learns. An FMU that cannot save its state
-   (canGetAndSetFMUstate="false", as most OpenModelica exports) gets the same starts without
-   snapshots (solve.Replay): a carried-over start is the FMU instance that computed it, left standing
-   there (no cost); a captured start, or one used a second time (a rewind), is replayed without
-   gradient through the runs that reached it. With K elements of length L that costs, in simulated
-   time without gradient: K(K-1)/2 L after each capture (twice in the preparation), K(K-1)/2 L per
-   rewind (each start's carry-over chain), and with random mini-batches the starts an element reuses
-   from the epoch before; sequential elements replay only the captures. On sampled_plant
-   (benchmarks/bench_no_fmu_state.py) that made training 0.5-1.35 times as long as with snapshots,
-   which pay for the discrete-state gradients instead.
-   The starts are the same as with snapshots up to rounding; what such an FMU cannot give is the
-   gradient through its discrete states at events (solve.py, item 3).
+   so the starts follow the model as it learns. An FMU that cannot save its state gets the same
+   starts, up to rounding, by replaying the runs that reached them (solve.Replay; on sampled_plant,
+   benchmarks/bench_no_fmu_state.py, 0.5-1.35 times the training time with snapshots), but no
+   gradient through its discrete states at events.
 2. Neutral-initialisation pre-training (NIPT): the ANN part is fitted to leave the hybrid unchanged
    (the FMU's channel derivative for gates, zero for residual) on inputs from the reference.
-3. Optional collocation pre-training (CCPT) for channels der(s) whose state s is measured: the FMU is
-   run with the measured states forced to the data (its events still happen), the derivative of
-   s is estimated from the data by local linear fits, and the ANN is fitted to the residual without
-   the ODE solver. The ANN gate is set to 1 first if it was 0. The warm start (`warm_start`,
-   warm_start.py) fits the same target full-batch with L-BFGS instead of Adam on minibatches, with
-   the forced states smoothed and read a sensor lag later, and keeps the fit only if it lowers the
-   training loss; with `warm_start_target="integral"` it fits the ANN's integrals over windows of
-   `integral_window` seconds to the measured states' increments instead of slopes.
+3. Optional collocation pre-training (CCPT) for channels der(s) whose state s is measured: the ANN is
+   fitted, without the ODE solver, to the measured derivative of s minus the FMU's along the
+   measured trajectory. The warm start (`warm_start`, warm_start.py) fits that target full-batch with
+   L-BFGS and keeps the fit only if it lowers the training loss.
 4. Training: the data are cut into elements (default 100 s) simulated side by side; the loss is the
    MSE per measured signal (weighted by the uncertainty band when the CSV has <signal>_std columns)
    divided by the plain FMU's MSE on the same elements, averaged over the signals: every signal
    starts at 1. Scaling by the signal's variance instead lets a cumulative signal (energy, whose
-   variance over a cycle is huge) drown in the noise of the others, and the training then trades a
-   better fit of noisy power transients for a drifting energy. The simulated signals pass through
-   the sensors' first-order lag (`sensor_lag`) first, each sensor starting an element at what the
-   data show there. Adam with exponential step-size decay per
-   epoch, the pre-/post-processing at a tenth of the step size; with one batch per epoch, rewinds
-   after an epoch that made the loss worse (see Trainer._keep_best), and the parameters of the
-   lowest loss at the end. Elements in random order, `batch_size` side by side, or sequential (time
-   order, one at a time, each continuing the state just computed). Or `optimizer="lbfgs"`: one
-   L-BFGS step over all elements per epoch, its line search on fixed element starts, the
-   pre-/post-processing fixed (see network_parameters). The
-   work is `epochs`, or with `budget` a number of loss evaluations, each a simulation of a batch with
-   its gradient (an Adam step costs one, an L-BFGS step what its line search takes), spent exactly:
-   the way to compare optimizers on equal work. With
-   `validation` data the training ends instead with the parameters of the best validation score,
-   the start included. Fixed seeds, a time budget, a checkpoint after every epoch, and resume.
+   variance over a cycle is huge) drown in the noise of the others. The simulated signals pass
+   through the sensors' first-order lag (`sensor_lag`) first. Adam with exponential step-size decay
+   per epoch, rewinds after a worse epoch (Trainer._keep_best) and the parameters of the lowest loss
+   at the end; elements in random batches or sequential (carry-over). Or `optimizer="lbfgs"`: one
+   L-BFGS step over all elements per epoch on fixed element starts. The work is `epochs`, or with
+   `budget` a number of loss evaluations spent exactly (Trainer.fit): the way to compare optimizers
+   on equal work. With `validation` data the training ends with the parameters of the best
+   validation score, the start included. Fixed seeds, a time budget, a checkpoint after every
+   epoch, and resume.
 5. Errors before (plain FMU) and after (trained hybrid) over the whole data, simulated with
    fmubuilder's engine.
 """
@@ -172,11 +151,9 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
             settings.sensor_lag = data.sensor_lag
         trainer = Trainer(model, data, settings, started, validation)
         trainer.prepare()
-        before = trainer.evaluate_plain()
+        before = trainer.errors(data, plain=True)
         trainer.fit(checkpoint=_checkpoint_path(settings, output), on_epoch=on_epoch)
-        lag = settings.sensor_lag
-        after = evaluate(model, data, trainer.step, settings.solver, sensor_lag=lag)
-        metrics = {"errors": {"before": before, "after": after},
+        metrics = {"errors": {"before": before, "after": trainer.errors(data)},
                    "seconds": time.perf_counter() - started, "epochs": trainer.epochs_done,
                    "epochs_planned": settings.epochs if settings.budget is None else None,
                    "budget": settings.budget, "cut_short_by_time_budget": trainer.cut_short,
@@ -186,13 +163,9 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
                    "validation": trainer.validation_summary()}
         if test_data is not None:
             test = test_data if isinstance(test_data, MeasuredData) else load_data(test_data, model.info)
-            if test_start_values is None:
-                test_start_values = test.start_values
-            metrics["test_errors"] = {
-                "before": evaluate(model, test, trainer.step, settings.solver, start_values=test_start_values,
-                                   plain=True, sensor_lag=lag),
-                "after": evaluate(model, test, trainer.step, settings.solver, start_values=test_start_values,
-                                  sensor_lag=lag)}
+            starts = test.start_values if test_start_values is None else test_start_values
+            metrics["test_errors"] = {"before": trainer.errors(test, starts, plain=True),
+                                      "after": trainer.errors(test, starts)}
         if output is not None:
             save_neural_fmu(model, output, metadata={"data": data.source, "metrics": metrics}, force=True)
         if metrics_path is not None:
@@ -317,8 +290,7 @@ class Trainer:
         self._validation_plain: dict | None = None
         self.validation_best: tuple[float, int, dict] | None = None   # (score, epoch, parameters)
         self.validation_start: float | None = None                     # the score before training
-        info = model.info
-        self.step = float(settings.step_size or info.default_experiment.step_size or
+        self.step = float(settings.step_size or model.info.default_experiment.step_size or
                           (data.stop - data.start) / max(10 * data.time.size, 1000))
         self.loss_signals = list(settings.loss_signals or data.signals)
         for name in self.loss_signals:
@@ -338,6 +310,10 @@ class Trainer:
         self._lbfgs_seen: list = []   # ((parameters, element starts), loss, gradients) of recent L-BFGS evaluations
         self._lbfgs_tried: list = []  # (parameters, loss) of the points the current L-BFGS step asked for
 
+    @property
+    def sensor_lag(self) -> float:
+        return self.settings.sensor_lag or 0.0
+
     def elapsed(self) -> float:
         return time.perf_counter() - self.started
 
@@ -354,7 +330,6 @@ class Trainer:
         starts = plan_elements(self.data.start, self.data.stop, self.settings.element_length, self.step)
         self.element_duration = min(self.settings.element_length, self.data.stop - self.data.start)
         self.reference = self._reference(starts)
-        self._check_finite_scale()
         self.model.topology.initialise_scaling(*self._scaling_samples())
         self._track_validation(0)      # the start: the plain FMU, or the base term alone
         if self.settings.nipt_iterations and self.model.topology.has_ann and self.model.config.kind == "gates":
@@ -368,16 +343,6 @@ class Trainer:
         if not self.model.topology.is_neutral():
             self._capture_starts(plain=False)
 
-    def _check_finite_scale(self) -> None:
-        """A loss scale that overflowed (values near the float range) makes every loss inf or nan:
-        stop before training on it."""
-        broken = [name for name, value in self.scale.items() if not math.isfinite(value)]
-        if broken:
-            raise FmuBuilderError(
-                f"the plain FMU's error on {', '.join(broken)} in {self.data.source} is not a finite number "
-                "(values far outside the float range, or a simulation that diverged); check the data's values "
-                "and units")
-
     def _reference(self, starts: list[float]):
         """Plain-FMU simulation over the data; FMU states saved at the element starts."""
         self.start_times = starts
@@ -390,10 +355,18 @@ class Trainer:
 
     def _reference_scale(self) -> dict:
         """Per-signal MSE of the plain FMU on the elements, floored at 1e-6 of the signal's variance
-        (a signal the FMU already matches exactly must not dominate the loss)."""
+        (a signal the FMU already matches exactly must not dominate the loss). One that overflowed
+        (values near the float range) would make every loss inf or nan: an error before training."""
         with torch.no_grad(), self.model.topology.ann_off():
             errors = self._signal_errors(self.elements, keep_final_state=False)
-        return {name: max(float(errors[name]), 1e-6 * self.scale[name]) for name in self.loss_signals}
+        scale = {name: max(float(errors[name]), 1e-6 * self.scale[name]) for name in self.loss_signals}
+        broken = [name for name, value in scale.items() if not math.isfinite(value)]
+        if broken:
+            raise FmuBuilderError(
+                f"the plain FMU's error on {', '.join(broken)} in {self.data.source} is not a finite number "
+                "(values far outside the float range, or a simulation that diverged); check the data's values "
+                "and units")
+        return scale
 
     def _capture_starts(self, plain: bool):
         """Simulate over the whole data (no gradient) and save the FMU state at each element start;
@@ -419,17 +392,16 @@ class Trainer:
         """The element starts at the measured states, or at the run's (`along_run`) where the data
         agree with them."""
         start.states = measured_initial_states(self.model, self.data, start.t0, along_run,
-                                               sensor_lag=self.settings.sensor_lag or 0.0)
+                                               sensor_lag=self.sensor_lag)
         return start
 
     def _reference_names(self) -> list[str]:
         return list(dict.fromkeys(self.model.config.inputs + self.model.config.channels + list(self.data.signals)))
 
     def _scaling_samples(self) -> tuple[np.ndarray, np.ndarray]:
-        ref, config = self.reference, self.model.config
-        inputs = np.stack([ref.numpy(name)[:, 0] for name in config.inputs], axis=1) if config.inputs else np.zeros((0, 0))
-        channels = np.stack([ref.numpy(name)[:, 0] for name in config.channels], axis=1) if config.channels else np.zeros((0, 0))
-        return inputs, channels
+        def columns(names: list[str]) -> np.ndarray:
+            return np.stack([self.reference.numpy(name)[:, 0] for name in names], axis=1) if names else np.zeros((0, 0))
+        return columns(self.model.config.inputs), columns(self.model.config.channels)
 
     def _targets(self, t0: float) -> dict:
         """Data points of the element starting at t0: grid positions and measured values per signal."""
@@ -454,9 +426,9 @@ class Trainer:
         enters an element showing where the signal was, not where it is."""
         return {name: self.data.start_estimate(name, t0) for name in self.loss_signals}
 
-    def evaluate_plain(self) -> dict:
-        return evaluate(self.model, self.data, self.step, self.settings.solver, plain=True,
-                        sensor_lag=self.settings.sensor_lag or 0.0)
+    def errors(self, data: MeasuredData, start_values: dict | None = None, plain: bool = False) -> dict:
+        """evaluate() at the training's step, solver and sensor lag."""
+        return evaluate(self.model, data, self.step, self.settings.solver, start_values, plain, self.sensor_lag)
 
     # -- the epoch loop -------------------------------------------------------------------------
     def fit(self, checkpoint: Path | None = None, on_epoch=None) -> None:
@@ -708,7 +680,7 @@ class Trainer:
     def _validation_errors(self, plain: bool) -> dict:
         part = self.validation
         result = simulate_over(self.model, part.data, self.step, self.settings.solver, part.start_values, plain)
-        errors = data_errors(part.data.window(*part.window), result, self.settings.sensor_lag or 0.0)
+        errors = data_errors(part.data.window(*part.window), result, self.sensor_lag)
         return {name: errors[name]["mse"] for name in errors}
 
     def _track_validation(self, epoch: int) -> float | None:
@@ -729,17 +701,18 @@ class Trainer:
                 "best_epoch": self.validation_best[1],
                 "window": list(self.validation.window)}
 
-    def _batches_per_epoch(self) -> int:
+    def _batch_size(self) -> int:
         if self.settings.order == "sequential":
-            return len(self.elements)
-        size = self.settings.batch_size or len(self.elements)
-        return math.ceil(len(self.elements) / size)
+            return 1
+        return self.settings.batch_size or len(self.elements)
+
+    def _batches_per_epoch(self) -> int:
+        return math.ceil(len(self.elements) / self._batch_size())
 
     def _epoch_batches(self, rng):
         if self.settings.order == "sequential":
             return [[e] for e in self.elements]
-        order = rng.permutation(len(self.elements))
-        size = self.settings.batch_size or len(self.elements)
+        order, size = rng.permutation(len(self.elements)), self._batch_size()
         return [[self.elements[i] for i in order[j:j + size]] for j in range(0, len(order), size)]
 
     def batch_loss(self, batch: list["_Element"], carry: bool = True) -> torch.Tensor:
