@@ -55,6 +55,7 @@ import numpy as np
 
 from ..errors import FmuBuilderError
 from ..progress import counted
+from ..simulation.results import equal_along
 from .runs import TIME, AddedTerm, ModelRun, ModelRunner, TrialTooSlow, basis_values, rms
 
 MAX_SNR = 10.0                 # precision weights give a signal at most this signal-to-noise ratio
@@ -249,9 +250,7 @@ class Tracer:
         der = self.info.derivatives[c].name
         if der not in values:
             return {der}
-        d = values[der]
-        scale = max(float(np.max(np.abs(d))), 1e-300)
-        return {name for name, w in values.items() if np.max(np.abs(w - d)) <= 1e-9 * scale}
+        return set(equal_along(values, values[der]))
 
     def _trials(self, channel: ChannelScore, forms) -> list[Trial]:
         trials = []

@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..simulation.results import equal_along
 from .evaluate import Scoring, simulate_over
 
 # Share of held-out samples outside the training range (widened by RANGE_MARGIN of its width) above
@@ -417,9 +418,7 @@ def equal_to(variables: dict, channel: str) -> list[str]:
     energy state): an ANN reading them would read its own output."""
     if channel not in variables:
         return []
-    reference = variables[channel]
-    tolerance = 1e-9 * max(float(np.max(np.abs(reference))), 1e-300)
-    return [n for n, v in variables.items() if n != channel and float(np.max(np.abs(v - reference))) <= tolerance]
+    return [n for n in equal_along(variables, variables[channel]) if n != channel]
 
 
 def outside_share(train_values: np.ndarray, held_out: np.ndarray) -> float:

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from ..data import MeasuredData
+from ..simulation.results import equal_along
 from .model import NeuralFMU
 from .solve import ElementStart, simulate
 
@@ -168,15 +169,10 @@ def forced_channel_run(model: NeuralFMU, data: MeasuredData, step: float, solver
     run = forced_run(model, data, step, solver, forced, values, names, inputs)
     ann_inputs = np.stack([run.numpy(n)[:, 0] for n in config.inputs], axis=1)
     fmu_channels = np.stack([run.numpy(c)[:, 0] for c in config.channels], axis=1)
-    aliases = [_equal_output(run, outputs, fmu_channels[:, j]) for j in range(len(config.channels))]
+    measured_outputs = {n: run.numpy(n)[:, 0] for n in outputs}
+    # a measured output the model sets equal to the channel's derivative (a power to der(energy))
+    aliases = [next(iter(equal_along(measured_outputs, fmu_channels[:, j])), None) for j in range(len(config.channels))]
     return data.start + run.times, ann_inputs, fmu_channels, channel_states, aliases
-
-
-def _equal_output(run, outputs: list[str], derivative: np.ndarray) -> str | None:
-    """The first measured output equal to `derivative` along the run (a power the model sets to
-    der(energy)), or None."""
-    tolerance = 1e-9 * max(float(np.max(np.abs(derivative))), 1e-300)
-    return next((n for n in outputs if float(np.max(np.abs(run.numpy(n)[:, 0] - derivative))) <= tolerance), None)
 
 
 def smooth_windows(data: MeasuredData, states: list[str], at: np.ndarray, window: float) -> np.ndarray:
@@ -230,7 +226,7 @@ def with_plain_unmeasured(model: NeuralFMU, data: MeasuredData, step: float, sol
     (0.03-0.09 rms on the DC drive's frictions). A state that reads itself (a current through an
     inductance) forgets its past and follows the forced states as the truth's did: it stays free,
     as do the states of a model that declares no dependencies."""
-    others = [s for s in model.state_names() if s not in forced and is_integrator(model.info, s)]
+    others = unmeasured_integrators(model, forced)
     if not others:
         return forced, values
     plain = _run(model, data, step, solver, [], None, others, inputs)
@@ -242,6 +238,12 @@ def with_plain_unmeasured(model: NeuralFMU, data: MeasuredData, step: float, sol
         measured = np.asarray(values(t), dtype=float).reshape(len(t), len(forced))
         return np.concatenate([measured, np.stack([np.interp(t, grid, c) for c in columns], axis=1)], axis=1)
     return [*forced, *others], extended
+
+
+def unmeasured_integrators(model: NeuralFMU, measured) -> list[str]:
+    """The model's states not in `measured` whose derivative, by the declared dependencies, does
+    not read the state itself (a controller's integrator): those that follow the plain run."""
+    return [s for s in model.state_names() if s not in measured and is_integrator(model.info, s)]
 
 
 def is_integrator(info, state: str) -> bool:

@@ -22,7 +22,7 @@ import math
 import numpy as np
 import torch
 
-from .collocation import collocation_samples, integral_samples, is_integrator
+from .collocation import collocation_samples, integral_samples, unmeasured_integrators
 
 # The bounded fit (fit_full_batch): grid points over the inputs' range, and the share of the
 # target's samples at either end left out of its range (single outliers of the estimate).
@@ -175,8 +175,7 @@ def warm_start(trainer) -> dict:
         _loss_from_own_starts(trainer)      # the element starts back at the kept parameters
     # simulations without gradient: the forced run (and the plain run its unmeasured states follow),
     # and a capture and a loss per evaluation
-    unmeasured = any(s not in trainer.data.signals and is_integrator(trainer.model.info, s)
-                     for s in trainer.model.state_names())
+    unmeasured = bool(unmeasured_integrators(trainer.model, trainer.data.signals))
     return {"samples": int(target.shape[0]), "target": trainer.settings.warm_start_target, "fit_error": error,
             "loss_before": loss_before, "loss_after": loss_after, "kept": kept,
             "simulations": (5 if kept else 7) + unmeasured}

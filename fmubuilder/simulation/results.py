@@ -92,6 +92,13 @@ def _format_column(values: np.ndarray) -> list[str]:
     return [repr(v) for v in values.tolist()]   # shortest text that reads back exactly
 
 
+def equal_along(trajectories: dict[str, np.ndarray], reference: np.ndarray) -> list[str]:
+    """The names whose trajectory equals `reference` along the run (to 1e-9 of its largest value):
+    a variable the model sets to a derivative, such as a power to der(energy)."""
+    tolerance = 1e-9 * max(float(np.max(np.abs(reference))), 1e-300)
+    return [name for name, values in trajectories.items() if float(np.max(np.abs(values - reference))) <= tolerance]
+
+
 def sample_settled(time: np.ndarray, values: np.ndarray, at: np.ndarray) -> np.ndarray:
     """Recorded `values` at the times `at`, linear between records; where two records share a time
     (before and after an event) a stamp there takes the value after it, as a logger sees the
