@@ -322,25 +322,21 @@ class FmuInstance:
             self._fail(status, "fmi2SetContinuousStates")
 
     def get_derivatives(self) -> np.ndarray:
-        if not self._n_states:
-            return self._dx_view.copy()
-        CALL[0] = _GETDERIVATIVES
-        status = self._lib.fmi2GetDerivatives(self.component, self._dx, self._n_states)
-        CALL[0] = _GETDERIVATIVES_DONE
-        if status > 1:
-            self._fail(status, "fmi2GetDerivatives")
-        return self._dx_view.copy()
+        return self._derivatives_view().copy()
 
     def derivatives_into(self, out: np.ndarray) -> None:
         """get_derivatives() written into `out` (a float64 array of n_states), without a new array."""
-        if not self._n_states:
-            return
-        CALL[0] = _GETDERIVATIVES
-        status = self._lib.fmi2GetDerivatives(self.component, self._dx, self._n_states)
-        CALL[0] = _GETDERIVATIVES_DONE
-        if status > 1:
-            self._fail(status, "fmi2GetDerivatives")
-        out[:] = self._dx_view
+        out[:] = self._derivatives_view()
+
+    def _derivatives_view(self) -> np.ndarray:
+        """The derivatives at the current point in the instance's own buffer (valid until the next call)."""
+        if self._n_states:
+            CALL[0] = _GETDERIVATIVES
+            status = self._lib.fmi2GetDerivatives(self.component, self._dx, self._n_states)
+            CALL[0] = _GETDERIVATIVES_DONE
+            if status > 1:
+                self._fail(status, "fmi2GetDerivatives")
+        return self._dx_view
 
     def get_event_indicators(self) -> np.ndarray:
         if not self._n_indicators:
