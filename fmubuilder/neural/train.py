@@ -1,39 +1,25 @@
-"""Training a NeuralFMU on measured data.
-
-Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
-1. Reference simulation of the plain FMU over the data, with the same fixed-step solver. It gives the
-   pre-/post-processing scales and the start of every batch element: the data hold no controller
-   states, so each element starts from the FMU state the reference saved there (discrete states
-   included), with the measured states set to their measured values (measured_initial_states).
-   Unmeasured states of the plain FMU can be far from the truth (a controller integral that
-   compensates an unmodelled load), and their transient at each element start would dominate the
-   loss. So after pre-training the starts are captured again from a simulation of the hybrid, and
-   during training each element's final FMU state becomes the next element's start (carry-over),
-   so the starts follow the model as it learns. An FMU that cannot save its state gets the same
-   starts, up to rounding, by replaying the runs that reached them (solve.Replay; on sampled_plant,
-   benchmarks/bench_no_fmu_state.py, 0.5-1.35 times the training time with snapshots), but no
-   gradient through its discrete states at events.
-2. Neutral-initialisation pre-training (NIPT): the ANN part is fitted to leave the hybrid unchanged
-   (the FMU's channel derivative for gates, zero for residual) on inputs from the reference.
-3. Optional collocation pre-training (CCPT) for channels der(s) whose state s is measured: the ANN is
-   fitted, without the ODE solver, to the measured derivative of s minus the FMU's along the
-   measured trajectory. The warm start (`warm_start`, warm_start.py) fits that target full-batch with
-   L-BFGS and keeps the fit only if it lowers the training loss.
-4. Training: the data are cut into elements (default 100 s) simulated side by side; the loss is the
-   MSE per measured signal (weighted by the uncertainty band when the CSV has <signal>_std columns)
-   divided by the plain FMU's MSE on the same elements, averaged over the signals: every signal
-   starts at 1. Scaling by the signal's variance instead lets a cumulative signal (energy, whose
-   variance over a cycle is huge) drown in the noise of the others. The simulated signals pass
-   through the sensors' first-order lag (`sensor_lag`) first. Adam with exponential step-size decay
-   per epoch, rewinds after a worse epoch (Trainer._keep_best) and the parameters of the lowest loss
-   at the end; elements in random batches or sequential (carry-over). Or `optimizer="lbfgs"`: one
-   L-BFGS step over all elements per epoch on fixed element starts. The work is `epochs`, or with
-   `budget` a number of loss evaluations spent exactly (Trainer.fit): the way to compare optimizers
-   on equal work. With `validation` data the training ends with the parameters of the best
-   validation score, the start included. Fixed seeds, a time budget, a checkpoint after every
-   epoch, and resume.
-5. Errors before (plain FMU) and after (trained hybrid) over the whole data, simulated with
-   fmubuilder's engine.
+"""Training a NeuralFMU on measured data (Thummerer et al.'s NeuralFMU workflow, adapted; the
+choices in numbers: docs/MEASUREMENTS.md, "How the training gets there").
+1. Reference simulation of the plain FMU over the data, with the same fixed-step solver: the pre-/
+   post-processing scales and the batch elements' starts. The data hold no controller states, so an
+   element starts from the FMU state the reference saved there, measured states set to their
+   measured values (measured_initial_states). Unmeasured states of the plain FMU can be far from the
+   truth (an integral compensating an unmodelled load), so after pre-training the starts are captured
+   again from the hybrid, and during training each element's final FMU state starts the next one
+   (carry-over). An FMU that cannot save its state gets the same starts, up to rounding, by replaying
+   the runs that reached them (solve.Replay), but no gradient through its discrete states at events.
+2. Neutral-initialisation pre-training (NIPT): the ANN fitted to leave the hybrid unchanged.
+3. Optional collocation pre-training (CCPT) of channels der(s) with s measured: the ANN fitted,
+   without the solver, to the measured derivative of s minus the FMU's; the warm start
+   (warm_start.py) fits that target with L-BFGS and keeps it only if it lowers the training loss.
+4. Training on elements (default 100 s) simulated side by side; the loss is the mean over the
+   measured signals of their MSE (weighted by <signal>_std columns), the model seen through the
+   sensors' lag (`sensor_lag`), divided by the plain FMU's. Adam with step-size decay per epoch and
+   rewinds after a worse epoch (Trainer._keep_best), or one L-BFGS step over all elements per epoch;
+   the work is `epochs`, or with `budget` loss evaluations spent exactly (Trainer.fit). The
+   parameters of the lowest loss, or with `validation` data of the best validation score, are kept.
+   Fixed seeds, a time budget, a checkpoint after every epoch, and resume.
+5. Errors before (plain FMU) and after (trained hybrid) over the whole data, with the engine.
 """
 from __future__ import annotations
 
@@ -181,14 +167,13 @@ def _settings(settings: TrainSettings | None, overrides: dict) -> TrainSettings:
     if unknown:
         raise FmuBuilderError(f"unknown training settings {sorted(unknown)}; known: {sorted(TrainSettings.__dataclass_fields__)}")
     settings = dataclasses.replace(settings or TrainSettings(), **overrides)
-    if settings.optimizer not in ("adam", "lbfgs"):
-        raise FmuBuilderError(f"unknown optimizer '{settings.optimizer}': use adam or lbfgs")
-    if settings.warm_start_target not in ("pointwise", "integral"):
-        raise FmuBuilderError(f"unknown warm start target '{settings.warm_start_target}': use pointwise or integral")
+    for name, what, choices in (("optimizer", "optimizer", ("adam", "lbfgs")),
+                                ("warm_start_target", "warm start target", ("pointwise", "integral")),
+                                ("order", "element order", ("random", "sequential"))):
+        if getattr(settings, name) not in choices:
+            raise FmuBuilderError(f"unknown {what} '{getattr(settings, name)}': use {' or '.join(choices)}")
     if not settings.integral_window > 0:
         raise FmuBuilderError(f"the integral window must be positive seconds, got {settings.integral_window}")
-    if settings.order not in ("random", "sequential"):
-        raise FmuBuilderError(f"unknown element order '{settings.order}': use random or sequential")
     if settings.epochs < 0:
         raise FmuBuilderError(f"epochs must be >= 0, got {settings.epochs}")
     if settings.budget is not None and settings.budget < 0:
@@ -614,10 +599,8 @@ class Trainer:
         return closure
 
     def _optimizer(self, parameters, lbfgs: bool):
-        """Adam; the pre-/post-processing at processing_step_factor times the step size. Adam moves
-        every parameter by about the step size whatever its units, and a shift in the channel's
-        units (m/s² for a speed) moved by 3e-3 per epoch outruns the network: the correction turns
-        into a constant offset, wrong at standstill, before the network has shaped it."""
+        """Adam, the pre-/post-processing at processing_step_factor times the step size (why:
+        docs/MEASUREMENTS.md, "How the training gets there"); or L-BFGS on the network alone."""
         if lbfgs:
             parameters = network_parameters(self.model.topology, parameters)
             # max_eval: torch's default (max_iter * 5 // 4 = 1) leaves its line search no evaluation
@@ -634,14 +617,11 @@ class Trainer:
         return torch.optim.Adam(groups, lr=self.settings.learning_rate)
 
     def _keep_best(self, loss: float, before: tuple, optimizer, rewind: bool) -> bool:
-        """Track the parameters with the lowest epoch loss: those at the epoch's start, which with one
-        batch per epoch are exactly the parameters the loss was measured on. There, with `backtrack`,
-        an epoch worse than the best rewinds to the best epoch (parameters, Adam's moments and the
-        element starts, which carry-over moves on) and halves the step size: Adam's steps do not
-        shrink near a minimum, so with one step per epoch it overshoots and oscillates. The epoch after
-        a rewind measures the best parameters again, on the same starts, and takes the smaller step.
-        (With several batches the epoch loss mixes parameters and elements; a rise there is no proof
-        of overshoot.) Returns whether it rewound."""
+        """Track the parameters with the lowest epoch loss (those at the epoch's start). With
+        `backtrack` and `rewind` (one batch per epoch: elsewhere the loss mixes parameters and
+        elements), an epoch worse than the best rewinds to the best epoch (parameters, Adam's
+        moments, element starts) and halves the step size: Adam's steps do not shrink near a
+        minimum, so it overshoots and oscillates. Returns whether it rewound."""
         if loss <= self.best_loss:     # equal: the best parameters measured again after a rewind
             self.best_loss, self._best = loss, before
             self.best_state = before[0]
