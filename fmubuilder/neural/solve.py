@@ -1,15 +1,10 @@
 """Differentiable simulation of a NeuralFMU with the FMI 2.0 event semantics.
 
-Batch elements run side by side: B FMU instances, states as a [B, n] tensor, the ANN evaluated once
-per solver stage for the elements that step. Fixed-step explicit Euler or classical RK4 on a fixed
-grid (t0_b + k h). Each element has its own time and its own event sequence, the engine's
-(simulation/events.EventSequence), towards its next grid point, where the elements that arrive
-first wait: grid times never depend on event times, and an element's steps never on the other
-elements' events. The elements that ask to step take one batched step; a state event is located
-without gradients on the step's dense output (Euler: linear; RK4: cubic Hermite) by the engine's
-root finder. (The engine also ends a step at each sample of a continuous input; this solver steps
-over them.) The first step from a grid point starts every element there: its first stage is the
-record. Under torch.no_grad() nothing below the "gradients" items is done (the forward-only path).
+Batch elements run side by side (B FMU instances, states a [B, n] tensor), fixed-step Euler or RK4
+on the grid t0_b + k h, each element through its own event sequence towards its next grid point
+(docs/ARCHITECTURE.md, "Event handling"); a state event is located without gradients on the step's
+dense output (Euler: linear; RK4: cubic Hermite). The first step from a grid point starts every
+element there: its first stage is the record. Under torch.no_grad() nothing below is done.
 
 Gradients across events:
 1. Event time. With t* the located time and z the crossing indicator,
@@ -676,8 +671,7 @@ class _Run:
         any_reset = any(o.values_changed for o in outcomes.values())
         if any_reset:      # the reset map (identity for the elements without a reset)
             x_val = x.detach().numpy().copy()
-            R = np.zeros((B, n, K))
-            R[:, np.arange(n), np.arange(n)] = 1.0
+            R = np.tile(np.eye(n, K), (B, 1, 1))
         history = memory and dd is not None   # a carrier from earlier events exists
         Rd = np.zeros((B, n, Q)) if history else None
         A = np.zeros((B, Q, Q)) if history else None
