@@ -146,27 +146,11 @@ class FmuSystem:
         return self._completed(True)
 
     def outputs(self, times: np.ndarray, states: np.ndarray) -> np.ndarray:
-        columns = self._columns
-        if len(times) == 1:
-            return self._output_row(times[0], states[0])[None, :]
-        parts = [states]
-        if columns.n_discrete:
-            parts.append(columns.discrete_values()[None, :].repeat(len(times), axis=0))
-        if columns.n_computed:
-            computed, read = np.empty((len(times), columns.n_computed)), columns.read_computed
-            for row, t in enumerate(times):
-                if self._continuous_mode:       # in event mode the FMU already holds (t, x)
-                    self._at(t, states[row])
-                computed[row] = read()
-            parts.append(computed)
-        # The parts side by side are [all states | discrete | computed]; order picks the columns.
-        table = np.concatenate(parts, axis=1) if len(parts) > 1 else np.array(states, dtype=float)
-        return table if columns.in_order(table.shape[1]) else table.take(columns.order, axis=1)
+        return np.array([self._output_row(t, x) for t, x in zip(times, states)])
 
     def _output_row(self, t: float, x: np.ndarray) -> np.ndarray:
-        """outputs() of one point, the usual call (the engine records every output time and both
-        sides of each event one by one): the same values, written into one row instead of joined
-        from parts, which costs several numpy calls per recorded point."""
+        """outputs() of one point, written into one row: [states | discrete | computed] in the
+        recorded columns' order."""
         columns = self._columns
         n, n_discrete = self.n_states, columns.n_discrete
         row = np.empty(n + n_discrete + columns.n_computed)
@@ -277,6 +261,4 @@ def _checked_start_values(info, start_values: dict) -> dict:
 def _settable_before_initialization(var: Variable) -> bool:
     if var.variability == "constant" or var.causality in ("calculatedParameter", "independent"):
         return False
-    if var.causality in ("parameter", "input"):
-        return True
-    return var.initial in ("exact", "approx")
+    return var.causality in ("parameter", "input") or var.initial in ("exact", "approx")
