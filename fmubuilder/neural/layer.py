@@ -133,10 +133,7 @@ class EventSensitivity:
         self.uses = 0
         self.probe_weights = _probe_weights(n_knowns)
         self.memory_seen = False
-        self.perturbations = 0
-        self.propagations = 0
-        self.seconds = 0.0
-        self._run_events = 0
+        self.start_run()
         self._index()
 
     def _index(self) -> None:
@@ -709,9 +706,7 @@ def _any(values: np.ndarray) -> bool:
 
 
 def _identity_column(R: np.ndarray, i: int, n: int) -> bool:
-    if i < n:
-        return bool((R[:, i] == (np.arange(n) == i)).all())
-    return not R[:, i].any()
+    return bool((R[:, i] == (np.arange(n) == i)).all()) if i < n else not R[:, i].any()
 
 
 def _nonzero(dd: np.ndarray, d0: np.ndarray) -> bool:

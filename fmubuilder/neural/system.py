@@ -119,8 +119,7 @@ class NeuralFmuSystem(FmuSystem):
 
     def __init__(self, model: NeuralFMU, *, variables: Sequence[str], start_values: dict | None = None,
                  inputs: InputSignals | None = None, tolerance: float | None = None):
-        values = model.start_values_with_parameters()
-        values.update(start_values or {})
+        values = {**model.start_values_with_parameters(), **(start_values or {})}
         super().__init__(model.loaded_copy(), variables=variables, start_values=values, inputs=inputs, tolerance=tolerance)
         self.kernel = NumpyTopology(model.topology)
         info = model.info

@@ -112,13 +112,10 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
     """Train a NeuralFMU around `fmu` on `data` (see the module docstring).
 
     targets: derivative channels, e.g. ["der(speed)"]; inputs: FMU variables fed to the ANN;
-    topology: "residual" (default; on the VLDM it learns about ten times faster per epoch) or "gates";
-    base_terms: a fitted term (the diagnosis' terms) the residual ANN adds to: it learns what the
-    term leaves, starting from the term itself (see base_term.py);
-    settings or keyword overrides of TrainSettings (epochs=...).
-    validation: held-out samples scored before the first epoch and after each one; the training
-    ends with the parameters of the best score there, the start included (Trainer.validation_score).
-    Writes the trained model to `output` and the errors to `metrics_path` (JSON) when given.
+    topology: "residual" (on the VLDM about ten times faster per epoch) or "gates"; base_terms: a
+    fitted term the residual ANN starts from and adds to (base_term.py); settings or keyword
+    overrides of TrainSettings (epochs=...); validation: see Validation and Trainer.validation_score.
+    Writes the model to `output` and the errors to `metrics_path` (JSON) when given.
     on_epoch(epoch, trainer) is called after every epoch; returning True stops the training.
     """
     settings = _settings(settings, overrides)
@@ -236,9 +233,8 @@ def simulate_over(model: NeuralFMU, data: MeasuredData, step: float, solver: str
     """Engine result (with its statistics) of the hybrid, or with plain of the FMU alone, over the
     data's span, recording the measured signals; measured states start where the data's first
     samples put them (measured_initial_states), the data's inputs drive the FMU."""
-    original = dict(model.start_values)
-    model.start_values.update(measured_initial_states(model, data))
-    model.start_values.update(start_values or {})
+    original = model.start_values
+    model.start_values = {**original, **measured_initial_states(model, data), **(start_values or {})}
     try:
         with (model.topology.ann_off(fmu_gate_one=True) if plain else contextlib.nullcontext()):
             return simulate_hybrid(model, start_time=data.start, stop_time=data.stop, variables=list(data.signals),
@@ -359,10 +355,10 @@ class Trainer:
         model, data = self.model, self.data
         grid_index = [int(round((s - data.start) / self.step)) for s in self.start_times]
         first = ElementStart(data.start, states=measured_initial_states(model, data))
+        recorded = list(dict.fromkeys(model.config.inputs + model.config.channels + list(data.signals)))
         with torch.no_grad(), (model.topology.ann_off() if plain else contextlib.nullcontext()):
-            run = simulate(model, data.stop - data.start, self.step, starts=[first],
-                           record=self._reference_names(), solver=self.settings.solver, inputs=self.inputs,
-                           capture=grid_index)
+            run = simulate(model, data.stop - data.start, self.step, starts=[first], record=recorded,
+                           solver=self.settings.solver, inputs=self.inputs, capture=grid_index)
         measured = self._measured_states()
         self._captured = [self._with_measured_states(run.captured[k][0], {s: float(run.numpy(s)[k, 0]) for s in measured})
                           for k in grid_index]
@@ -379,9 +375,6 @@ class Trainer:
         start.states = measured_initial_states(self.model, self.data, start.t0, along_run,
                                                sensor_lag=self.sensor_lag)
         return start
-
-    def _reference_names(self) -> list[str]:
-        return list(dict.fromkeys(self.model.config.inputs + self.model.config.channels + list(self.data.signals)))
 
     def _scaling_samples(self) -> tuple[np.ndarray, np.ndarray]:
         def columns(names: list[str]) -> np.ndarray:
@@ -481,14 +474,11 @@ class Trainer:
 
     def _planned_work(self) -> int:
         """The bar's total: loss evaluations with a budget, else batches."""
-        if self.settings.budget is not None:
-            return self.settings.budget
-        return self.settings.epochs * self._batches_per_epoch()
+        budget = self.settings.budget
+        return budget if budget is not None else self.settings.epochs * self._batches_per_epoch()
 
     def _work_done(self, epoch: int) -> bool:
-        if self.settings.budget is not None:
-            return self.loss_evaluations >= self.settings.budget
-        return epoch >= self.settings.epochs
+        return self._evaluations_left() <= 0 if self.settings.budget is not None else epoch >= self.settings.epochs
 
     def _evaluations_left(self) -> float:
         budget = self.settings.budget
@@ -682,9 +672,7 @@ class Trainer:
                 "window": list(self.validation.window)}
 
     def _batch_size(self) -> int:
-        if self.settings.order == "sequential":
-            return 1
-        return self.settings.batch_size or len(self.elements)
+        return 1 if self.settings.order == "sequential" else self.settings.batch_size or len(self.elements)
 
     def _batches_per_epoch(self) -> int:
         return math.ceil(len(self.elements) / self._batch_size())
@@ -844,11 +832,9 @@ def sensor_kernel(step: float, lag: float, tolerance: float = 1e-12) -> np.ndarr
 
 def network_parameters(topology, parameters) -> list:
     """The trained parameters less the pre-/post-processing: all that L-BFGS moves, and Adam's group
-    at the full step size. The processing's units differ from the weights' by orders of
-    magnitude, and L-BFGS's first steps follow the raw gradient: on
-    the DC drive's Coulomb data after the warm start the input scale's gradient was 100 times the
-    weights' and so curved along it that a step of 1e-5 raised the loss; with it the line search
-    spent 10 loss evaluations on a step that lowered the loss by 0.3 %."""
+    at the full step size. The processing's units differ from the weights' by orders of magnitude:
+    on the DC drive's Coulomb data the input scale's gradient was 100 times the weights', and with
+    it L-BFGS spent 10 loss evaluations on a step that lowered the loss by 0.3 %."""
     processing = {id(p) for p in topology.processing_parameters()}
     return [p for p in parameters if id(p) not in processing]
 
