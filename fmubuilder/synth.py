@@ -28,12 +28,9 @@ The bench model, in the order it is applied:
      stages with time constant ``noise_filter_tau`` [s], sampled at the stamps: the noise
      of a filtered sensor (one stage of 0.1 s at 10 Hz gives rho = exp(-1) = 0.37).
 
-   Defaults (:data:`DEFAULT_NOISE_STD`):
-   speed 0.02 m/s (roller-encoder speed), power 100 W (power analyser on the HV battery:
-   0.2 % of a 50 kW range), energy 100 J. The energy is the analyser's
-   own integral of its internal high-rate power reading; the white power noise averages
-   out in that integral, so the logged energy only carries a small resolution noise of its
-   own, not an integral of the logged (noisy, 10 Hz) power.
+   Defaults: :data:`DEFAULT_NOISE_STD`. The energy is the analyser's own integral of its
+   high-rate power reading, so it carries a small resolution noise of its own, not an
+   integral of the logged (noisy, 10 Hz) power.
 5. **Repeated runs.** The cycle is driven ``runs`` times (2). The runs share the logger's
    time stamps and differ in their noise realisations. Optionally (``run_variation``,
    off by default) each run also scales some real parameters of the truth FMU by
@@ -317,7 +314,7 @@ def _check_signals(info, settings: BenchSettings) -> None:
     for name in signals:
         if name == "time":
             raise FmuBuilderError("'time' is always written; leave it out of --signals")
-        var = _variable(info, name, "signal")
+        var = info.variable(name, "signal")
         if var.type != "Real":
             raise FmuBuilderError(f"signal '{name}' is a {var.type} variable: log Real variables only")
         if name + UNCERTAINTY_SUFFIX in signals:
@@ -328,15 +325,7 @@ def _check_signals(info, settings: BenchSettings) -> None:
 
 def _typed_start_values(info, start_values: Mapping[str, object]) -> dict[str, object]:
     from .fmi import convert_value
-    return {name: convert_value(_variable(info, name, "start value"), value) for name, value in start_values.items()}
-
-
-def _variable(info, name: str, what: str):
-    var = info.variables.get(name)
-    if var is None:
-        raise FmuBuilderError(f"unknown {what} '{name}' in model '{info.model_name}'"
-                              f"{suggestion(name, info.variables)}; `fmubuilder inspect` lists the variables")
-    return var
+    return {name: convert_value(info.variable(name, "start value"), value) for name, value in start_values.items()}
 
 
 def _run_start_values(info, start_values: dict, settings: BenchSettings,

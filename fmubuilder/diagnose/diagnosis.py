@@ -13,12 +13,9 @@ and where in the model does the missing effect act?
    whether there is a significant effect.
 3. Only then the effect is traced (trace.py): channel = state derivative, inputs = variables
    the missing term depends on, and a fitted term when a compact expression explains it.
-   The tracing covers the whole data up to TRACE_SAMPLES samples (longer data: their first
-   TRACE_SAMPLES samples, ``trace_window``). Its work is fixed by the model and the data (a
-   fixed list of trials, each abandoned beyond SLOW_TRIAL_FACTOR times the plain run's
-   derivative evaluations), so an idle and a busy machine give the same numbers.
-   ``time_budget`` is only an upper cap on the wall time: when it cuts the tracing short,
-   ``cut_short`` says so.
+   The tracing covers at most the first TRACE_SAMPLES samples (``trace_window``); its work is
+   counted (a fixed list of trials, each abandoned beyond SLOW_TRIAL_FACTOR times the plain
+   run's work), and ``time_budget`` only caps the wall time (``cut_short`` says when it did).
 """
 from __future__ import annotations
 
