@@ -251,6 +251,4 @@ def _secant_earliest(ta: float, tb: float, za: np.ndarray, zb: np.ndarray) -> fl
     with np.errstate(divide="ignore", invalid="ignore"):
         roots = tb - zb * (tb - ta) / denominator
     roots = roots[np.isfinite(roots)]
-    if roots.size == 0:
-        return 0.5 * (ta + tb)
-    return float(min(max(roots.min(), ta), tb))
+    return float(min(max(roots.min(), ta), tb)) if roots.size else 0.5 * (ta + tb)
