@@ -463,8 +463,6 @@ def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], ali
     folder.mkdir()
     first = ctx.roles.train[0]
     cap = None if ctx.time_budget is None else max(1.0, ctx.time_budget - (time.perf_counter() - ctx.started))
-    # The training sees the model through the data's sensor lag (from the sidecar), at the step and
-    # with the solver every model is scored with.
     # An ANN on a fitted term ends with its best epoch on the validation data, the start (the term)
     # included, so it is never worse there than the term. The plain NeuralFMU keeps its lowest
     # training loss: on the VLDM the validation score (speed and power at the noise level) picked an
