@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import bisect
 import math
+from functools import partial
 from typing import Protocol, Sequence
 
 import numpy as np
@@ -213,14 +214,7 @@ class _OutputColumns:
         self.order = np.array([position[v.name] for v in recorded], dtype=int)
         self._natural = self.order.tolist() == list(range(len(self.order)))
         self.read_computed = inst.real_getter([v.value_reference for v in computed])
-        self._discrete_readers = []
-        for api_type in ("Real", "Integer", "Boolean"):
-            positions = [k for k, v in enumerate(discrete) if v.api_type == api_type]
-            if positions:
-                vrs = [discrete[k].value_reference for k in positions]
-                read = inst.real_getter(vrs) if api_type == "Real" else (
-                    lambda get, refs: lambda: get(refs))(getattr(inst, f"get_{api_type.lower()}"), vrs)
-                self._discrete_readers.append((np.array(positions, dtype=int), read))
+        self._read_discrete = values_reader(inst, discrete)
         self._discrete = None
 
     def in_order(self, width: int) -> bool:
@@ -232,11 +226,28 @@ class _OutputColumns:
 
     def discrete_values(self) -> np.ndarray:
         if self._discrete is None:
-            values = np.empty(self.n_discrete)
-            for positions, read in self._discrete_readers:
-                values[positions] = read()
-            self._discrete = values
+            self._discrete = self._read_discrete()
         return self._discrete
+
+
+def values_reader(instance, variables: list[Variable]):
+    """A function giving the current values of Real, Integer and Boolean `variables` as one float64
+    array, each type read in one call."""
+    parts = []
+    for api_type in ("Real", "Integer", "Boolean"):
+        positions = [k for k, v in enumerate(variables) if v.api_type == api_type]
+        if positions:
+            vrs = [variables[k].value_reference for k in positions]
+            get = instance.real_getter(vrs) if api_type == "Real" else partial(
+                getattr(instance, f"get_{api_type.lower()}"), vrs)
+            parts.append((np.array(positions, dtype=int), get))
+
+    def read() -> np.ndarray:
+        values = np.empty(len(variables))
+        for positions, get in parts:
+            values[positions] = get()
+        return values
+    return read
 
 
 def _checked_start_values(info, start_values: dict) -> dict:
