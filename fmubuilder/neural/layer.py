@@ -11,9 +11,8 @@ continuous states x and to chosen tunable parameters p:
   step scaled to max(|x_i|, nominal_i), read again, restore.
 
 `fmu_call` wraps this in a torch.autograd.Function: the Jacobian is computed in the forward pass
-(the FMU's discrete state has moved on by the time backward runs) and applied in backward.
-`JacobianSparsity` skips the columns the FMU's ModelStructure declares zero and, where it declares
-nothing, the columns that a combined probe shows zero at the evaluated point.
+(the FMU's discrete state has moved on by the time backward runs); `JacobianSparsity` skips the
+columns known to be zero.
 
 At events `FmuEvaluator.handle_event` runs the FMU's own event iteration and, when asked, its
 linearisation (`EventOutcome`; the design: solve.py's docstring, item 3). `EventSensitivity`
@@ -178,13 +177,6 @@ class EventSensitivity:
                 "seconds": self.seconds, "skipped_columns": self.skipped, "memory": self.memory_seen}
 
 
-def discrete_state_names(info: ModelInfo) -> list[str]:
-    """Real variables the FMU changes at events only (discrete locals and outputs): the observable
-    part of its discrete state."""
-    return [v.name for v in info.variables.values()
-            if v.type == "Real" and v.variability == "discrete" and v.causality in ("local", "output")]
-
-
 class _Candidates:
     """Perturbed post-event FMU states of one element and one event: their discrete-state
     deviations, output deviations and reset deviations, with optional snapshots (shadows)."""
@@ -206,8 +198,7 @@ class FmuEvaluator:
     """
 
     def __init__(self, instances: Sequence[FmuInstance], info: ModelInfo, variables: Sequence[str] = (),
-                 inputs: Sequence[str] = (), parameters: Sequence[str] = (), jacobian: str = "auto",
-                 discrete_states: Sequence[str] | str = "auto"):
+                 inputs: Sequence[str] = (), parameters: Sequence[str] = (), jacobian: str = "auto"):
         self.instances = list(instances)
         self.info = info
         self.n = info.n_states
@@ -221,14 +212,10 @@ class FmuEvaluator:
             var = info.variable(name)
             if var.type != "Real":
                 raise FmuBuilderError(f"'{name}' is a {var.type} variable; only Real variables can feed a NeuralFMU")
-        for name in self.inputs:
-            var = info.variable(name)
-            if var.causality != "input" or var.variability != "continuous":
+            if name in self.inputs and (var.causality != "input" or var.variability != "continuous"):
                 raise FmuBuilderError(f"'{name}' is not a continuous Real input of {info.model_name}; "
                                       "a NeuralFMU takes only continuous Real inputs from data")
-        for name in self.parameters:
-            var = info.variable(name)
-            if not (var.is_parameter and var.variability == "tunable"):
+            if name in self.parameters and not (var.is_parameter and var.variability == "tunable"):
                 raise FmuBuilderError(
                     f"'{name}' is not a tunable parameter of {info.model_name}; only tunable parameters can be trained")
         self.state_vrs = [v.value_reference for v in info.states]
@@ -249,7 +236,9 @@ class FmuEvaluator:
         self._directional_x = self._directional_p = provides and jacobian != "fd"
         self._param_mode: str | None = None  # how the CT-mode parameter columns are found (probed)
         self.sparsity = JacobianSparsity(info, [v.name for v in info.derivatives] + self.variables)
-        self.discrete = discrete_state_names(info) if discrete_states == "auto" else list(discrete_states)
+        # The observable part of the FMU's discrete state: Real locals and outputs changed at events only.
+        self.discrete = [v.name for v in info.variables.values()
+                         if v.type == "Real" and v.variability == "discrete" and v.causality in ("local", "output")]
         self.q = len(self.discrete)
         self._d_getters = [inst.real_getter([info.variable(v).value_reference for v in self.discrete])
                            for inst in self.instances]

@@ -103,11 +103,9 @@ class TrainingResult:
 def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, targets: Sequence[str],
                      inputs: Sequence[str], start_values: dict | None = None, topology: str = "residual",
                      hidden: Sequence[int] = (16, 16), activation: str = "tanh", parameters: Sequence[str] = (),
-                     base_terms: Sequence[dict] = (),
-                     settings: TrainSettings | None = None, output: str | Path | None = None,
-                     metrics_path: str | Path | None = None, force: bool = False,
-                     test_data: str | Path | MeasuredData | None = None,
-                     test_start_values: dict | None = None, validation: Validation | None = None,
+                     base_terms: Sequence[dict] = (), settings: TrainSettings | None = None,
+                     output: str | Path | None = None, metrics_path: str | Path | None = None, force: bool = False,
+                     test_data: str | Path | MeasuredData | None = None, validation: Validation | None = None,
                      on_epoch=None, **overrides) -> TrainingResult:
     """Train a NeuralFMU around `fmu` on `data` (see the module docstring).
 
@@ -146,9 +144,8 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
                    "validation": trainer.validation_summary()}
         if test_data is not None:
             test = test_data if isinstance(test_data, MeasuredData) else load_data(test_data, model.info)
-            starts = test.start_values if test_start_values is None else test_start_values
-            metrics["test_errors"] = {"before": trainer.errors(test, starts, plain=True),
-                                      "after": trainer.errors(test, starts)}
+            metrics["test_errors"] = {"before": trainer.errors(test, test.start_values, plain=True),
+                                      "after": trainer.errors(test, test.start_values)}
         if output is not None:
             save_neural_fmu(model, output, metadata={"data": data.source, "metrics": metrics}, force=True)
         if metrics_path is not None:
@@ -668,8 +665,7 @@ class Trainer:
         if self.validation_best is None:
             return None
         return {"start_score": self.validation_start, "best_score": self.validation_best[0],
-                "best_epoch": self.validation_best[1],
-                "window": list(self.validation.window)}
+                "best_epoch": self.validation_best[1], "window": list(self.validation.window)}
 
     def _batch_size(self) -> int:
         return 1 if self.settings.order == "sequential" else self.settings.batch_size or len(self.elements)
