@@ -259,13 +259,11 @@ def examples_source_hash() -> str:
 
 
 def _build_inputs(root: pathlib.Path) -> list[pathlib.Path]:
-    files = [root / "CMakeLists.txt"]
-    for folder in (root / "cmake", root / "examples"):
-        for path in folder.rglob("*"):
-            hidden = any(part.startswith(".") or part == "__pycache__" for part in path.relative_to(root).parts)
-            if path.is_file() and not hidden:
-                files.append(path)
-    return sorted(files)
+    def hidden(path: pathlib.Path) -> bool:
+        return any(part.startswith(".") or part == "__pycache__" for part in path.relative_to(root).parts)
+    found = [path for folder in (root / "cmake", root / "examples") for path in folder.rglob("*")
+             if path.is_file() and not hidden(path)]
+    return sorted([root / "CMakeLists.txt", *found])
 
 
 def _built_examples_dir() -> pathlib.Path:

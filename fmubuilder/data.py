@@ -56,10 +56,6 @@ class MeasuredData:
         return list(self.signals)
 
     @property
-    def spread(self) -> dict[str, np.ndarray]:
-        return self.std
-
-    @property
     def start(self) -> float:
         return float(self.time[0])
 
@@ -73,9 +69,6 @@ class MeasuredData:
             return None
         from .simulation.inputs import input_signals_from
         return input_signals_from({"time": self.time, **self.inputs}, info)
-
-    def at(self, name: str, t) -> np.ndarray:
-        return np.interp(t, self.time, self.signals[name])
 
     def weights(self, name: str) -> np.ndarray:
         """Per-sample weights from the spread (mean 1), or ones without one."""

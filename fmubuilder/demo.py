@@ -1,11 +1,5 @@
-"""`fmubuilder demo`: the main job on the bundled example, end to end.
-
-Writes the VLDM example (declared FMU, truth FMUs, measured data sets), then runs
-`hybridize` on the extra-resistance data: diagnosis, fitted term and NeuralFMU, the choice on
-the validation part of the training run (its last 20 %), the test cycle scored once after it,
-round-trip validation, report. The work is counted (the training's in loss evaluations), so the
-numbers do not depend on how busy the machine is.
-"""
+"""`fmubuilder demo`: the VLDM example written, then `hybridize` on its extra-resistance data
+(the README's "Set-up" and "The bundled example")."""
 from __future__ import annotations
 
 import contextlib

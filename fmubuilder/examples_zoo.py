@@ -10,12 +10,7 @@ is coloured (:data:`SENSOR_NOISE`: a first-order low-pass, correlation about 0.6
 samples), as in most real data.
 
 ``dc_drive`` is the DC speed drive (examples/dc_drive) with truths whose effects no power law of
-one variable describes: a Stribeck friction (non-monotone in speed), a Coulomb friction (a
-smoothed sign of the speed), an electrical loss that grows with speed and current together, and a
-Stribeck friction and that loss at once (two effects in two derivatives); besides them the
-windage, extra-heating and no-effect variants. Training: the drive's profile driven twice (60 s),
-so that the held-out late share revisits the operating points seen before; test: three passes
-(90 s), the winding hotter.
+one variable describes, its runs and data: the README's "Effects no term library holds".
 
 Data sets are cached under ``<cache>/example_data/<hash>/`` keyed by the truth FMU's bytes,
 the cycle, the bench settings and the generator's source, so a second call only copies

@@ -119,6 +119,4 @@ def progress(total: int, description: str, unit: str = "step", initial: int = 0,
 
 
 def _plural(unit: str) -> str:
-    if unit == "%":
-        return unit
-    return unit + ("es" if unit.endswith(("s", "sh", "ch", "x")) else "s")
+    return unit if unit == "%" else unit + ("es" if unit.endswith(("s", "sh", "ch", "x")) else "s")

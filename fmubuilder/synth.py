@@ -28,12 +28,9 @@ The bench model, in the order it is applied:
      stages with time constant ``noise_filter_tau`` [s], sampled at the stamps: the noise
      of a filtered sensor (one stage of 0.1 s at 10 Hz gives rho = exp(-1) = 0.37).
 
-   Defaults (:data:`DEFAULT_NOISE_STD`):
-   speed 0.02 m/s (roller-encoder speed), power 100 W (power analyser on the HV battery:
-   0.2 % of a 50 kW range), energy 100 J. The energy is the analyser's
-   own integral of its internal high-rate power reading; the white power noise averages
-   out in that integral, so the logged energy only carries a small resolution noise of its
-   own, not an integral of the logged (noisy, 10 Hz) power.
+   Defaults: :data:`DEFAULT_NOISE_STD`. The energy is the analyser's own integral of its
+   high-rate power reading, so it carries a small resolution noise of its own, not an
+   integral of the logged (noisy, 10 Hz) power.
 5. **Repeated runs.** The cycle is driven ``runs`` times (2). The runs share the logger's
    time stamps and differ in their noise realisations. Optionally (``run_variation``,
    off by default) each run also scales some real parameters of the truth FMU by
@@ -43,22 +40,12 @@ The bench model, in the order it is applied:
 Only the requested signals are logged (default speed, power, energy); controller states and
 other internals of the truth FMU never appear in the data.
 
-Data file convention (read by the training and validation stages):
-
-* CSV, header line, then one row per time stamp; no comment lines.
-* ``time`` first [s, strictly increasing], then one column per signal, named exactly as the
-  FMU variable, holding the mean over the runs: the measured value.
-* Then one column ``<signal>_std`` per signal: the sample standard deviation over the runs
-  (ddof=1; ``|a - b| / sqrt(2)`` for two runs), an estimate of the sensor noise of a single
-  run. The uncertainty of the mean is ``<signal>_std / sqrt(runs)``. A reader that fits
-  to FMU variables must treat a column ``X_std`` whose ``X`` is also a column as the
-  uncertainty of ``X``, not as a signal (:func:`split_uncertainty_columns`).
-* A sidecar JSON file ``<csv path>.json`` (:func:`sidecar_path`) records the truth model,
-  start/stop time, the start values (e.g. ``{"cycle": 1}``: pass them again as
-  ``--start cycle=1`` when simulating or training against these data), the bench settings
-  and the seed. Parameters that make the truth differ from its FMU (a parameter-mismatch
-  truth) are recorded only under ``truth``, a key the diagnosis never reads: real data come
-  without it. Everything is deterministic given the seed.
+The data file is the format data.py reads: ``time``, one column per signal (the mean over the
+runs), one ``<signal>_std`` per signal (the sample standard deviation over the runs, ddof=1: an
+estimate of one run's sensor noise), and a sidecar ``<csv>.json`` with the truth model, the start
+values (pass them again as ``--start cycle=1`` to simulate or train on the data), the bench settings
+and the seed. Parameters that make the truth differ from its FMU are recorded only under ``truth``,
+a key the diagnosis never reads: real data come without it. Everything is deterministic given the seed.
 """
 from __future__ import annotations
 
@@ -303,13 +290,9 @@ def _check_settings(settings: BenchSettings, start_time: float, stop_time: float
         if name not in settings.signals:
             raise FmuBuilderError(
                 f"--noise {name}=... names no logged signal: log it with --signals or drop the option")
-    _check_noise_model(settings)
     for name, rel in settings.run_variation.items():
         if not (math.isfinite(rel) and rel >= 0):
             raise FmuBuilderError(f"run variation of '{name}' is {rel!r}: give a relative standard deviation >= 0")
-
-
-def _check_noise_model(settings: BenchSettings) -> None:
     if settings.noise_model not in NOISE_MODELS:
         raise FmuBuilderError(f"noise model '{settings.noise_model}' is unknown: choose one of {', '.join(NOISE_MODELS)}")
     if settings.noise_model == "ar1" and not -1.0 < settings.noise_rho < 1.0:
@@ -331,11 +314,7 @@ def _check_signals(info, settings: BenchSettings) -> None:
     for name in signals:
         if name == "time":
             raise FmuBuilderError("'time' is always written; leave it out of --signals")
-        var = info.variables.get(name)
-        if var is None:
-            raise FmuBuilderError(
-                f"unknown signal '{name}' in model '{info.model_name}'{suggestion(name, info.variables)}; "
-                "`fmubuilder inspect` lists the variables")
+        var = info.variable(name, "signal")
         if var.type != "Real":
             raise FmuBuilderError(f"signal '{name}' is a {var.type} variable: log Real variables only")
         if name + UNCERTAINTY_SUFFIX in signals:
@@ -346,15 +325,7 @@ def _check_signals(info, settings: BenchSettings) -> None:
 
 def _typed_start_values(info, start_values: Mapping[str, object]) -> dict[str, object]:
     from .fmi import convert_value
-    typed = {}
-    for name, value in start_values.items():
-        var = info.variables.get(name)
-        if var is None:
-            raise FmuBuilderError(
-                f"unknown start value '{name}' in model '{info.model_name}'{suggestion(name, info.variables)}; "
-                "`fmubuilder inspect` lists the variables")
-        typed[name] = convert_value(var, value)
-    return typed
+    return {name: convert_value(info.variable(name, "start value"), value) for name, value in start_values.items()}
 
 
 def _run_start_values(info, start_values: dict, settings: BenchSettings,

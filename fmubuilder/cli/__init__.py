@@ -81,9 +81,7 @@ def parse(argv: list[str] | None):
 def run(argv: list[str] | None = None) -> int:
     """Run a command in this process; returns the exit code."""
     args = parse(argv)
-    if args is None:
-        return 2
-    return execute(args)
+    return 2 if args is None else execute(args)
 
 
 def execute(args) -> int:

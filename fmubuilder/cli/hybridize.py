@@ -11,9 +11,7 @@ class _TrainFile(argparse.Action):
     """--train FILE: one more training file, with its own list of start values."""
 
     def __call__(self, parser, namespace, value, option_string=None):
-        runs = list(getattr(namespace, self.dest) or [])
-        runs.append((value, []))
-        setattr(namespace, self.dest, runs)
+        setattr(namespace, self.dest, [*(getattr(namespace, self.dest) or []), (value, [])])
 
 
 class _TrainStart(argparse.Action):

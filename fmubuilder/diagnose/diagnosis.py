@@ -13,12 +13,9 @@ and where in the model does the missing effect act?
    whether there is a significant effect.
 3. Only then the effect is traced (trace.py): channel = state derivative, inputs = variables
    the missing term depends on, and a fitted term when a compact expression explains it.
-   The tracing covers the whole data up to TRACE_SAMPLES samples (longer data: their first
-   TRACE_SAMPLES samples, ``trace_window``). Its work is fixed by the model and the data (a
-   fixed list of trials, each abandoned beyond SLOW_TRIAL_FACTOR times the plain run's
-   derivative evaluations), so an idle and a busy machine give the same numbers.
-   ``time_budget`` is only an upper cap on the wall time: when it cuts the tracing short,
-   ``cut_short`` says so.
+   The tracing covers at most the first TRACE_SAMPLES samples (``trace_window``); its work is
+   counted (a fixed list of trials, each abandoned beyond SLOW_TRIAL_FACTOR times the plain
+   run's work), and ``time_budget`` only caps the wall time (``cut_short`` says when it did).
 """
 from __future__ import annotations
 
@@ -201,7 +198,7 @@ def start_values_from_data(info, data: MeasuredData, given: dict, nominal: Model
             continue
         residual = values - nominal.predicted[name]
         offset = float(np.linalg.lstsq(design, residual[:k], rcond=None)[0][0])
-        fit = significance.fit_noise(residual, None, data.spread.get(name), data.runs)
+        fit = significance.fit_noise(residual, None, data.std.get(name), data.runs)
         # Correlated noise moves the first samples together: their intercept is as uncertain
         # as a mean of k samples, at most sqrt(k) times the white-noise case.
         noise = min(fit.long_run, math.sqrt(k) * fit.marginal)
@@ -233,7 +230,7 @@ def signal_errors(data: MeasuredData, nominal: ModelRun):
     for name, measured in data.signals.items():
         model = nominal.predicted[name]
         residual = measured - model
-        test = significance.signal_test(residual, model, data.spread.get(name), data.runs)
+        test = significance.signal_test(residual, model, data.std.get(name), data.runs)
         tests.append(test)
         errors.append(SignalErrors(
             signal=name, mse=float(np.mean(residual ** 2)), rms=rms(residual),
@@ -245,7 +242,7 @@ def signal_errors(data: MeasuredData, nominal: ModelRun):
 def _joint_test(data: MeasuredData, run: ModelRun) -> significance.JointTest:
     names = data.names
     return significance.joint_test([data.signals[s] - run.predicted[s] for s in names],
-                                   [run.predicted[s] for s in names], [data.spread.get(s) for s in names], data.runs)
+                                   [run.predicted[s] for s in names], [data.std.get(s) for s in names], data.runs)
 
 
 def _trace(diagnosis: Diagnosis, info, data: MeasuredData, runner: ModelRunner, nominal: ModelRun,
@@ -319,7 +316,7 @@ def _judge_term(diagnosis: Diagnosis, data: MeasuredData, tests, fitted_run: Mod
     for e, test in zip(diagnosis.errors, tests):
         residual = data.signals[e.signal] - fitted_run.predicted[e.signal]
         e.corrected_rms = rms(residual)
-        new = significance.signal_test(residual, fitted_run.predicted[e.signal], data.spread.get(e.signal), data.runs)
+        new = significance.signal_test(residual, fitted_run.predicted[e.signal], data.std.get(e.signal), data.runs)
         before += max(0.0, test.chi2 - test.dof)
         after += max(0.0, new.chi2 - new.dof)
     removed = 1.0 - after / before if before > 0 else 0.0

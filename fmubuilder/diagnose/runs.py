@@ -40,9 +40,7 @@ BASES = {
 
 def basis_values(basis: str, u: np.ndarray) -> np.ndarray:
     """phi(u) for an array (the scalar forms above work on arrays too; the constant needs its shape)."""
-    if basis == "1":
-        return np.ones_like(u)
-    return np.asarray(BASES[basis](u), dtype=float)
+    return np.ones_like(u) if basis == "1" else np.asarray(BASES[basis](u), dtype=float)
 
 
 @dataclass(frozen=True)
@@ -68,7 +66,7 @@ def form_text(variable: str, basis: str, center: float) -> str:
     if basis == "1":
         return "1"
     u = _centered_text(variable, center)
-    atom = u if _is_atom(u) else f"({u})"
+    atom = u if " " not in u else f"({u})"
     return {"w": atom, "|w|": f"|{u}|", "w*|w|": f"{atom}*|{u}|", "w^2": f"{atom}^2"}[basis]
 
 
@@ -77,10 +75,6 @@ def _centered_text(variable: str, center: float) -> str:
         return variable
     sign = "-" if center > 0 else "+"
     return f"{variable} {sign} {abs(center):.6g}"
-
-
-def _is_atom(text: str) -> bool:
-    return " " not in text
 
 
 class TrialTooSlow(FmuBuilderError):

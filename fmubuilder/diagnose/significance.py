@@ -1,11 +1,7 @@
 """Is a residual more than measurement noise? One joint test that coloured noise does not fool.
 
-Real sensors are filtered, so their noise is correlated from sample to sample; a test that
-assumes independent noise calls such noise an effect. What separates a model error from
-noise is its spectrum: a missing effect is systematic and slow, so it lifts the lowest
-frequencies of the residual far above the level the faster frequencies predict. The test
-therefore works in the frequency domain, with everything estimated from the residual itself
-(no sensor settings are read):
+Why the frequency domain: the README's "Is it an effect or coloured noise?". Everything is
+estimated from the residual itself (no sensor settings are read):
 
 1. **Bands.** Of the residual's Fourier frequencies ``j = 0 .. n/2`` the lowest ``m`` (the
    effect band, ``m = n // SAMPLES_PER_FREQUENCY`` within [1, MAX_EFFECT_FREQUENCIES]) are

@@ -38,9 +38,7 @@ Steps (each trial is one simulation):
    candidate, and scores within SCORE_TIE of the unexplained variance are a tie; both times
    a state is preferred to an output, an input, a local, a derivative. Within a candidate an
    odd form of the channel's own state (w, w*|w|) leads its even twin (|w|, w^2).
-3. term: for the leading variables of the best channel, one form or a pair of forms of one
-   variable (the pair when it explains PAIR_GAIN more variance), and a check simulation with
-   the fitted term: the variance it really explains.
+3. term: one form or a pair of forms of a leading variable, checked by simulation (fit_term).
 
 A trial that makes the model fail or run far slower than the plain model (a term can
 destabilise the loop) is repeated ten times smaller, at most twice, and then skipped.
@@ -207,15 +205,11 @@ class Tracer:
 
     # -- step 2: inputs ---------------------------------------------------------------------
     def candidate_forms(self, variables: list[str]) -> list[tuple[str, str, float, float, list[str]]]:
-        return self.forms_of(self.info, self.nominal, variables)
-
-    @staticmethod
-    def forms_of(info, nominal: ModelRun, variables: list[str]) -> list[tuple[str, str, float, float, list[str]]]:
         """(variable, basis, center, RMS of the form, aliases) for the distinct trial forms."""
         forms: list[tuple[str, str, float, float, list[str]]] = []
         shapes: list[np.ndarray] = []
-        for name in sorted(variables, key=lambda n: _KIND_ORDER[variable_kind(info, n)]):
-            w = nominal.trajectories[name]
+        for name in sorted(variables, key=lambda n: _KIND_ORDER[variable_kind(self.info, n)]):
+            w = self.nominal.trajectories[name]
             center = float(w[0])
             for basis in INPUT_FORMS:
                 phi = basis_values(basis, w - center)
@@ -248,9 +242,7 @@ class Tracer:
     def _equal_to_derivative(self, c: int) -> set[str]:
         values = self.nominal.trajectories
         der = self.info.derivatives[c].name
-        if der not in values:
-            return {der}
-        return set(equal_along(values, values[der]))
+        return set(equal_along(values, values[der])) if der in values else {der}
 
     def _trials(self, channel: ChannelScore, forms) -> list[Trial]:
         trials = []
@@ -341,12 +333,10 @@ def group_equivalent(info, trials: list[Trial]) -> list[list[Trial]]:
                 break
         else:
             groups.append([trial])
-    result = []
     for group in groups:
         group.sort(key=lambda t: (_KIND_ORDER[variable_kind(info, t.variable)], _even_in_own_state(info, t),
                                   -t.shape_score))
-        result.append(group)
-    return result
+    return groups
 
 
 def _even_in_own_state(info, trial: Trial) -> bool:
@@ -401,9 +391,7 @@ def variable_kind(info, name: str) -> str:
         return "derivative"
     if any(s.name == name for s in info.states):
         return "state"
-    if var.causality in ("output", "input"):
-        return var.causality
-    return "local"
+    return var.causality if var.causality in ("output", "input") else "local"
 
 
 def candidate_variables(info) -> list[str]:

@@ -1,8 +1,5 @@
 """Export: freeze a torch network to ONNX, generate C from it, wrap the original FMU into a
-hybrid FMI 2.0 Model-Exchange FMU, and validate the round trip.
-
-Names load on first use, so the command line does not pay for onnx or torch in commands
-that never export.
+hybrid FMI 2.0 Model-Exchange FMU, and validate the round trip. Names load on first use (_lazy.py).
 """
 from __future__ import annotations
 

@@ -2,14 +2,11 @@
 
     export_calibrated("plant.fmu", {"b": 0.2}, "plant_calibrated.fmu")
 
-Changing only the start value in modelDescription.xml does not make a valid FMU: the binary keeps
-its own value, and an importer that sets no start values (fmpy's default) simulates the old one.
-So the calibrated FMU carries the original whole (binaries, resources, documentation, extra) and
-beside its binary a small library, `<id>_calibrated.so` (c_templates/calibrated_fmu.c),
-that loads the original's binary privately, sets the calibrated values at fmi2Instantiate and
-again after fmi2Reset, and forwards every other call unchanged. Its modelDescription.xml is the
-original's with the new start values, a new GUID and modelIdentifier, and no SourceFiles (they
-build the original, not this). The export runs fmpy's validation on the result.
+A new start value alone does not make a valid FMU: the binary keeps its own value, and an
+importer that sets no start values (fmpy's default) simulates the old one. So the original goes
+whole beside a small library, `<id>_calibrated.so` (c_templates/calibrated_fmu.c, see the README's
+"The candidates") that forwards every call; the modelDescription.xml gets the new start values, a
+new GUID and modelIdentifier, and no SourceFiles. The export runs fmpy's validation on the result.
 
 `validate_calibrated` is the round trip: fmpy running the calibrated FMU without start values
 against fmpy and fmubuilder's replica of fmpy's Euler loop running the original with them.

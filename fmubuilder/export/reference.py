@@ -12,7 +12,7 @@ from typing import Sequence
 import numpy as np
 
 from fmubuilder.fmi.instance import Fmu
-from fmubuilder.simulation.system import FmuSystem
+from fmubuilder.simulation.system import FmuSystem, values_reader
 
 from .network import OnnxNetwork
 from .spec import HybridSpec
@@ -43,8 +43,7 @@ class HybridReference(FmuSystem):
         self.p_ann = [float(g) for g in (p_ann if p_ann is not None else spec.p_ann)]
         self.p_fmu = [float(g) for g in (p_fmu if p_fmu is not None else spec.p_fmu)]
         self.channel_index = [info.state_index(c) for c in spec.channels]
-        self._readers = _input_readers(self.instance, info, spec.inputs)
-        self._n_inputs = len(spec.inputs)
+        self._read_inputs = values_reader(self.instance, [info.variable(name) for name in spec.inputs])
         self._channel_columns = [(j, spec.channels.index(name)) for j, name in enumerate(self.output_names)
                                  if name in spec.channels]
         self._alias_columns = [(j, spec.channels.index(spec.aliases[name])) for j, name in enumerate(self.output_names)
@@ -76,10 +75,7 @@ class HybridReference(FmuSystem):
 
     def network_output(self) -> np.ndarray:
         """The network's output at the FMU's current point."""
-        values = np.empty(self._n_inputs)
-        for positions, read in self._readers:
-            values[positions] = read()
-        return self.network(values)
+        return self.network(self._read_inputs())
 
     def _network_if_gated(self) -> np.ndarray | None:
         return self.network_output() if any(g != 0.0 for g in self.p_ann) else None
@@ -92,20 +88,3 @@ class HybridReference(FmuSystem):
         for c, i in enumerate(self.channel_index):
             dx[i] = hybrid_value(self.p_fmu[c], float(dx[i]), self.p_ann[c], float(ann[c]) if ann is not None else 0.0)
         return dx
-
-
-def _input_readers(instance, info, names: Sequence[str]):
-    """(positions, read) per variable type; read() returns the values as float64."""
-    readers = []
-    for api_type in ("Real", "Integer", "Boolean"):
-        positions = [k for k, name in enumerate(names) if info.variable(name).api_type == api_type]
-        if not positions:
-            continue
-        vrs = [info.variable(names[k]).value_reference for k in positions]
-        if api_type == "Real":
-            read = instance.real_getter(vrs)
-        else:
-            getter = getattr(instance, f"get_{api_type.lower()}")
-            read = (lambda get, refs: lambda: np.asarray(get(refs), dtype=float))(getter, vrs)
-        readers.append((np.array(positions, dtype=int), read))
-    return readers

@@ -32,11 +32,8 @@ JSON form (paths relative to the JSON file's folder)::
       "term": "network"
     }
 
-("aliases" may be left out: no output is corrected besides the derivatives.)
-
-``term`` says what the ONNX graph holds, so that the exported FMU names it truthfully:
-"network" (a trained neural network, the default) or "fitted term" (a symbolic term fitted to
-the data, frozen as a graph), with its ``expression`` for the FMU's description.
+("aliases" may be left out.) ``term`` says what the ONNX graph holds, so that the exported FMU names
+it truthfully: "network" (the default) or "fitted term", with its ``expression`` for the description.
 """
 from __future__ import annotations
 

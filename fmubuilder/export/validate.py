@@ -16,17 +16,14 @@ fmpy and compared with the Python reference (original FMU + onnxruntime, referen
   when the model had step events: they happen at the end of an adaptive step, and round-off
   in the error estimate can shift the step ends;
 * fmpy CVode vs the engine's DOPRI5 on the reference, both at `rtol`: different solvers, so
-  they agree only within their global errors, which over a run with events are far above the
-  local tolerance (fmpy's CVode about 1e3 * rtol on the bouncing ball, DOPRI5 about 10 *
-  rtol): target relative 1e4 * rtol (rtol 1e-10 by default) times the square root of the number
-  of events in the span, since every event restarts both solvers. Both sample at half the output
-  interval, and the samples within a quarter output interval of one of the reference's events
-  are dropped (a sample at an event instant may be taken before or after it): the samples
-  midway between output points stay, so even a time event at every output point (a sampled
-  controller) leaves half the samples to compare. This row is informational, not part of the verdict, when the model
-  had step events (fmpy calls fmi2CompletedIntegratorStep only at its communication points,
-  the engine after every internal step, so the events happen at different times) or inputs
-  are given (fmpy updates continuous inputs only at communication points).
+  they agree only within their global errors, far above the local tolerance over a run with
+  events (fmpy's CVode about 1e3 * rtol on the bouncing ball, DOPRI5 about 10 * rtol): target
+  `cross_solver_tolerance`. Both sample at half the output interval, and the samples within a
+  quarter output interval of one of the reference's events are dropped (a sample at an event
+  instant may be taken before or after it): even a time event at every output point leaves the
+  midway samples. Informational only with step events (fmpy calls fmi2CompletedIntegratorStep
+  only at its communication points, the engine after every internal step) or inputs (fmpy
+  updates continuous inputs only at communication points).
 
 "Relative" differences are normalised per signal by max(1e-3, largest |value| of the
 reference), so signals crossing zero do not blow the ratio up. A row with no samples left to

@@ -2,15 +2,11 @@
 
     export_hybrid("hybrid_spec.json", "plant_hybrid.fmu")
 
-Steps, all inside a temporary folder: render the wrapper's configuration header
-(c_templates/hybrid_config.h.j2, the tables the static c_templates/hybrid_wrapper.c reads) and
-the network kernel, derive modelDescription.xml, stage the
-resources (the original's binary as resources/<id>.so with every other file of its
-binaries/<platform>/ folder beside it, so that libraries it loads from its own folder are
-found; its own resources; and under resources/fmubuilder_hybrid/ the spec, the network and the
-original modelDescription.xml so the FMU can be validated on its own), build with CMake's
-add_fmu() (cmake/fmu.cmake), add the original's documentation/ and extra/ folders as they are,
-check the result with fmpy's validation, and only then move it to the output path.
+Steps, all inside a temporary folder: render the wrapper's configuration header (the tables the
+static c_templates/hybrid_wrapper.c reads) and the network kernel, derive modelDescription.xml,
+stage the resources (the original's binaries folder beside its own resources, the binary as
+resources/<id>.so; under resources/fmubuilder_hybrid/ what validates the FMU on its own), build
+with add_fmu() (cmake/fmu.cmake), carry documentation/ and extra/, check with fmpy, move into place.
 
 When the original also carries binaries/win64/<id>.dll, the same project is built a second time
 with mingw-w64 (cmake/mingw-w64-x86_64.cmake) and the hybrid gains binaries/win64/: its wrapper

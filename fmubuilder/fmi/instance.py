@@ -242,10 +242,7 @@ class FmuInstance:
     def real_getter(self, vrs: Sequence[int]):
         """A fast reader of a fixed set of Real variables: returns a function giving a new array."""
         fill = self.real_reader(vrs)
-
-        def read() -> np.ndarray:
-            return fill(None).copy()
-        return read
+        return lambda: fill(None).copy()
 
     def real_reader(self, vrs: Sequence[int]):
         """A fast reader of a fixed set of Real variables into a given array: returns a function

@@ -83,13 +83,13 @@ class ModelInfo:
     def parameters(self) -> list[Variable]:
         return [v for v in self.variables.values() if v.is_parameter]
 
-    def variable(self, name: str) -> Variable:
-        """Look a variable up by name, with a helpful error for a typo."""
+    def variable(self, name: str, what: str = "variable") -> Variable:
+        """Look a variable up by name, with a helpful error for a typo (naming it as `what`)."""
         try:
             return self.variables[name]
         except KeyError:
             raise FmuBuilderError(
-                f"unknown variable '{name}' in model '{self.model_name}'"
+                f"unknown {what} '{name}' in model '{self.model_name}'"
                 f"{suggestion(name, self.variables)}; `fmubuilder inspect` lists the variables"
             ) from None
 

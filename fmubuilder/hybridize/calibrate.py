@@ -1,25 +1,18 @@
-"""Calibration of one FMU parameter: a candidate beside the fitted term and the NeuralFMU.
-
-Many models are wrong in a number rather than in a missing term: a mass, a resistance, a friction.
-Then the best correction is the parameter's value, not a network. The search is budgeted in
-simulations, not seconds:
+"""Calibration of one FMU parameter: a candidate beside the fitted term and the NeuralFMU, for
+models wrong in a number rather than in a missing term (the README's "The candidates").
 
     screening -> each Real parameter (causality "parameter", variability fixed or tunable, not set
-                 by the data's start values) is perturbed once by PERTURBATION of its value: one
-                 simulation each over the first SCREEN_SAMPLES samples of the first training run.
-                 The change of the signals, regressed on their residual, says how much of the
-                 residual that parameter can remove (its `explained` share, 0..1); rank by it.
-                 Parameters whose changes move the signals alike (a product c * A, a rolling
-                 coefficient times gravity) are one candidate: only the first of them is fitted
-    fit       -> the best MAX_CALIBRATED parameters (see RUNNER_UP_SHARE) less such twins, each on the training
-                 role (all training runs) by Gauss-Newton with step halving, in at most
-                 FIT_SIMULATIONS simulations each (one simulation: all training runs once, as
+                 by the data's start values) perturbed once by PERTURBATION of its value, over the
+                 first SCREEN_SAMPLES samples of the first training run; the change of the signals,
+                 regressed on their residual, is its `explained` share (0..1). Parameters whose
+                 changes move the signals alike are one candidate, the first of them fitted
+    fit       -> the best MAX_CALIBRATED parameters (see RUNNER_UP_SHARE) by Gauss-Newton with step
+                 halving on all training runs, at most FIT_SIMULATIONS simulations each (as
                  `evaluate.Objective` counts), within [start / RANGE, start * RANGE]
 
-Every run is scored as the workflow scores candidates (`evaluate`: the engine with the scoring
-solver and step, the data's sensor lag), and the objective is the workflow's score: the mean over
-the signals of MSE / MSE of the plain FMU. So the fit minimises on the training data exactly what
-the choice compares on the validation data.
+Every run is scored as the workflow scores candidates (`evaluate`), and the objective is the
+workflow's score, so the fit minimises on the training data what the choice compares on the
+validation data.
 """
 from __future__ import annotations
 

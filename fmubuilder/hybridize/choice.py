@@ -1,16 +1,8 @@
 """The choice among the candidates, on the validation data.
 
-    score   -> each signal's validation MSE over its noise floor (the measured value's noise
-               variance, `MeasuredData.noise_variance`; the plain FMU's MSE where the data carry no
-               spread), combined over the signals as a geometric mean: a factor gained on any signal
-               counts alike, whether that signal sits at the floor or far above it. (The arithmetic
-               mean of MSE / MSE plain, the rule before, is decided by the signals the plain FMU
-               already fits: an energy 6 times worse moved it by 0.001, a speed 3 % better by 0.03.)
-    margin  -> a candidate with an ANN must beat the best candidate that fits one number (the
-               term's coefficient, a parameter) by more than the noise allows, else the simpler one
-               wins. So the ANN that starts from the fitted term is never chosen when it is worse
-               than the term on the validation data, by construction
-    publish -> the chosen candidate must score below the plain FMU
+The rule (score, margin, publish) is the README's "The choice". The geometric mean replaced the
+arithmetic mean of MSE / MSE plain, which the signals the plain FMU already fits decide: an energy
+6 times worse moved it by 0.001, a speed 3 % better by 0.03.
 
 The margin is what the noise alone can do to the ratio of two scores: at the floor a signal's MSE
 over its noise variance, estimated from n independent pieces, has a relative spread of sqrt(2 / n);

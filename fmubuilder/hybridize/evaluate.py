@@ -1,10 +1,6 @@
-"""Errors of a model (plain or hybrid FMU) against measured data, as the paper's table has them.
-
-Every model is simulated the same way (`Scoring`: the engine with the solver and step the
-NeuralFMU trains with, the bench's sensor lag applied to the model's signals), so "before" and
-"after", and the candidates among themselves, differ only in the model. `Scoring.checked` picks
-an RK4 step whose discretisation error lies well below the measurement noise, so that an error
-at the noise floor means a model as good as the data can tell, not one that matches the solver.
+"""Errors of a model (plain or hybrid FMU) against measured data, every model simulated the same
+way (`Scoring`, the bench's sensor lag applied), so that the candidates differ only in the model
+(docs/ARCHITECTURE.md, "How a model is scored against data").
 """
 from __future__ import annotations
 

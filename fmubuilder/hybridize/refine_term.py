@@ -7,18 +7,13 @@ energy, a temperature). Here the term's scale is fitted on the training data by 
 itself, as a nonlinear least-squares problem:
 
     parameters -> one scale per derivative the term corrects: the exported hybrid FMU's gate
-                  (`hybrid.<x>.p_term`, a tunable parameter) set as a start value, so the model
-                  simulated is the FMU that would be published, with no second implementation
-    residuals  -> (the model's signals seen through the sensor lag - measured) / the signal's
-                  noise level, every measured signal on every training run
-    simulation -> accurate (DOPRI5, rtol ACCURATE_RTOL): the coefficient then describes the
-                  model, not a fixed step's discretisation error, and a tool's own solver sees it so
-    search     -> Levenberg-Marquardt, its Jacobian by a finite difference of each scale (one
-                  simulation per scale per iteration), at most MAX_SIMULATIONS simulations in all
-    kept       -> only if it lowers the training objective below the unrefined term's
-
-The refined scales are then folded into the term's coefficients, and the validation data judge
-the term as any other candidate.
+                  (`hybrid.<x>.p_term`) set as a start value: the model simulated is the FMU
+                  that would be published, with no second implementation
+    residuals  -> (the model's signals seen through the sensor lag - measured) / noise level
+    simulation -> DOPRI5 at ACCURATE_RTOL: the coefficient describes the model, not a fixed
+                  step's discretisation error
+    search     -> Levenberg-Marquardt with finite differences, at most MAX_SIMULATIONS simulations,
+                  kept only if it lowers the training objective (the README's "The candidates")
 """
 from __future__ import annotations
 

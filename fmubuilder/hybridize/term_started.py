@@ -1,9 +1,5 @@
-"""The third candidate: a NeuralFMU whose ANN adds to the fitted term and learns what it leaves.
-
-Its correction is `fitted term + ANN`, the ANN's last layer at zero, so it starts as the fitted term
-exactly; the training ends with the parameters of its best validation score, the start included,
-so on the validation data it is never worse than the term it started from. It reads the term's
-variables and the ANN's inputs.
+"""The third candidate: a NeuralFMU whose ANN adds to the fitted term and learns what it leaves
+(the README's "The candidates"). It reads the term's variables and the ANN's inputs.
 """
 from __future__ import annotations
 

@@ -1,9 +1,7 @@
 """Hybrid specs for the two kinds of added effect: a trained NeuralFMU and a fitted symbolic term.
 
 Both become the same thing for export: a network (ONNX) from FMU variables to the correction
-of one derivative channel, plus the gates (see fmubuilder.export.spec). `aliases` names the
-outputs that equal a channel's derivative ({"power": "der(energy)"}): the hybrid corrects them
-with it.
+of one derivative channel, plus the gates and aliases (see fmubuilder.export.spec).
 """
 from __future__ import annotations
 

@@ -2,17 +2,9 @@
 validate its round trip, score the test data once, report.
 
 The data's roles and the candidates are the README's "Data and their roles in `hybridize`" and "The
-candidates"; each number in the report comes from one role. The stages: the diagnosis (diagnose/);
-the candidates, each exported as an FMU: the fitted term, its coefficient refined through the
-simulation (refine_term.py), the FMU with a parameter calibrated (calibrate.py), a NeuralFMU, and an
-ANN added to the fitted term (term_started.py); the choice (choice.py); the round trip of the chosen
-FMU (fmpy vs the Python reference); the report (report.py: report.json, report.md, report.html and
-the plots).
-
-The work is counted, not timed: the diagnosis traces a fixed span of data and the NeuralFMU trains
-for a fixed number of loss evaluations (`budget`), so the same command gives the same numbers on an
-idle and a busy machine. `time_budget` is an optional wall-clock cap on the training; the report
-says when it cut it short.
+candidates"; each number in the report comes from one role. The work is counted, not timed (the
+README's demo paragraph); `time_budget` is an optional wall-clock cap on the training, and the
+report says when it cut it short.
 """
 from __future__ import annotations
 
@@ -37,10 +29,8 @@ VALIDATION_SHARE = 0.2
 # The NeuralFMU training's work: loss evaluations, each a simulation of all training elements with
 # its gradient (an Adam step costs one, an L-BFGS step its line search's, see neural.train.Trainer.fit).
 DEFAULT_BUDGET = 10
-# The optimizer through the solver: "adam" or "lbfgs". On the DC drive's truths, 5 evaluations
-# each, with the bounded warm start (benchmarks/bench_effects.py --optimizer; the NeuralFMU's worst
-# test signal / noise, L-BFGS against Adam): Coulomb 303 / 391, speed-current loss 218 / 4.18e4, two
-# effects 1690 / 7.17e4, but Stribeck 318 / 51.8 and windage 24.4 / 4.24.
+# The optimizer through the solver: "adam" or "lbfgs" (on the DC drive's truths L-BFGS wins on three
+# of five effects: docs/MEASUREMENTS.md, "The DC drive effects table against earlier versions").
 OPTIMIZER = "lbfgs"
 # Seconds of the test data replayed by the round-trip validation (fmpy Euler and CVode).
 ROUNDTRIP_SPAN = 60.0
@@ -61,9 +51,8 @@ WARM_START = True
 # friction with an rms error of 7 % of its size; 1 s windows, all kept (before), 130 %.
 COLLOCATION_WINDOW = 0.5
 # The warm start's target (neural/warm_start.py): "pointwise", the local lines' slopes, or
-# "integral", the state's increments over windows of INTEGRAL_WINDOW seconds. benchmarks/
-# bench_effects.py --budget 5, the NeuralFMU's worst test signal / noise, pointwise / integral: DC
-# drive Stribeck 318 / 158, Coulomb 303 / 327, speed-current loss 218 / 230, two effects 1690 / 1.57e4.
+# "integral", the state's increments over windows of INTEGRAL_WINDOW seconds (pointwise / integral
+# on the DC drive's effects: docs/MEASUREMENTS.md, "Warm starts, optimizers and an ANN on the fitted term").
 WARM_START_TARGET = "pointwise"
 INTEGRAL_WINDOW = 0.5
 # Seconds of the training data on which outputs equal to the corrected derivative are detected.
@@ -474,8 +463,6 @@ def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], ali
     folder.mkdir()
     first = ctx.roles.train[0]
     cap = None if ctx.time_budget is None else max(1.0, ctx.time_budget - (time.perf_counter() - ctx.started))
-    # The training sees the model through the data's sensor lag (from the sidecar), at the step and
-    # with the solver every model is scored with.
     # An ANN on a fitted term ends with its best epoch on the validation data, the start (the term)
     # included, so it is never worse there than the term. The plain NeuralFMU keeps its lowest
     # training loss: on the VLDM the validation score (speed and power at the noise level) picked an

@@ -1,8 +1,5 @@
 """NeuralFMU: an FMU as a differentiable layer inside a small ANN topology, simulated with FMI event
-handling and trained on measured data (PyTorch).
-
-Importing this package does not import torch; its names load on first use, so the command line
-pays for torch only in the commands that need it.
+handling and trained on measured data (PyTorch). Its names load on first use (_lazy.py).
 
     from fmubuilder.neural import train_neural_fmu, load_neural_fmu
     result = train_neural_fmu("vldm.fmu", "train.csv", targets=["der(speed)"], inputs=["speed", "der(speed)"])

@@ -11,17 +11,12 @@ continuous states x and to chosen tunable parameters p:
   step scaled to max(|x_i|, nominal_i), read again, restore.
 
 `fmu_call` wraps this in a torch.autograd.Function: the Jacobian is computed in the forward pass
-(the FMU's discrete state has moved on by the time backward runs) and applied in backward.
-`JacobianSparsity` skips the columns the FMU's ModelStructure declares zero and, where it declares
-nothing, the columns that a combined probe shows zero at the evaluated point.
+(the FMU's discrete state has moved on by the time backward runs); `JacobianSparsity` skips the
+columns known to be zero.
 
-At events (see solve.py for the whole design) `FmuEvaluator.handle_event` runs the FMU's own event
-iteration and, when asked, its linearisation (`EventOutcome`): the Jacobian R of the reset map
-x+(x-, p) and the effect of (x-, p) *through the discrete states only* - by restoring an FMU-state
-snapshot taken before the event and redoing the event iteration with one known perturbed - plus,
-for discrete states with memory, their dependence on the previous event's discrete states, found
-by redoing the event on "shadow" snapshots that carry perturbed discrete states.
-`EventSensitivity` perturbs the knowns seen to matter one by one and probes the others together.
+At events `FmuEvaluator.handle_event` runs the FMU's own event iteration and, when asked, its
+linearisation (`EventOutcome`; the design: solve.py's docstring, item 3). `EventSensitivity`
+perturbs the knowns seen to matter one by one and probes the others together.
 """
 from __future__ import annotations
 
@@ -93,22 +88,12 @@ class JacobianSparsity:
         self._index()
 
     def _index(self) -> None:
-        """The column lists, kept between changes: they are asked for at every FMU evaluation."""
-        self._columns = np.flatnonzero(self.computed)
-        self._unchecked = np.zeros(0, dtype=int) if self.complete else np.flatnonzero(~self.computed)
-        self._unchecked_weights = self.probe_weights[self._unchecked]
-
-    def columns(self) -> np.ndarray:
-        """The columns computed one by one."""
-        return self._columns
-
-    def unchecked(self) -> np.ndarray:
-        """The columns to probe together (empty when the ModelStructure declares every unknown)."""
-        return self._unchecked
-
-    def unchecked_weights(self) -> np.ndarray:
-        """probe_weights of the unchecked columns."""
-        return self._unchecked_weights
+        """The column lists, kept between changes: they are asked for at every FMU evaluation.
+        `columns` are computed one by one, `unchecked` probed together (none when the
+        ModelStructure declares every unknown), with their `unchecked_weights`."""
+        self.columns = np.flatnonzero(self.computed)
+        self.unchecked = np.zeros(0, dtype=int) if self.complete else np.flatnonzero(~self.computed)
+        self.unchecked_weights = self.probe_weights[self.unchecked]
 
     def found(self, columns: np.ndarray) -> None:
         self.computed[columns] = True
@@ -135,11 +120,9 @@ class EventSensitivity:
     effect, so a known that acts only at some events (a relay switching) is never missed.
     Shadows (discrete states with memory, see solve.py) are kept while any propagated shadow has
     shown an effect, during the first `warmup` events, around every `recheck`-th, and (for an FMU
-    with `state_events`) until shadows have been propagated through a state event. A held sample
-    shows no memory at the ticks that resample it, only at a state event between two ticks (the
-    VLDM's driver relay): dropped after the warm-up, its shadows never reached one, and the held
-    sample's gradient was cut to zero at each relay switch (the training gradient 0.4 % off over
-    10 s of driving, 1.4 % over 40 s; benchmarks/bench_gradient.py)."""
+    with `state_events`) until shadows have been propagated through a state event: a held sample
+    (the VLDM's driver error) shows memory only there (dropped before, its gradient was 0.4 % off
+    over 10 s of driving, 1.4 % over 40 s; benchmarks/bench_gradient.py)."""
 
     def __init__(self, n_knowns: int, warmup: int = 4, recheck: int = 500, state_events: bool = True):
         self.n_knowns, self.warmup, self.recheck = n_knowns, warmup, recheck
@@ -149,20 +132,13 @@ class EventSensitivity:
         self.uses = 0
         self.probe_weights = _probe_weights(n_knowns)
         self.memory_seen = False
-        self.perturbations = 0
-        self.propagations = 0
-        self.seconds = 0.0
-        self._run_events = 0
+        self.start_run()
         self._index()
 
     def _index(self) -> None:
         """The column lists of the next event, kept until an event changes them."""
         self._columns = np.flatnonzero(self.recent)
         self._unchecked = np.flatnonzero(~self.recent)
-
-    @property
-    def events(self) -> int:
-        return self.uses
 
     def keep_shadows(self) -> bool:
         return (self.memory_seen or not self.state_event_checked or self.uses < self.warmup + 1
@@ -201,13 +177,6 @@ class EventSensitivity:
                 "seconds": self.seconds, "skipped_columns": self.skipped, "memory": self.memory_seen}
 
 
-def discrete_state_names(info: ModelInfo) -> list[str]:
-    """Real variables the FMU changes at events only (discrete locals and outputs): the observable
-    part of its discrete state."""
-    return [v.name for v in info.variables.values()
-            if v.type == "Real" and v.variability == "discrete" and v.causality in ("local", "output")]
-
-
 class _Candidates:
     """Perturbed post-event FMU states of one element and one event: their discrete-state
     deviations, output deviations and reset deviations, with optional snapshots (shadows)."""
@@ -229,8 +198,7 @@ class FmuEvaluator:
     """
 
     def __init__(self, instances: Sequence[FmuInstance], info: ModelInfo, variables: Sequence[str] = (),
-                 inputs: Sequence[str] = (), parameters: Sequence[str] = (), jacobian: str = "auto",
-                 discrete_states: Sequence[str] | str = "auto"):
+                 inputs: Sequence[str] = (), parameters: Sequence[str] = (), jacobian: str = "auto"):
         self.instances = list(instances)
         self.info = info
         self.n = info.n_states
@@ -244,14 +212,10 @@ class FmuEvaluator:
             var = info.variable(name)
             if var.type != "Real":
                 raise FmuBuilderError(f"'{name}' is a {var.type} variable; only Real variables can feed a NeuralFMU")
-        for name in self.inputs:
-            var = info.variable(name)
-            if var.causality != "input" or var.variability != "continuous":
+            if name in self.inputs and (var.causality != "input" or var.variability != "continuous"):
                 raise FmuBuilderError(f"'{name}' is not a continuous Real input of {info.model_name}; "
                                       "a NeuralFMU takes only continuous Real inputs from data")
-        for name in self.parameters:
-            var = info.variable(name)
-            if not (var.is_parameter and var.variability == "tunable"):
+            if name in self.parameters and not (var.is_parameter and var.variability == "tunable"):
                 raise FmuBuilderError(
                     f"'{name}' is not a tunable parameter of {info.model_name}; only tunable parameters can be trained")
         self.state_vrs = [v.value_reference for v in info.states]
@@ -269,11 +233,12 @@ class FmuEvaluator:
         provides = info.capabilities.provides_directional_derivative
         if jacobian == "directional" and not provides:
             raise FmuBuilderError(f"{info.model_name} provides no directional derivatives; use jacobian='fd'")
-        self._directional_x = provides and jacobian != "fd"
-        self._directional_p = provides and jacobian != "fd"
+        self._directional_x = self._directional_p = provides and jacobian != "fd"
         self._param_mode: str | None = None  # how the CT-mode parameter columns are found (probed)
         self.sparsity = JacobianSparsity(info, [v.name for v in info.derivatives] + self.variables)
-        self.discrete = discrete_state_names(info) if discrete_states == "auto" else list(discrete_states)
+        # The observable part of the FMU's discrete state: Real locals and outputs changed at events only.
+        self.discrete = [v.name for v in info.variables.values()
+                         if v.type == "Real" and v.variability == "discrete" and v.causality in ("local", "output")]
         self.q = len(self.discrete)
         self._d_getters = [inst.real_getter([info.variable(v).value_reference for v in self.discrete])
                            for inst in self.instances]
@@ -364,11 +329,11 @@ class FmuEvaluator:
         """J = d out / dx at instance b's current point, the columns JacobianSparsity skips zero."""
         J[:] = 0.0
         sparsity = self.sparsity
-        unchecked = sparsity.unchecked()
+        unchecked = sparsity.unchecked
         steps = None if self._directional_x else fd_steps(x, self.nominal)   # one perturbation size per state
-        if unchecked.size and self._probe(b, x, base, unchecked, sparsity.unchecked_weights(), steps):
+        if unchecked.size and self._probe(b, x, base, unchecked, sparsity.unchecked_weights, steps):
             sparsity.found(unchecked[self._state_columns(b, x, base, unchecked, steps).any(axis=0)])
-        columns = sparsity.columns()
+        columns = sparsity.columns
         if columns.size:
             self._state_columns(b, x, base, columns, steps, J)
         self.n_jacobian_columns += len(columns)
@@ -555,7 +520,7 @@ class FmuEvaluator:
         modes = np.sign(inst.get_event_indicators()) if self.nz and self.q else None   # see _propagate_shadows
         knowns = n + self.P
         changed, x_plus = outcome.values_changed, outcome.x_plus
-        R = _identity_reset(n, knowns) if changed else None
+        R = np.eye(n, knowns) if changed else None
         B = np.zeros((self.carrier_width, knowns))
         pool, candidates = self._next_pool(b), _Candidates()
         shadows = sensitivity.keep_shadows()
@@ -627,14 +592,9 @@ class FmuEvaluator:
                            state_event: bool = False, modes: np.ndarray | None = None, push=None):
         """Redo the event on each shadow (nominal continuous state, perturbed discrete state from the
         previous event): gives A (and Rd) on the shadows' span; then G by regression over all
-        candidates, and at most q independent candidates become the new shadows.
-
-        A shadow whose event indicators (signs `modes` of the nominal ones) differ after the event
-        took another branch: at a state event whose indicator depends on the discrete state (the
-        VLDM's start from standstill on the held driver error) the shadow has not crossed yet at
-        the nominal event time. Its difference there is a jump, not a derivative; it is measured
-        on the nominal branch instead (see _beyond), and left out only where that fails (its path
-        is dropped there, as an event without shadows drops it)."""
+        candidates, and at most q independent candidates become the new shadows. A shadow whose
+        indicators' signs differ from the nominal `modes` took another branch (solve.py, item 3):
+        it is measured on the nominal branch (_beyond), left out only where that fails."""
         inst = self.instances[b]
         d_in, d_out, x_out = [], [], []
         for handle, deviation in self._shadows[b]:
@@ -734,16 +694,8 @@ def _any(values: np.ndarray) -> bool:
     return np.count_nonzero(values) > 0
 
 
-def _identity_reset(n: int, knowns: int) -> np.ndarray:
-    R = np.zeros((n, knowns))
-    R[np.arange(n), np.arange(n)] = 1.0
-    return R
-
-
 def _identity_column(R: np.ndarray, i: int, n: int) -> bool:
-    if i < n:
-        return bool((R[:, i] == (np.arange(n) == i)).all())
-    return not R[:, i].any()
+    return bool((R[:, i] == (np.arange(n) == i)).all()) if i < n else not R[:, i].any()
 
 
 def _nonzero(dd: np.ndarray, d0: np.ndarray) -> bool:
@@ -756,9 +708,7 @@ def _regression(candidates: _Candidates, width: int, q: int) -> np.ndarray:
     """G with df = G dd over the candidates (least squares on their span)."""
     if not candidates.dd:
         return np.zeros((width, q))
-    dd = np.array(candidates.dd).T
-    df = np.array(candidates.df).T
-    return df @ _pinv(dd)
+    return np.array(candidates.df).T @ _pinv(np.array(candidates.dd).T)
 
 
 def _pinv(a: np.ndarray) -> np.ndarray:

@@ -29,9 +29,8 @@ class NeuralFMU(nn.Module):
         if self.info.n_states == 0:
             raise FmuBuilderError(f"{self.info.model_name} has no continuous states; a NeuralFMU needs state derivatives")
         config = config if isinstance(config, TopologyConfig) else TopologyConfig.from_dict(config)
-        self.start_values = {}
-        for name, value in (start_values or {}).items():
-            self.start_values[name] = convert_value(self.info.variable(name), value)
+        self.start_values = {name: convert_value(self.info.variable(name), value)
+                             for name, value in (start_values or {}).items()}
         parameter_values = [float(self.start_values.get(p, self.info.variable(p).start or 0.0)) for p in config.parameters]
         self.topology = Topology(config, self.info, parameter_values)
         self._instances: list[FmuInstance] = []
@@ -101,10 +100,8 @@ class NeuralFMU(nn.Module):
 
     def start_values_with_parameters(self) -> dict[str, object]:
         """Start values plus the current values of the trained FMU parameters."""
-        values = dict(self.start_values)
-        for name, value in zip(self.config.parameters, self.topology.fmu_parameters.detach().tolist()):
-            values[name] = value
-        return values
+        trained = dict(zip(self.config.parameters, self.topology.fmu_parameters.detach().tolist()))
+        return {**self.start_values, **trained}
 
     def state_names(self) -> list[str]:
         return [v.name for v in self.info.states]

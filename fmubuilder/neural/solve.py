@@ -1,15 +1,10 @@
 """Differentiable simulation of a NeuralFMU with the FMI 2.0 event semantics.
 
-Batch elements run side by side: B FMU instances, states as a [B, n] tensor, the ANN evaluated once
-per solver stage for the elements that step. Fixed-step explicit Euler or classical RK4 on a fixed
-grid (t0_b + k h). Each element has its own time and its own event sequence, the engine's
-(simulation/events.EventSequence), towards its next grid point, where the elements that arrive
-first wait: grid times never depend on event times, and an element's steps never on the other
-elements' events. The elements that ask to step take one batched step; a state event is located
-without gradients on the step's dense output (Euler: linear; RK4: cubic Hermite) by the engine's
-root finder. (The engine also ends a step at each sample of a continuous input; this solver steps
-over them.) The first step from a grid point starts every element there: its first stage is the
-record. Under torch.no_grad() nothing below the "gradients" items is done (the forward-only path).
+Batch elements run side by side (B FMU instances, states a [B, n] tensor), fixed-step Euler or RK4
+on the grid t0_b + k h, each element through its own event sequence towards its next grid point
+(docs/ARCHITECTURE.md, "Event handling"); a state event is located without gradients on the step's
+dense output (Euler: linear; RK4: cubic Hermite). The first step from a grid point starts every
+element there: its first stage is the record. Under torch.no_grad() nothing below is done.
 
 Gradients across events:
 1. Event time. With t* the located time and z the crossing indicator,
@@ -43,27 +38,21 @@ Gradients across events:
       event iteration redone. This reduces to a) for memoryless discrete states, costs n + q event
       iterations per event, and is exact to first order as long as the exposed discrete variables
       are the FMU's discrete state.
-   Trained tunable FMU parameters are perturbed like states (set in event mode). Perturbations at
-   state events are oriented so that the perturbed state stays beyond the crossing. The knowns
-   without effect (no discrete, output or reset change) at the previous event are probed together
-   by one combined perturbation, and perturbed one by one only where it shows an effect
-   (layer.EventSensitivity); Trajectory.stats["event_sensitivity"] reports the count and time.
-   A held sample (the VLDM's driver error) is memoryless at the ticks that resample it but has
-   memory across a state event between two ticks (A = 1 there): shadows are therefore kept until
-   they have been propagated through a state event, and for good once they show memory. A shadow
-   that takes another branch at a state event (its indicators' signs differ from the nominal ones:
-   the VLDM's start from standstill depends on the held error, so the shadow has not crossed yet
-   at the nominal event time, item 1) would measure a jump: it is measured on the nominal branch,
-   the shadow and the nominal event redone with x- pushed further across (the perturbations'
-   orientation), their difference taken; left out only if no push up to 2^10 steps brings it
-   across without moving the nominal off its branch.
+   Trained tunable FMU parameters are perturbed like states (set in event mode); at state events
+   the perturbations are oriented so that the perturbed state stays beyond the crossing. Knowns
+   without effect at the previous event are probed together (layer.EventSensitivity; the count and
+   time in Trajectory.stats["event_sensitivity"]). A held sample (the VLDM's driver error) is
+   memoryless at the ticks that resample it but has memory across a state event between two ticks
+   (A = 1 there): shadows are kept until they have been through a state event, and for good once
+   they show memory. A shadow that takes another branch at a state event (its indicators' signs
+   differ from the nominal ones: it has not crossed yet, item 1) is measured on the nominal branch:
+   the shadow and the nominal event redone with x- pushed further across, their difference taken
+   (layer.FmuEvaluator._beyond); left out only where no push up to 2^10 steps works.
    Limits: an event of an element restarts its memoryless M (case a), which drops a held sample's
    path at a state event between ticks; an FMU that cannot save its state gets no discrete-state
    path (a warning says so); G (and M) are measured at the event's x+ and held until the next
-   event, so where d(der)/dd varies with x in between (the VLDM's power from loss maps piecewise
-   linear in the torque) the inner solver stages get it slightly wrong: over 107.5-109.5 s the
-   slope of a loss on the recorded power is exact, on the energy (its integral) 1e-3 off.
-   `benchmarks/bench_gradient.py` checks the whole gradient against central differences.
+   event, so where d(der)/dd varies with x in between the inner solver stages get it slightly
+   wrong (docs/MEASUREMENTS.md, "Gradients and speed", measured by benchmarks/bench_gradient.py).
 4. Initial state. For a fresh initialization with x0 or FMU parameters requiring grad, the same is
    done for the initialization: one re-initialization per perturbed start value (needs fmi2Reset);
    its perturbed states seed the shadows.
@@ -614,9 +603,7 @@ class _Run:
     def step_limit(self, element, limit):
         """The grid point, or a time event a rounding error past it: the element steps to the event's
         own time (and waits there) rather than jump from the grid point to it without a step."""
-        if limit < element.next_event <= limit + element.tolerance(limit):
-            return element.next_event
-        return limit
+        return element.next_event if limit < element.next_event <= limit + element.tolerance(limit) else limit
 
     def indicators_at_end(self, element, t):
         b = element.index
@@ -676,8 +663,7 @@ class _Run:
         any_reset = any(o.values_changed for o in outcomes.values())
         if any_reset:      # the reset map (identity for the elements without a reset)
             x_val = x.detach().numpy().copy()
-            R = np.zeros((B, n, K))
-            R[:, np.arange(n), np.arange(n)] = 1.0
+            R = np.tile(np.eye(n, K), (B, 1, 1))
         history = memory and dd is not None   # a carrier from earlier events exists
         Rd = np.zeros((B, n, Q)) if history else None
         A = np.zeros((B, Q, Q)) if history else None

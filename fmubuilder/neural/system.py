@@ -1,10 +1,8 @@
 """A NeuralFMU as the engine's HybridSystem: forward simulation without torch in the loop.
 
-`NeuralFmuSystem` is an `FmuSystem` whose derivatives pass through the topology, evaluated in numpy
-with the weights of the torch topology's fold (`Topology.folded`: pre-processing in the first
-layer, post-processing and the ANN gate in the last), frozen when the system is built, so one
-evaluation is a few small matrix products; dx_c = ANN'(inputs) + gate_fmu der_fmu_c.
-The untrained hybrid (gate_ann = 0) skips the network and returns the FMU's derivatives exactly.
+`NeuralFmuSystem` is an `FmuSystem` whose derivatives pass through the topology in numpy, with the
+weights of its fold (`Topology.folded`) frozen when the system is built: a few small matrix
+products. The untrained hybrid (gate_ann = 0) returns the FMU's derivatives exactly.
 """
 from __future__ import annotations
 
@@ -119,8 +117,7 @@ class NeuralFmuSystem(FmuSystem):
 
     def __init__(self, model: NeuralFMU, *, variables: Sequence[str], start_values: dict | None = None,
                  inputs: InputSignals | None = None, tolerance: float | None = None):
-        values = model.start_values_with_parameters()
-        values.update(start_values or {})
+        values = {**model.start_values_with_parameters(), **(start_values or {})}
         super().__init__(model.loaded_copy(), variables=variables, start_values=values, inputs=inputs, tolerance=tolerance)
         self.kernel = NumpyTopology(model.topology)
         info = model.info

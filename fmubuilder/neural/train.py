@@ -1,39 +1,25 @@
-"""Training a NeuralFMU on measured data.
-
-Workflow (Thummerer et al.'s NeuralFMU workflow, adapted):
-1. Reference simulation of the plain FMU over the data, with the same fixed-step solver. It gives the
-   pre-/post-processing scales and the start of every batch element: the data hold no controller
-   states, so each element starts from the FMU state the reference saved there (discrete states
-   included), with the measured states set to their measured values (measured_initial_states).
-   Unmeasured states of the plain FMU can be far from the truth (a controller integral that
-   compensates an unmodelled load), and their transient at each element start would dominate the
-   loss. So after pre-training the starts are captured again from a simulation of the hybrid, and
-   during training each element's final FMU state becomes the next element's start (carry-over),
-   so the starts follow the model as it learns. An FMU that cannot save its state gets the same
-   starts, up to rounding, by replaying the runs that reached them (solve.Replay; on sampled_plant,
-   benchmarks/bench_no_fmu_state.py, 0.5-1.35 times the training time with snapshots), but no
-   gradient through its discrete states at events.
-2. Neutral-initialisation pre-training (NIPT): the ANN part is fitted to leave the hybrid unchanged
-   (the FMU's channel derivative for gates, zero for residual) on inputs from the reference.
-3. Optional collocation pre-training (CCPT) for channels der(s) whose state s is measured: the ANN is
-   fitted, without the ODE solver, to the measured derivative of s minus the FMU's along the
-   measured trajectory. The warm start (`warm_start`, warm_start.py) fits that target full-batch with
-   L-BFGS and keeps the fit only if it lowers the training loss.
-4. Training: the data are cut into elements (default 100 s) simulated side by side; the loss is the
-   MSE per measured signal (weighted by the uncertainty band when the CSV has <signal>_std columns)
-   divided by the plain FMU's MSE on the same elements, averaged over the signals: every signal
-   starts at 1. Scaling by the signal's variance instead lets a cumulative signal (energy, whose
-   variance over a cycle is huge) drown in the noise of the others. The simulated signals pass
-   through the sensors' first-order lag (`sensor_lag`) first. Adam with exponential step-size decay
-   per epoch, rewinds after a worse epoch (Trainer._keep_best) and the parameters of the lowest loss
-   at the end; elements in random batches or sequential (carry-over). Or `optimizer="lbfgs"`: one
-   L-BFGS step over all elements per epoch on fixed element starts. The work is `epochs`, or with
-   `budget` a number of loss evaluations spent exactly (Trainer.fit): the way to compare optimizers
-   on equal work. With `validation` data the training ends with the parameters of the best
-   validation score, the start included. Fixed seeds, a time budget, a checkpoint after every
-   epoch, and resume.
-5. Errors before (plain FMU) and after (trained hybrid) over the whole data, simulated with
-   fmubuilder's engine.
+"""Training a NeuralFMU on measured data (Thummerer et al.'s NeuralFMU workflow, adapted; the
+choices in numbers: docs/MEASUREMENTS.md, "How the training gets there").
+1. Reference simulation of the plain FMU over the data, with the same fixed-step solver: the pre-/
+   post-processing scales and the batch elements' starts. The data hold no controller states, so an
+   element starts from the FMU state the reference saved there, measured states set to their
+   measured values (measured_initial_states). Unmeasured states of the plain FMU can be far from the
+   truth (an integral compensating an unmodelled load), so after pre-training the starts are captured
+   again from the hybrid, and during training each element's final FMU state starts the next one
+   (carry-over). An FMU that cannot save its state gets the same starts, up to rounding, by replaying
+   the runs that reached them (solve.Replay), but no gradient through its discrete states at events.
+2. Neutral-initialisation pre-training (NIPT): the ANN fitted to leave the hybrid unchanged.
+3. Optional collocation pre-training (CCPT) of channels der(s) with s measured: the ANN fitted,
+   without the solver, to the measured derivative of s minus the FMU's; the warm start
+   (warm_start.py) fits that target with L-BFGS and keeps it only if it lowers the training loss.
+4. Training on elements (default 100 s) simulated side by side; the loss is the mean over the
+   measured signals of their MSE (weighted by <signal>_std columns), the model seen through the
+   sensors' lag (`sensor_lag`), divided by the plain FMU's. Adam with step-size decay per epoch and
+   rewinds after a worse epoch (Trainer._keep_best), or one L-BFGS step over all elements per epoch;
+   the work is `epochs`, or with `budget` loss evaluations spent exactly (Trainer.fit). The
+   parameters of the lowest loss, or with `validation` data of the best validation score, are kept.
+   Fixed seeds, a time budget, a checkpoint after every epoch, and resume.
+5. Errors before (plain FMU) and after (trained hybrid) over the whole data, with the engine.
 """
 from __future__ import annotations
 
@@ -117,22 +103,17 @@ class TrainingResult:
 def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, targets: Sequence[str],
                      inputs: Sequence[str], start_values: dict | None = None, topology: str = "residual",
                      hidden: Sequence[int] = (16, 16), activation: str = "tanh", parameters: Sequence[str] = (),
-                     base_terms: Sequence[dict] = (),
-                     settings: TrainSettings | None = None, output: str | Path | None = None,
-                     metrics_path: str | Path | None = None, force: bool = False,
-                     test_data: str | Path | MeasuredData | None = None,
-                     test_start_values: dict | None = None, validation: Validation | None = None,
+                     base_terms: Sequence[dict] = (), settings: TrainSettings | None = None,
+                     output: str | Path | None = None, metrics_path: str | Path | None = None, force: bool = False,
+                     test_data: str | Path | MeasuredData | None = None, validation: Validation | None = None,
                      on_epoch=None, **overrides) -> TrainingResult:
     """Train a NeuralFMU around `fmu` on `data` (see the module docstring).
 
     targets: derivative channels, e.g. ["der(speed)"]; inputs: FMU variables fed to the ANN;
-    topology: "residual" (default; on the VLDM it learns about ten times faster per epoch) or "gates";
-    base_terms: a fitted term (the diagnosis' terms) the residual ANN adds to: it learns what the
-    term leaves, starting from the term itself (see base_term.py);
-    settings or keyword overrides of TrainSettings (epochs=...).
-    validation: held-out samples scored before the first epoch and after each one; the training
-    ends with the parameters of the best score there, the start included (Trainer.validation_score).
-    Writes the trained model to `output` and the errors to `metrics_path` (JSON) when given.
+    topology: "residual" (on the VLDM about ten times faster per epoch) or "gates"; base_terms: a
+    fitted term the residual ANN starts from and adds to (base_term.py); settings or keyword
+    overrides of TrainSettings (epochs=...); validation: see Validation and Trainer.validation_score.
+    Writes the model to `output` and the errors to `metrics_path` (JSON) when given.
     on_epoch(epoch, trainer) is called after every epoch; returning True stops the training.
     """
     settings = _settings(settings, overrides)
@@ -163,9 +144,8 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
                    "validation": trainer.validation_summary()}
         if test_data is not None:
             test = test_data if isinstance(test_data, MeasuredData) else load_data(test_data, model.info)
-            starts = test.start_values if test_start_values is None else test_start_values
-            metrics["test_errors"] = {"before": trainer.errors(test, starts, plain=True),
-                                      "after": trainer.errors(test, starts)}
+            metrics["test_errors"] = {"before": trainer.errors(test, test.start_values, plain=True),
+                                      "after": trainer.errors(test, test.start_values)}
         if output is not None:
             save_neural_fmu(model, output, metadata={"data": data.source, "metrics": metrics}, force=True)
         if metrics_path is not None:
@@ -181,14 +161,13 @@ def _settings(settings: TrainSettings | None, overrides: dict) -> TrainSettings:
     if unknown:
         raise FmuBuilderError(f"unknown training settings {sorted(unknown)}; known: {sorted(TrainSettings.__dataclass_fields__)}")
     settings = dataclasses.replace(settings or TrainSettings(), **overrides)
-    if settings.optimizer not in ("adam", "lbfgs"):
-        raise FmuBuilderError(f"unknown optimizer '{settings.optimizer}': use adam or lbfgs")
-    if settings.warm_start_target not in ("pointwise", "integral"):
-        raise FmuBuilderError(f"unknown warm start target '{settings.warm_start_target}': use pointwise or integral")
+    for name, what, choices in (("optimizer", "optimizer", ("adam", "lbfgs")),
+                                ("warm_start_target", "warm start target", ("pointwise", "integral")),
+                                ("order", "element order", ("random", "sequential"))):
+        if getattr(settings, name) not in choices:
+            raise FmuBuilderError(f"unknown {what} '{getattr(settings, name)}': use {' or '.join(choices)}")
     if not settings.integral_window > 0:
         raise FmuBuilderError(f"the integral window must be positive seconds, got {settings.integral_window}")
-    if settings.order not in ("random", "sequential"):
-        raise FmuBuilderError(f"unknown element order '{settings.order}': use random or sequential")
     if settings.epochs < 0:
         raise FmuBuilderError(f"epochs must be >= 0, got {settings.epochs}")
     if settings.budget is not None and settings.budget < 0:
@@ -251,9 +230,8 @@ def simulate_over(model: NeuralFMU, data: MeasuredData, step: float, solver: str
     """Engine result (with its statistics) of the hybrid, or with plain of the FMU alone, over the
     data's span, recording the measured signals; measured states start where the data's first
     samples put them (measured_initial_states), the data's inputs drive the FMU."""
-    original = dict(model.start_values)
-    model.start_values.update(measured_initial_states(model, data))
-    model.start_values.update(start_values or {})
+    original = model.start_values
+    model.start_values = {**original, **measured_initial_states(model, data), **(start_values or {})}
     try:
         with (model.topology.ann_off(fmu_gate_one=True) if plain else contextlib.nullcontext()):
             return simulate_hybrid(model, start_time=data.start, stop_time=data.stop, variables=list(data.signals),
@@ -374,10 +352,10 @@ class Trainer:
         model, data = self.model, self.data
         grid_index = [int(round((s - data.start) / self.step)) for s in self.start_times]
         first = ElementStart(data.start, states=measured_initial_states(model, data))
+        recorded = list(dict.fromkeys(model.config.inputs + model.config.channels + list(data.signals)))
         with torch.no_grad(), (model.topology.ann_off() if plain else contextlib.nullcontext()):
-            run = simulate(model, data.stop - data.start, self.step, starts=[first],
-                           record=self._reference_names(), solver=self.settings.solver, inputs=self.inputs,
-                           capture=grid_index)
+            run = simulate(model, data.stop - data.start, self.step, starts=[first], record=recorded,
+                           solver=self.settings.solver, inputs=self.inputs, capture=grid_index)
         measured = self._measured_states()
         self._captured = [self._with_measured_states(run.captured[k][0], {s: float(run.numpy(s)[k, 0]) for s in measured})
                           for k in grid_index]
@@ -394,9 +372,6 @@ class Trainer:
         start.states = measured_initial_states(self.model, self.data, start.t0, along_run,
                                                sensor_lag=self.sensor_lag)
         return start
-
-    def _reference_names(self) -> list[str]:
-        return list(dict.fromkeys(self.model.config.inputs + self.model.config.channels + list(self.data.signals)))
 
     def _scaling_samples(self) -> tuple[np.ndarray, np.ndarray]:
         def columns(names: list[str]) -> np.ndarray:
@@ -496,14 +471,11 @@ class Trainer:
 
     def _planned_work(self) -> int:
         """The bar's total: loss evaluations with a budget, else batches."""
-        if self.settings.budget is not None:
-            return self.settings.budget
-        return self.settings.epochs * self._batches_per_epoch()
+        budget = self.settings.budget
+        return budget if budget is not None else self.settings.epochs * self._batches_per_epoch()
 
     def _work_done(self, epoch: int) -> bool:
-        if self.settings.budget is not None:
-            return self.loss_evaluations >= self.settings.budget
-        return epoch >= self.settings.epochs
+        return self._evaluations_left() <= 0 if self.settings.budget is not None else epoch >= self.settings.epochs
 
     def _evaluations_left(self) -> float:
         budget = self.settings.budget
@@ -614,10 +586,8 @@ class Trainer:
         return closure
 
     def _optimizer(self, parameters, lbfgs: bool):
-        """Adam; the pre-/post-processing at processing_step_factor times the step size. Adam moves
-        every parameter by about the step size whatever its units, and a shift in the channel's
-        units (m/s² for a speed) moved by 3e-3 per epoch outruns the network: the correction turns
-        into a constant offset, wrong at standstill, before the network has shaped it."""
+        """Adam, the pre-/post-processing at processing_step_factor times the step size (why:
+        docs/MEASUREMENTS.md, "How the training gets there"); or L-BFGS on the network alone."""
         if lbfgs:
             parameters = network_parameters(self.model.topology, parameters)
             # max_eval: torch's default (max_iter * 5 // 4 = 1) leaves its line search no evaluation
@@ -634,14 +604,11 @@ class Trainer:
         return torch.optim.Adam(groups, lr=self.settings.learning_rate)
 
     def _keep_best(self, loss: float, before: tuple, optimizer, rewind: bool) -> bool:
-        """Track the parameters with the lowest epoch loss: those at the epoch's start, which with one
-        batch per epoch are exactly the parameters the loss was measured on. There, with `backtrack`,
-        an epoch worse than the best rewinds to the best epoch (parameters, Adam's moments and the
-        element starts, which carry-over moves on) and halves the step size: Adam's steps do not
-        shrink near a minimum, so with one step per epoch it overshoots and oscillates. The epoch after
-        a rewind measures the best parameters again, on the same starts, and takes the smaller step.
-        (With several batches the epoch loss mixes parameters and elements; a rise there is no proof
-        of overshoot.) Returns whether it rewound."""
+        """Track the parameters with the lowest epoch loss (those at the epoch's start). With
+        `backtrack` and `rewind` (one batch per epoch: elsewhere the loss mixes parameters and
+        elements), an epoch worse than the best rewinds to the best epoch (parameters, Adam's
+        moments, element starts) and halves the step size: Adam's steps do not shrink near a
+        minimum, so it overshoots and oscillates. Returns whether it rewound."""
         if loss <= self.best_loss:     # equal: the best parameters measured again after a rewind
             self.best_loss, self._best = loss, before
             self.best_state = before[0]
@@ -698,13 +665,10 @@ class Trainer:
         if self.validation_best is None:
             return None
         return {"start_score": self.validation_start, "best_score": self.validation_best[0],
-                "best_epoch": self.validation_best[1],
-                "window": list(self.validation.window)}
+                "best_epoch": self.validation_best[1], "window": list(self.validation.window)}
 
     def _batch_size(self) -> int:
-        if self.settings.order == "sequential":
-            return 1
-        return self.settings.batch_size or len(self.elements)
+        return 1 if self.settings.order == "sequential" else self.settings.batch_size or len(self.elements)
 
     def _batches_per_epoch(self) -> int:
         return math.ceil(len(self.elements) / self._batch_size())
@@ -864,11 +828,9 @@ def sensor_kernel(step: float, lag: float, tolerance: float = 1e-12) -> np.ndarr
 
 def network_parameters(topology, parameters) -> list:
     """The trained parameters less the pre-/post-processing: all that L-BFGS moves, and Adam's group
-    at the full step size. The processing's units differ from the weights' by orders of
-    magnitude, and L-BFGS's first steps follow the raw gradient: on
-    the DC drive's Coulomb data after the warm start the input scale's gradient was 100 times the
-    weights' and so curved along it that a step of 1e-5 raised the loss; with it the line search
-    spent 10 loss evaluations on a step that lowered the loss by 0.3 %."""
+    at the full step size. The processing's units differ from the weights' by orders of magnitude:
+    on the DC drive's Coulomb data the input scale's gradient was 100 times the weights', and with
+    it L-BFGS spent 10 loss evaluations on a step that lowered the loss by 0.3 %."""
     processing = {id(p) for p in topology.processing_parameters()}
     return [p for p in parameters if id(p) not in processing]
 

@@ -90,13 +90,10 @@ def fit_full_batch(topology, x: torch.Tensor, target: torch.Tensor, iterations: 
     relative to the target's variance; a line search that made it worse leaves the start.
 
     With `bounded`, the fit also pays for the ANN leaving the target's range on a grid spread
-    uniformly over the inputs' range (`range_penalty`): the samples leave gaps (a speed that
-    crosses 0 within a window the collocation drops), and across a steep change at the gap's edge
-    an unconstrained fit swings far out inside it (on the DC drive's Stribeck estimate to 10 times
-    the friction's peak), which the simulation then passes through. `weight_decay` times the sum of
-    the ANN's squared weights and biases is added: the estimate is noisy where the effect changes
-    steeply (at standstill the measured speed is mostly noise), and a steep fit to that noise puts
-    wrong turns into the correction between the samples.
+    uniformly over the inputs' range (`range_penalty`): an unconstrained fit swings far out inside
+    the gaps the samples leave. `weight_decay` times the sum of the ANN's squared weights and biases
+    is added: a steep fit to the estimate's noise puts wrong turns between the samples (both in
+    numbers: docs/MEASUREMENTS.md, "Warm starts, optimizers and an ANN on the fitted term").
 
     With `average` (the integral target, collocation.WindowMeans) the correction is evaluated at
     every x and its window means are what meets the target, one row per window; the range bound

@@ -107,9 +107,7 @@ def _inputs(input_csv, inputs, info) -> InputSignals | None:
         raise FmuBuilderError("give the inputs either as a CSV file or in memory, not both")
     if input_csv is not None:
         return load_input_csv(input_csv, info)
-    if inputs is not None:
-        return input_signals_from(inputs, info)
-    return None
+    return input_signals_from(inputs, info) if inputs is not None else None
 
 
 def _default_variables(info) -> list[str]:

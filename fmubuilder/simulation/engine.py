@@ -2,10 +2,8 @@
 instance with any solver of solvers.py, recording the outputs on the way: the output times reached
 (after the events at that time) before each step and at the stop, those inside a step from the
 solver's dense output. A fixed-step solver also ends a step at each output time, every solver at
-each input kink (a breakpoint, where it restarts).
-
-Times within events.time_tolerance (1e-12 of the experiment's time scale) are the same instant,
-so output times, time events and the stop time that differ only by rounding are one.
+each input kink (a breakpoint, where it restarts). Times within events.time_tolerance are one
+instant (docs/ARCHITECTURE.md, "Event handling").
 """
 from __future__ import annotations
 

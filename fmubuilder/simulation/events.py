@@ -1,7 +1,5 @@
-"""The event sequence of FMI 2.0 Model Exchange, written once (`EventSequence`) and driven by the
-engine (engine.py: numpy, one instance, any solver, output grid) and the NeuralFMU's differentiable
-solver (neural/solve.py: torch, a batch of instances on a fixed step grid), and its shared pieces:
-`event_mode` (the event iteration), the crossing test and the one root finder (`locate`).
+"""The event sequence of FMI 2.0 Model Exchange, written once (`EventSequence`) for the engine and
+the NeuralFMU's batch solver, and its shared pieces (docs/ARCHITECTURE.md, "Event handling").
 
 Crossing convention (the one of fmpy and FMUSDK-style importers): indicator i fires
 between z0 (at the step start) and z1 when
@@ -251,6 +249,4 @@ def _secant_earliest(ta: float, tb: float, za: np.ndarray, zb: np.ndarray) -> fl
     with np.errstate(divide="ignore", invalid="ignore"):
         roots = tb - zb * (tb - ta) / denominator
     roots = roots[np.isfinite(roots)]
-    if roots.size == 0:
-        return 0.5 * (ta + tb)
-    return float(min(max(roots.min(), ta), tb))
+    return float(min(max(roots.min(), ta), tb)) if roots.size else 0.5 * (ta + tb)

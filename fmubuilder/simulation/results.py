@@ -1,7 +1,6 @@
 """The outcome of a simulation: sampled variables, event log and solver statistics."""
 from __future__ import annotations
 
-import io
 import os
 from dataclasses import asdict, dataclass, field
 from typing import IO
@@ -75,13 +74,9 @@ class SimulationResult:
         write_atomically(target, self._csv_text())
 
     def _csv_text(self) -> str:
-        columns = [self.time, *self.values.values()]
-        formatted = [_format_column(c) for c in columns]
-        out = io.StringIO()
-        out.write(",".join(["time", *self.values]) + "\n")
-        for row in zip(*formatted):
-            out.write(",".join(row) + "\n")
-        return out.getvalue()
+        formatted = [_format_column(c) for c in (self.time, *self.values.values())]
+        lines = [",".join(["time", *self.values])] + [",".join(row) for row in zip(*formatted)]
+        return "\n".join(lines) + "\n"
 
 
 def _format_column(values: np.ndarray) -> list[str]:

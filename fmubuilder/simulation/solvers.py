@@ -293,10 +293,7 @@ class DOPRI5(Solver):
         dx1 = self._f(t + h0, x + h0 * dx)
         self.n_rhs += 1
         d2 = _rms((dx1 - dx) / scale) / h0
-        if max(d1, d2) <= 1e-15:
-            h1 = max(1e-6, h0 * 1e-3)
-        else:
-            h1 = (0.01 / max(d1, d2)) ** (1 / 5)
+        h1 = max(1e-6, h0 * 1e-3) if max(d1, d2) <= 1e-15 else (0.01 / max(d1, d2)) ** (1 / 5)
         return min(100 * h0, h1, self.max_step)
 
     def step(self, t_limit: float) -> float:

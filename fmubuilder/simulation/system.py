@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import bisect
 import math
+from functools import partial
 from typing import Protocol, Sequence
 
 import numpy as np
@@ -146,27 +147,11 @@ class FmuSystem:
         return self._completed(True)
 
     def outputs(self, times: np.ndarray, states: np.ndarray) -> np.ndarray:
-        columns = self._columns
-        if len(times) == 1:
-            return self._output_row(times[0], states[0])[None, :]
-        parts = [states]
-        if columns.n_discrete:
-            parts.append(columns.discrete_values()[None, :].repeat(len(times), axis=0))
-        if columns.n_computed:
-            computed, read = np.empty((len(times), columns.n_computed)), columns.read_computed
-            for row, t in enumerate(times):
-                if self._continuous_mode:       # in event mode the FMU already holds (t, x)
-                    self._at(t, states[row])
-                computed[row] = read()
-            parts.append(computed)
-        # The parts side by side are [all states | discrete | computed]; order picks the columns.
-        table = np.concatenate(parts, axis=1) if len(parts) > 1 else np.array(states, dtype=float)
-        return table if columns.in_order(table.shape[1]) else table.take(columns.order, axis=1)
+        return np.array([self._output_row(t, x) for t, x in zip(times, states)])
 
     def _output_row(self, t: float, x: np.ndarray) -> np.ndarray:
-        """outputs() of one point, the usual call (the engine records every output time and both
-        sides of each event one by one): the same values, written into one row instead of joined
-        from parts, which costs several numpy calls per recorded point."""
+        """outputs() of one point, written into one row: [states | discrete | computed] in the
+        recorded columns' order."""
         columns = self._columns
         n, n_discrete = self.n_states, columns.n_discrete
         row = np.empty(n + n_discrete + columns.n_computed)
@@ -229,14 +214,7 @@ class _OutputColumns:
         self.order = np.array([position[v.name] for v in recorded], dtype=int)
         self._natural = self.order.tolist() == list(range(len(self.order)))
         self.read_computed = inst.real_getter([v.value_reference for v in computed])
-        self._discrete_readers = []
-        for api_type in ("Real", "Integer", "Boolean"):
-            positions = [k for k, v in enumerate(discrete) if v.api_type == api_type]
-            if positions:
-                vrs = [discrete[k].value_reference for k in positions]
-                read = inst.real_getter(vrs) if api_type == "Real" else (
-                    lambda get, refs: lambda: get(refs))(getattr(inst, f"get_{api_type.lower()}"), vrs)
-                self._discrete_readers.append((np.array(positions, dtype=int), read))
+        self._read_discrete = values_reader(inst, discrete)
         self._discrete = None
 
     def in_order(self, width: int) -> bool:
@@ -248,11 +226,28 @@ class _OutputColumns:
 
     def discrete_values(self) -> np.ndarray:
         if self._discrete is None:
-            values = np.empty(self.n_discrete)
-            for positions, read in self._discrete_readers:
-                values[positions] = read()
-            self._discrete = values
+            self._discrete = self._read_discrete()
         return self._discrete
+
+
+def values_reader(instance, variables: list[Variable]):
+    """A function giving the current values of Real, Integer and Boolean `variables` as one float64
+    array, each type read in one call."""
+    parts = []
+    for api_type in ("Real", "Integer", "Boolean"):
+        positions = [k for k, v in enumerate(variables) if v.api_type == api_type]
+        if positions:
+            vrs = [variables[k].value_reference for k in positions]
+            get = instance.real_getter(vrs) if api_type == "Real" else partial(
+                getattr(instance, f"get_{api_type.lower()}"), vrs)
+            parts.append((np.array(positions, dtype=int), get))
+
+    def read() -> np.ndarray:
+        values = np.empty(len(variables))
+        for positions, get in parts:
+            values[positions] = get()
+        return values
+    return read
 
 
 def _checked_start_values(info, start_values: dict) -> dict:
@@ -277,6 +272,4 @@ def _checked_start_values(info, start_values: dict) -> dict:
 def _settable_before_initialization(var: Variable) -> bool:
     if var.variability == "constant" or var.causality in ("calculatedParameter", "independent"):
         return False
-    if var.causality in ("parameter", "input"):
-        return True
-    return var.initial in ("exact", "approx")
+    return var.causality in ("parameter", "input") or var.initial in ("exact", "approx")
