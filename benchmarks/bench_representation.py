@@ -8,16 +8,19 @@ directly, supervised, with the warm start's full-batch fit (neural/warm_start.fi
 solver in the loop. The hybrid is then simulated over the training part and the test run (the
 engine's RK4 at 0.01 s, the sensors' lag applied) and scored as MSE / noise variance per signal
 (1 = the noise floor). With --collocation the same ANN is fitted instead to the collocation
-estimate of the effect from the measured data (what the workflow's warm start does).
+estimate of the effect from the measured data (what the workflow's warm start does). With two
+derivatives each reads its own inputs, as the workflow wires them; --shared-inputs (or --inputs)
+gives every derivative all the inputs in one network.
 
 Printed per variant: the fit's relative error on the true effect (MSE / the effect's mean square;
-all samples and those within NEAR_ZERO rad/s of speed 0), and the train / test MSE over the noise
+all samples and those within NEAR_ZERO rad/s of speed 0; per derivative when there are two), and the
+train / test MSE over the noise
 floor per signal.
 
     python benchmarks/bench_representation.py [--cases stribeck,coulomb,speed_current_loss]
         [--hidden 16,16] [--activation tanh] [--iterations N] [--weight-decay D] [--input-scale std|maxabs|F]
-        [--inputs speed,current] [--collocation [--target pointwise|integral] [--integral-window S]]
-        [--unbounded]
+        [--inputs speed,current | --shared-inputs] [--collocation [--target pointwise|integral]
+        [--integral-window S]] [--unbounded]
 """
 from __future__ import annotations
 
