@@ -14,8 +14,7 @@ gives every derivative all the inputs in one network.
 
 Printed per variant: the fit's relative error on the true effect (MSE / the effect's mean square;
 all samples and those within NEAR_ZERO rad/s of speed 0; per derivative when there are two), and the
-train / test MSE over the noise
-floor per signal.
+train / test MSE over the noise floor per signal.
 
     python benchmarks/bench_representation.py [--cases stribeck,coulomb,speed_current_loss]
         [--hidden 16,16] [--activation tanh] [--iterations N] [--weight-decay D] [--input-scale std|maxabs|F]
