@@ -326,7 +326,9 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
     settings = _training_settings(ctx.roles.train[0].samples(), diagnosis)
     candidates.append(_neural_candidate(ctx, channels, inputs, aliases, settings, channel_inputs=channel_inputs))
     from .term_started import NAME, term_start
-    start = term_start(fitted, inputs) if ctx.ann_on_term else None
+    # the ANN on the term reads the inputs chosen for the term's derivative, when it is one of the ANN's
+    own_inputs = dict(zip(channels, channel_inputs)).get((fitted or {}).get("channel"), inputs)
+    start = term_start(fitted, own_inputs) if ctx.ann_on_term else None
     if start is not None:
         ctx.say(f"      training an ANN on top of the fitted term: {start.channel} with inputs "
                 f"{', '.join(start.inputs)} ({ctx.budget} loss evaluations) ...")
