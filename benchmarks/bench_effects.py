@@ -142,6 +142,9 @@ def _rows(case: str, truth: dict, report: dict | None, sidecar: dict, seconds: f
     described = "-"
     if neural:
         described = f"{neural.get('channel')} <- {', '.join(neural.get('inputs', []))}"
+        per_channel = neural.get("channel_inputs") or {}
+        if any(names != neural.get("inputs") for names in per_channel.values()):
+            described = "; ".join(f"{c} <- {', '.join(names)}" for c, names in per_channel.items())
     rows = []
     for signal, truth_errors in truth.items():
         floor = bench["noise_std"][signal] ** 2 / bench["runs"]

@@ -8,16 +8,18 @@ directly, supervised, with the warm start's full-batch fit (neural/warm_start.fi
 solver in the loop. The hybrid is then simulated over the training part and the test run (the
 engine's RK4 at 0.01 s, the sensors' lag applied) and scored as MSE / noise variance per signal
 (1 = the noise floor). With --collocation the same ANN is fitted instead to the collocation
-estimate of the effect from the measured data (what the workflow's warm start does).
+estimate of the effect from the measured data (what the workflow's warm start does). With two
+derivatives each reads its own inputs, as the workflow wires them; --shared-inputs (or --inputs)
+gives every derivative all the inputs in one network.
 
 Printed per variant: the fit's relative error on the true effect (MSE / the effect's mean square;
-all samples and those within NEAR_ZERO rad/s of speed 0), and the train / test MSE over the noise
-floor per signal.
+all samples and those within NEAR_ZERO rad/s of speed 0; per derivative when there are two), and the
+train / test MSE over the noise floor per signal.
 
     python benchmarks/bench_representation.py [--cases stribeck,coulomb,speed_current_loss]
         [--hidden 16,16] [--activation tanh] [--iterations N] [--weight-decay D] [--input-scale std|maxabs|F]
-        [--inputs speed,current] [--collocation [--target pointwise|integral] [--integral-window S]]
-        [--unbounded]
+        [--inputs speed,current | --shared-inputs] [--collocation [--target pointwise|integral]
+        [--integral-window S]] [--unbounded]
 """
 from __future__ import annotations
 
@@ -43,12 +45,13 @@ from fmubuilder.simulation import simulate
 
 STEP = 0.01
 NEAR_ZERO = 5.0     # rad/s: the band around speed 0 where the sign-type frictions change
-# The channels and inputs `hybridize` chooses per truth (benchmarks/bench_inputs.py).
+# The channels and inputs `hybridize` chooses per truth (benchmarks/bench_inputs.py), and per
+# channel the inputs its correction reads.
 WORKFLOW_CHOICE = {
-    "stribeck": (["der(speed)"], ["speed"]),
-    "coulomb": (["der(speed)"], ["speed"]),
-    "speed_current_loss": (["der(energy)"], ["current", "speed"]),
-    "two_effects": (["der(energy)", "der(speed)"], ["current", "speed"]),
+    "stribeck": (["der(speed)"], ["speed"], [["speed"]]),
+    "coulomb": (["der(speed)"], ["speed"], [["speed"]]),
+    "speed_current_loss": (["der(energy)"], ["current", "speed"], [["current", "speed"]]),
+    "two_effects": (["der(energy)", "der(speed)"], ["current", "speed"], [["current", "speed"], ["speed"]]),
 }
 INERTIA, SMOOTHING = 0.01, 1.0     # examples/dc_drive/model.c
 
@@ -83,10 +86,12 @@ def run_case(variant: str, args) -> list[list[str]]:
     split = run.start + (1.0 - VALIDATION_SHARE) * (run.stop - run.start)
     train = run.window(run.start, float(run.time[np.searchsorted(run.time, split, side="right") - 1]))
     test = read_data(test_path, info)
-    channels, inputs = WORKFLOW_CHOICE[variant]
+    channels, inputs, channel_inputs = WORKFLOW_CHOICE[variant]
     inputs = args.inputs.split(",") if args.inputs else inputs
+    if args.inputs or args.shared_inputs:
+        channel_inputs = []        # every channel reads every input (before per-channel inputs)
     config = TopologyConfig(channels=channels, inputs=inputs, hidden=[int(h) for h in args.hidden.split(",")],
-                            activation=args.activation, kind="residual")
+                            activation=args.activation, kind="residual", channel_inputs=channel_inputs)
     torch.manual_seed(0)
     model = NeuralFMU(declared, config, start_values=train.start_values)
     try:
@@ -100,7 +105,9 @@ def run_case(variant: str, args) -> list[list[str]]:
         truth_x, truth_target, truth_speed, _ = samples(model, variant, data_set, train, False, args)
         with torch.no_grad():
             on_truth = model.topology.correction(truth_x)
-        fit = relative_errors(on_truth, truth_target, truth_speed)
+        fit = "; ".join((f"{c}: " if len(channels) > 1 else "")
+                        + relative_errors(on_truth[:, [j]], truth_target[:, [j]], truth_speed)
+                        for j, c in enumerate(channels))
         errors = {"train": scored(model, train), "test": scored(model, test)}
     finally:
         model.close()
@@ -108,7 +115,9 @@ def run_case(variant: str, args) -> list[list[str]]:
     rows = []
     for signal in train.names:
         floor = bench["noise_std"][signal] ** 2 / bench["runs"]
-        rows.append([variant, f"{', '.join(channels)} <- {', '.join(inputs)}", signal, fit,
+        wiring = "; ".join(f"{c} <- {', '.join(names)}" for c, names in zip(channels, channel_inputs)) \
+            if channel_inputs else f"{', '.join(channels)} <- {', '.join(inputs)}"
+        rows.append([variant, wiring, signal, fit,
                      f"{errors['train'][signal]['mse'] / floor:.3g}", f"{errors['test'][signal]['mse'] / floor:.3g}"])
     del fitted
     return rows
@@ -204,6 +213,8 @@ def main() -> None:
                         help="the fit's L2 penalty on the ANN's weights (warm_start.WEIGHT_DECAY; 0: none)")
     parser.add_argument("--input-scale", default="std", help="std (default), maxabs or a factor on the std's")
     parser.add_argument("--inputs", default="", help="override the workflow's inputs, comma-separated")
+    parser.add_argument("--shared-inputs", action="store_true",
+                        help="every channel reads all inputs (one network), not its own inputs")
     parser.add_argument("--collocation", action="store_true",
                         help="fit to the collocation estimate from the data instead of the true effect")
     parser.add_argument("--target", default="pointwise", choices=["pointwise", "integral"],

@@ -457,6 +457,14 @@ class AnnChoice:
     # (see inputs_through_loop); None: each channel's own estimate chose them.
     through: InputChoice | None = None
 
+    @property
+    def channel_inputs(self) -> list[list[str]]:
+        """Per channel the inputs chosen for it: its correction reads those alone (an input another
+        channel needs is not evidence for this one)."""
+        if self.through is not None:
+            return [list(self.inputs)]
+        return [list(c.inputs) for c in self.per_channel]
+
     def to_dict(self) -> dict:
         chosen = {"channels": self.channels, "inputs": self.inputs, "rule": "forward selection by the "
                   "cross-validated error (contiguous folds) of a nearest-neighbour smoother of the estimated missing "

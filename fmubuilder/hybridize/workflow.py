@@ -308,14 +308,16 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
             candidates.append(term)
             fitted = term.details["fitted_term"]      # refined: the ANN on the term starts from it
     candidates += _calibrated_candidates(ctx)
-    channels, inputs = _ann_channels_and_inputs(ctx, diagnosis)
+    channels, inputs, channel_inputs = _ann_channels_and_inputs(ctx, diagnosis)
     aliases = {name: c for channel in channels for name, c in _aliases_of(ctx, channel).items()}
-    ctx.say(f"[3/5] training a NeuralFMU: ANN on {', '.join(channels)} with inputs {', '.join(inputs)} "
+    ctx.say(f"[3/5] training a NeuralFMU: ANN on {_wiring(channels, inputs, channel_inputs)} "
             f"({ctx.budget} loss evaluations) ...")
     settings = _training_settings(ctx.roles.train[0].samples(), diagnosis)
-    candidates.append(_neural_candidate(ctx, channels, inputs, aliases, settings))
+    candidates.append(_neural_candidate(ctx, channels, inputs, aliases, settings, channel_inputs=channel_inputs))
     from .term_started import NAME, term_start
-    start = term_start(fitted, inputs) if ctx.ann_on_term else None
+    # the ANN on the term reads the inputs chosen for the term's derivative, when it is one of the ANN's
+    own_inputs = dict(zip(channels, channel_inputs)).get((fitted or {}).get("channel"), inputs)
+    start = term_start(fitted, own_inputs) if ctx.ann_on_term else None
     if start is not None:
         ctx.say(f"      training an ANN on top of the fitted term: {start.channel} with inputs "
                 f"{', '.join(start.inputs)} ({ctx.budget} loss evaluations) ...")
@@ -365,9 +367,10 @@ def channel_aliases(model_fmu, info, channel: str, start_values: dict, data_time
             if index in channels and np.any(run.trajectories[name] != 0.0)}
 
 
-def _ann_channels_and_inputs(ctx: _Context, diagnosis) -> tuple[list[str], list[str]]:
-    """The derivatives the ANN corrects and the variables it reads, chosen on held-out error
-    (hybridize.inputs); the diagnosis' leading variable when that choice has nothing to go on."""
+def _ann_channels_and_inputs(ctx: _Context, diagnosis) -> tuple[list[str], list[str], list[list[str]]]:
+    """The derivatives the ANN corrects, the variables it reads and per derivative those its
+    correction reads, chosen on held-out error (hybridize.inputs); the diagnosis' leading variable
+    when that choice has nothing to go on."""
     from .inputs import choose_ann
     choice = choose_ann(ctx.model_fmu, ctx.info, ctx.roles.train, ctx.roles.validation, diagnosis.channel,
                         list(diagnosis.ambiguous_channels), ctx.scoring.step, ctx.scoring.solver)
@@ -375,13 +378,21 @@ def _ann_channels_and_inputs(ctx: _Context, diagnosis) -> tuple[list[str], list[
         ctx.input_choice = {"rule": "the diagnosis' leading variable (the channel's state is not measured, or no "
                                     "variable predicted its estimated missing term under cross-validation beyond "
                                     "the noise)"}
-        return [diagnosis.channel], _ann_inputs(diagnosis, ctx.info)
+        inputs = _ann_inputs(diagnosis, ctx.info)
+        return [diagnosis.channel], inputs, [inputs]
     ctx.input_choice = choice.to_dict()
     seen_in = f" (on the missing term of {choice.through.channel}, where the loop's compensation shows)" \
         if choice.through is not None else ""
     ctx.say(f"      ANN inputs chosen by cross-validation on the training and validation data{seen_in}: "
             f"{', '.join(choice.inputs)}")
-    return choice.channels, choice.inputs
+    return choice.channels, choice.inputs, choice.channel_inputs
+
+
+def _wiring(channels: list[str], inputs: list[str], channel_inputs: list[list[str]]) -> str:
+    """'der(a) with inputs x, y', or per channel when they read different inputs."""
+    if all(list(names) == list(inputs) for names in channel_inputs):
+        return f"{', '.join(channels)} with inputs {', '.join(inputs)}"
+    return "; ".join(f"{c} with inputs {', '.join(names)}" for c, names in zip(channels, channel_inputs))
 
 
 def _ann_inputs(diagnosis, info) -> list[str]:
@@ -453,8 +464,11 @@ def _calibrated_candidates(ctx: _Context) -> list[Candidate]:
 
 
 def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], aliases: dict[str, str],
-                      settings: dict, name: str = "neural", base_terms: list[dict] = ()) -> Candidate:
-    """A trained NeuralFMU exported as a hybrid; with base_terms its ANN adds to that fitted term."""
+                      settings: dict, name: str = "neural", base_terms: list[dict] = (),
+                      channel_inputs: list[list[str]] = ()) -> Candidate:
+    """A trained NeuralFMU exported as a hybrid; with base_terms its ANN adds to that fitted term.
+    channel_inputs: per channel the inputs its correction reads (empty: all)."""
+    channel_inputs = [list(names) for names in channel_inputs] or [list(inputs) for _ in channels]
     from ..export import export_hybrid
     from ..neural import train_neural_fmu
     from ..neural.train import Validation
@@ -463,6 +477,9 @@ def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], ali
     folder.mkdir()
     first = ctx.roles.train[0]
     cap = None if ctx.time_budget is None else max(1.0, ctx.time_budget - (time.perf_counter() - ctx.started))
+    # The training sees the model through the data's sensor lag (from the sidecar), at the step and
+    # with the solver every model is scored with, and the outputs equal to a corrected derivative
+    # through it, as the exported hybrid shows them.
     # An ANN on a fitted term ends with its best epoch on the validation data, the start (the term)
     # included, so it is never worse there than the term. The plain NeuralFMU keeps its lowest
     # training loss: on the VLDM the validation score (speed and power at the noise level) picked an
@@ -471,10 +488,10 @@ def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], ali
     validation = Validation(held_out.data, held_out.window, held_out.start_values) if base_terms else None
     trained = train_neural_fmu(ctx.model_fmu, first.samples(), targets=channels, inputs=inputs,
                                start_values=first.start_values, topology="residual", budget=ctx.budget,
-                               base_terms=base_terms, validation=validation,
+                               base_terms=base_terms, channel_inputs=channel_inputs, validation=validation,
                                seed=ctx.seed, time_budget=cap, solver=ctx.scoring.solver,
                                step_size=ctx.scoring.step, output=folder / "trained.neuralfmu",
-                               progress=ctx.progress, **settings)
+                               progress=ctx.progress, aliases=dict(aliases), **settings)
     try:
         spec = spec_from_neural(trained.model, folder, aliases)
     finally:
@@ -488,13 +505,14 @@ def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], ali
                         "time_budget": ctx.time_budget,
                         "cut_short_by_time_budget": bool(metrics.get("cut_short_by_time_budget")),
                         "trained_on": first.label}
-    details = {"channel": ", ".join(channels), "channels": channels, "inputs": inputs, "aliases": aliases,
+    details = {"channel": ", ".join(channels), "channels": channels, "inputs": inputs,
+               "channel_inputs": dict(zip(channels, channel_inputs)), "aliases": aliases,
                "steps": metrics.get("epochs"), "loss_evaluations": metrics.get("loss_evaluations"),
                "training_seconds": metrics.get("seconds"),
                "loss_signals": settings["loss_signals"], "trained_on": first.label,
                "input_choice": ctx.input_choice if not base_terms else None,
                "warm_start": metrics.get("warm_start"), "validation_checkpoint": metrics.get("validation")}
-    description = f"ANN on {', '.join(channels)} with inputs {', '.join(inputs)}"
+    description = f"ANN on {_wiring(channels, inputs, channel_inputs)}"
     if base_terms:
         description += " added to the fitted term"
     return _candidate(ctx, name, description, fmu, folder, details)

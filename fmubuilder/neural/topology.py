@@ -19,6 +19,13 @@ Kinds (`TopologyConfig.kind`):
 * "residual" - gates fixed at 1 and 1 (buffers, not trained), the last Linear starts at zero and
                post_shift at 0: dx_c = der_fmu_c + correction, zero at the start.
 
+Per-channel inputs (`channel_inputs`, with several channels): the ANN is one sub-network per
+channel, each reading only its channel's inputs, held in one MLP whose weights are block-diagonal
+(the blocks outside are zero and get no gradient), so the export sees an ordinary MLP. With all
+channels reading the union of the inputs, one channel's correction learns from variables its own
+input choice rejected: on the DC drive's two effects the friction in der(speed) read the current,
+which put a bias into the current at high speed and into the winding's heating with it.
+
 Trained tunable FMU parameters (`parameters`) are part of the topology too (`fmu_parameters`).
 Everything is float64. `config.to_dict()` is JSON-able and, with the state_dict, regenerates the
 module; the export stage reads `ann` (an ONNX-exportable nn.Sequential) and the plain tensors
@@ -53,6 +60,9 @@ class TopologyConfig:
     kind: str = "gates"
     parameters: list[str] = field(default_factory=list)  # tunable FMU parameters trained as well
     base_terms: list[dict] = field(default_factory=list)  # a fitted term added to the ANN (base_term.py)
+    # Per channel the inputs it reads (a subset of `inputs`); empty: every channel reads all of them.
+    # With several channels each gets its own sub-network of `hidden` units per layer.
+    channel_inputs: list[list[str]] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -63,7 +73,17 @@ class TopologyConfig:
         unknown = set(data) - known
         if unknown:
             raise FmuBuilderError(f"unknown topology fields {sorted(unknown)}; known fields: {sorted(known)}")
-        return cls(**{k: list(v) if isinstance(v, (list, tuple)) else v for k, v in data.items()})
+        fields = {k: list(v) if isinstance(v, (list, tuple)) else v for k, v in data.items()}
+        if "channel_inputs" in fields:
+            fields["channel_inputs"] = [list(names) for names in fields["channel_inputs"]]
+        return cls(**fields)
+
+    def input_blocks(self) -> list[list[int]] | None:
+        """Per channel the indices of the inputs it reads, or None when the ANN is one network
+        over all inputs (one channel, or no per-channel inputs given)."""
+        if len(self.channels) < 2 or not self.channel_inputs:
+            return None
+        return [[self.inputs.index(name) for name in names] for names in self.channel_inputs]
 
     def validate(self, info: ModelInfo) -> None:
         if self.kind not in KINDS:
@@ -96,6 +116,15 @@ class TopologyConfig:
             missing = [name for name in term_inputs(self.base_terms) if name not in self.inputs]
             if missing:
                 raise FmuBuilderError(f"the base term reads {', '.join(missing)}: add it to the ANN inputs")
+        if self.channel_inputs:
+            if len(self.channel_inputs) != len(self.channels):
+                raise FmuBuilderError(f"{len(self.channel_inputs)} lists of channel inputs for "
+                                      f"{len(self.channels)} targets; give one per target")
+            for channel, names in zip(self.channels, self.channel_inputs):
+                unknown = [n for n in names if n not in self.inputs]
+                if not names or unknown or len(set(names)) != len(names):
+                    raise FmuBuilderError(f"the inputs of {channel} must be distinct ANN inputs, at least one; "
+                                          f"got {', '.join(names) or '(none)'}")
 
 
 class Topology(nn.Module):
@@ -125,7 +154,11 @@ class Topology(nn.Module):
         self._inputs_from_states = all(i < n for i in source)
         self.register_buffer("channels_t", torch.tensor(self.channel_index, dtype=torch.long), persistent=False)
         n_in, n_out = len(config.inputs), len(config.channels)
-        self.ann = build_ann(n_in, config.hidden, n_out, config.activation) if n_out else None
+        blocks = config.input_blocks()
+        hidden = [size * n_out for size in config.hidden] if blocks else config.hidden
+        self.ann = build_ann(n_in, hidden, n_out, config.activation) if n_out else None
+        if blocks:
+            block_diagonal(self.ann, blocks, config.hidden)
         self.base = None
         if config.base_terms:
             from .base_term import FittedTerm
@@ -275,6 +308,40 @@ def build_ann(n_in: int, hidden: list[int], n_out: int, activation: str) -> nn.S
         width = size
     layers.append(nn.Linear(width, n_out, dtype=DTYPE))
     return nn.Sequential(*layers)
+
+
+def block_diagonal(ann: nn.Sequential, blocks: list[list[int]], hidden: list[int]) -> None:
+    """Make `ann` (built with hidden widths hidden[k] * len(blocks)) one sub-network per output:
+    output j reads the inputs blocks[j] through its own hidden units alone. The weights outside
+    the blocks are set to zero and a gradient hook keeps them there, so every use of the weights
+    (the fold, the export) sees the block structure. Inside, the weights are drawn again as
+    nn.Linear draws them, for the block's own fan-in."""
+    n_out = len(blocks)
+    owner_in = None          # per column of the next Linear: the output whose block it belongs to
+    widths = iter(hidden)
+    for layer in (m for m in ann if isinstance(m, nn.Linear)):
+        rows, cols = layer.weight.shape
+        width = next(widths, None)
+        owner_out = torch.arange(rows) // width if width is not None else torch.arange(rows)
+        if owner_in is None:
+            mask = torch.zeros(rows, cols, dtype=DTYPE)
+            for j, columns in enumerate(blocks):
+                mask[(owner_out == j).nonzero()[:, 0][:, None], torch.tensor(columns)] = 1.0
+        else:
+            mask = (owner_out[:, None] == owner_in[None, :]).to(DTYPE)
+        bound = 1.0 / mask.sum(dim=1, keepdim=True).clamp_min(1.0).sqrt()
+        with torch.no_grad():
+            layer.weight.copy_((torch.rand(rows, cols, dtype=DTYPE) * 2.0 - 1.0) * bound * mask)
+            layer.bias.copy_((torch.rand(rows, dtype=DTYPE) * 2.0 - 1.0) * bound[:, 0])
+        layer.weight.register_hook(_masked_gradient(mask))
+        owner_in = owner_out
+    assert owner_in is not None and len(owner_in) == n_out
+
+
+def _masked_gradient(mask: torch.Tensor):
+    def hook(gradient: torch.Tensor) -> torch.Tensor:
+        return gradient * mask
+    return hook
 
 
 def _safe_scale(std: np.ndarray, mean: np.ndarray) -> np.ndarray:

@@ -73,6 +73,13 @@ class TrainSettings:
     time_budget: float | None = None  # seconds for the whole training call
     seed: int = 0
     loss_signals: list[str] | None = None  # default: every measured signal
+    # Measured outputs that the hybrid sets equal to a corrected derivative, {output: derivative}
+    # (a power whose integral is an energy state): the training reads them from the hybrid's
+    # derivative, as the exported hybrid does. Read from the FMU they stay the plain model's, and
+    # the loss on them can only be lowered through the other channels (on the DC drive's two
+    # effects the friction grew to draw the missing power through the current, and the winding
+    # heated by as much too much as the plain model heats too little).
+    aliases: dict[str, str] = field(default_factory=dict)
     sensor_lag: float | None = None   # s, first-order lag of the sensors, applied to the simulated signals
                                       # before they meet the data; None: the data's sidecar (synth), else 0
     checkpoint: str | None = None     # default: <output>.ckpt when an output is given
@@ -103,15 +110,17 @@ class TrainingResult:
 def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, targets: Sequence[str],
                      inputs: Sequence[str], start_values: dict | None = None, topology: str = "residual",
                      hidden: Sequence[int] = (16, 16), activation: str = "tanh", parameters: Sequence[str] = (),
-                     base_terms: Sequence[dict] = (), settings: TrainSettings | None = None,
-                     output: str | Path | None = None, metrics_path: str | Path | None = None, force: bool = False,
+                     base_terms: Sequence[dict] = (), channel_inputs: Sequence[Sequence[str]] = (),
+                     settings: TrainSettings | None = None, output: str | Path | None = None,
+                     metrics_path: str | Path | None = None, force: bool = False,
                      test_data: str | Path | MeasuredData | None = None, validation: Validation | None = None,
                      on_epoch=None, **overrides) -> TrainingResult:
     """Train a NeuralFMU around `fmu` on `data` (see the module docstring).
 
     targets: derivative channels, e.g. ["der(speed)"]; inputs: FMU variables fed to the ANN;
     topology: "residual" (on the VLDM about ten times faster per epoch) or "gates"; base_terms: a
-    fitted term the residual ANN starts from and adds to (base_term.py); settings or keyword
+    fitted term the residual ANN starts from and adds to (base_term.py); channel_inputs: per target
+    the inputs its correction reads (empty: all of them; topology.py); settings or keyword
     overrides of TrainSettings (epochs=...); validation: see Validation and Trainer.validation_score.
     Writes the model to `output` and the errors to `metrics_path` (JSON) when given.
     on_epoch(epoch, trainer) is called after every epoch; returning True stops the training.
@@ -124,7 +133,8 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
         torch.set_num_threads(settings.threads)
     config = TopologyConfig(channels=list(targets), inputs=list(inputs), hidden=list(hidden),
                             activation=activation, kind=topology, parameters=list(parameters),
-                            base_terms=[dict(t) for t in base_terms])
+                            base_terms=[dict(t) for t in base_terms],
+                            channel_inputs=[list(names) for names in channel_inputs])
     model = NeuralFMU(fmu, config, start_values)
     try:
         data = data if isinstance(data, MeasuredData) else load_data(data, model.info)
@@ -206,19 +216,23 @@ def _seed(seed: int) -> None:
 # errors of a model on data
 
 def evaluate(model: NeuralFMU, data: MeasuredData, step: float, solver: str = "euler",
-             start_values: dict | None = None, plain: bool = False, sensor_lag: float = 0.0) -> dict:
+             start_values: dict | None = None, plain: bool = False, sensor_lag: float = 0.0,
+             aliases: dict | None = None) -> dict:
     """{signal: {"mse", "max_abs", "final"}} of the hybrid (or, with plain, of the FMU alone: the ANN
     gated off, trained FMU parameters kept) over the whole data (see simulate_over), the model seen
-    through sensors with a first-order lag."""
-    result = simulate_over(model, data, step, solver, start_values, plain)
-    return data_errors(data, result, sensor_lag)
+    through sensors with a first-order lag; aliases: TrainSettings.aliases."""
+    result = simulate_over(model, data, step, solver, start_values, plain, aliases)
+    return data_errors(data, result, sensor_lag, aliases)
 
 
-def data_errors(data: MeasuredData, result, sensor_lag: float = 0.0) -> dict:
-    """{signal: {"mse", "max_abs", "final"}} of an engine result against the data."""
+def data_errors(data: MeasuredData, result, sensor_lag: float = 0.0, aliases: dict | None = None) -> dict:
+    """{signal: {"mse", "max_abs", "final"}} of an engine result against the data; a signal in
+    `aliases` is read from the derivative it names."""
     errors = {}
+    aliases = aliases or {}
     for name in data.signals:
-        predicted = np.interp(data.time, result.time, first_order_lag(result.time, result[name], sensor_lag))
+        simulated = result[aliases.get(name, name)]
+        predicted = np.interp(data.time, result.time, first_order_lag(result.time, simulated, sensor_lag))
         diff = predicted - data.signals[name]
         errors[name] = {"mse": float(np.mean(diff ** 2)), "max_abs": float(np.max(np.abs(diff))),
                         "final": float(abs(diff[-1]))}
@@ -226,15 +240,17 @@ def data_errors(data: MeasuredData, result, sensor_lag: float = 0.0) -> dict:
 
 
 def simulate_over(model: NeuralFMU, data: MeasuredData, step: float, solver: str = "euler",
-                  start_values: dict | None = None, plain: bool = False):
+                  start_values: dict | None = None, plain: bool = False, aliases: dict | None = None):
     """Engine result (with its statistics) of the hybrid, or with plain of the FMU alone, over the
-    data's span, recording the measured signals; measured states start where the data's first
-    samples put them (measured_initial_states), the data's inputs drive the FMU."""
+    data's span, recording the measured signals (and the derivatives `aliases` reads them from);
+    measured states start where the data's first samples put them (measured_initial_states), the
+    data's inputs drive the FMU."""
     original = model.start_values
     model.start_values = {**original, **measured_initial_states(model, data), **(start_values or {})}
     try:
         with (model.topology.ann_off(fmu_gate_one=True) if plain else contextlib.nullcontext()):
-            return simulate_hybrid(model, start_time=data.start, stop_time=data.stop, variables=list(data.signals),
+            variables = list(dict.fromkeys([*data.signals, *(aliases or {}).values()]))
+            return simulate_hybrid(model, start_time=data.start, stop_time=data.stop, variables=variables,
                                    solver=solver, step_size=step, output_interval=step,
                                    inputs=data.input_signals(model.info))
     finally:
@@ -276,6 +292,8 @@ class Trainer:
                 raise FmuBuilderError(f"loss signal '{name}' is not a column of {data.source}; "
                                       f"choose among {', '.join(data.signals)}")
         self.scale = {name: _variance(data.signals[name]) for name in self.loss_signals}
+        # what the loss reads for each loss signal: the signal, or the derivative it is an alias of
+        self.recorded = [settings.aliases.get(name, name) for name in self.loss_signals]
         self.inputs = data.input_signals(self.model.info)
         self.history: list[dict] = []
         self.epochs_done = 0
@@ -403,7 +421,8 @@ class Trainer:
 
     def errors(self, data: MeasuredData, start_values: dict | None = None, plain: bool = False) -> dict:
         """evaluate() at the training's step, solver and sensor lag."""
-        return evaluate(self.model, data, self.step, self.settings.solver, start_values, plain, self.sensor_lag)
+        return evaluate(self.model, data, self.step, self.settings.solver, start_values, plain, self.sensor_lag,
+                        self.settings.aliases)
 
     # -- the epoch loop -------------------------------------------------------------------------
     def fit(self, checkpoint: Path | None = None, on_epoch=None) -> None:
@@ -646,8 +665,10 @@ class Trainer:
 
     def _validation_errors(self, plain: bool) -> dict:
         part = self.validation
-        result = simulate_over(self.model, part.data, self.step, self.settings.solver, part.start_values, plain)
-        errors = data_errors(part.data.window(*part.window), result, self.sensor_lag)
+        aliases = self.settings.aliases
+        result = simulate_over(self.model, part.data, self.step, self.settings.solver, part.start_values, plain,
+                               aliases)
+        errors = data_errors(part.data.window(*part.window), result, self.sensor_lag, aliases)
         return {name: errors[name]["mse"] for name in errors}
 
     def _track_validation(self, epoch: int) -> float | None:
@@ -688,7 +709,7 @@ class Trainer:
     def _signal_errors(self, batch: list["_Element"], keep_final_state: bool) -> dict:
         """{signal: weighted MSE over the batch's data points} (tensors)."""
         trajectory = simulate(self.model, self.element_duration, self.step, starts=[e.start for e in batch],
-                              record=self.loss_signals, solver=self.settings.solver, inputs=self.inputs,
+                              record=self.recorded, solver=self.settings.solver, inputs=self.inputs,
                               keep_final_state=keep_final_state)
         if keep_final_state:
             for position, (element, final) in enumerate(zip(batch, trajectory.final_starts)):
@@ -732,7 +753,7 @@ class Trainer:
     def _all_residuals(self) -> dict:
         with torch.no_grad():
             trajectory = simulate(self.model, self.element_duration, self.step, starts=[e.start for e in self.elements],
-                                  record=self.loss_signals, solver=self.settings.solver, inputs=self.inputs)
+                                  record=self.recorded, solver=self.settings.solver, inputs=self.inputs)
             return self._residuals(trajectory, self.elements)
 
     def _through_sensor(self, values: torch.Tensor, shown: torch.Tensor | None = None) -> torch.Tensor:
