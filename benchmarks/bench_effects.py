@@ -78,6 +78,7 @@ def main() -> None:
     except ValueError as exc:
         sys.exit(f"error: {exc}")
     folder = Path(tempfile.mkdtemp(prefix="bench_effects_"))
+    print(f"reports in {folder}", flush=True)
     rows = []
     for example, variant in cases:
         train, test = _data(example, variant)

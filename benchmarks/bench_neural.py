@@ -19,8 +19,9 @@ fitted to the true effect.
     the hybrid, whole training and test cycles, Euler h = 0.01 s, solver steps and events).
 
 (cost) What the training's loss evaluation (all elements side by side, forward and backward, as
-    `hybridize` trains: RK4 at h = 0.01 s, the residual ANN on der(speed) reading speed, elements of
-    1/8 of the training data, at most 100 s) and a scoring simulation (the plain FMU by the engine,
+    `hybridize` trains: RK4 at h = 0.01 s, the residual ANN on der(speed) reading speed, elements as
+    `hybridize` cuts them: at most 100 s, at least workflow.MIN_ELEMENTS; the DC drive's 48 s are one
+    element since MIN_ELEMENTS is 1, 7 of 6 s in the cost table of docs/MEASUREMENTS.md, measured before) and a scoring simulation (the plain FMU by the engine,
     RK4 at h = 0.01 s, recorded every step and around events, as `hybridize` scores every model)
     cost on the DC drive (Stribeck data, the 48 s training part) and the VLDM (extra resistance, the
     first --vldm-span seconds of CADC in elements of 100 s), as a ratio against fmpy's plain FMU

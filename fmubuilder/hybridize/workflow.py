@@ -40,8 +40,14 @@ MAX_ANN_INPUTS = 1
 # NeuralFMU training: the data cut into elements of at most MAX_ELEMENT_LENGTH seconds (at least
 # MIN_ELEMENTS of them), all simulated side by side in one batch: one optimizer step per epoch, which
 # lets the training rewind an epoch that made the loss worse (see neural.train.Trainer._keep_best).
+# A shorter run is one element: the loss must see a slow signal's drift (a temperature that
+# integrates a bias of the current over its 25 s time constant), which elements started from the
+# measured states every few seconds hide. On the DC drive's frictions, 5 loss evaluations, the
+# NeuralFMU's worst test signal / noise with 8 elements of 6 s and with one of 48 s: Stribeck
+# 318 / 39.8, Coulomb 306 / 130 (benchmarks/bench_friction_training.py; a loss evaluation costs
+# 4.8 times the CPU time). The VLDM's 881 s keep their elements of 100 s.
 MAX_ELEMENT_LENGTH = 100.0
-MIN_ELEMENTS = 8
+MIN_ELEMENTS = 1
 # Warm start of the NeuralFMU before its training through the solver: the ANN fitted to the collocation estimate of the
 # effect, kept if it lowers the training loss (neural/warm_start.py). benchmarks/bench_training.py:
 # it halves the held-out error of 8 epochs on the DC drive.

@@ -1,0 +1,28 @@
+"""How `hybridize` cuts the training data into the NeuralFMU's elements."""
+from types import SimpleNamespace
+
+import numpy as np
+
+from fmubuilder.hybridize import workflow
+from fmubuilder.neural.train import plan_elements
+
+
+def _settings_for(span: float) -> dict:
+    data = SimpleNamespace(time=np.arange(0.0, span + 1e-9, 0.1))
+    diagnosis = SimpleNamespace(errors=[SimpleNamespace(signal="temperature", significant=True)])
+    return workflow._training_settings(data, diagnosis)
+
+
+def test_a_short_run_is_one_element_so_the_loss_sees_a_slow_signal_drift():
+    # The DC drive's training part (48 s): elements restarted from the measured states every 6 s
+    # hid the temperature's drift (25 s time constant) from the loss (docs/MEASUREMENTS.md).
+    settings = _settings_for(47.9)
+    assert plan_elements(0.0, 47.9, settings["element_length"], 0.01) == [0.0]
+
+
+def test_a_long_run_keeps_elements_of_at_most_the_maximum_length():
+    # The VLDM demo's training part (881 s): 8 elements of 100 s, as before.
+    settings = _settings_for(881.0)
+    assert settings["element_length"] == workflow.MAX_ELEMENT_LENGTH
+    starts = plan_elements(0.0, 881.0, settings["element_length"], 0.01)
+    assert len(starts) == 8 and np.allclose(np.diff(starts), 100.0)
