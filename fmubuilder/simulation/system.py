@@ -147,7 +147,23 @@ class FmuSystem:
         return self._completed(True)
 
     def outputs(self, times: np.ndarray, states: np.ndarray) -> np.ndarray:
-        return np.array([self._output_row(t, x) for t, x in zip(times, states)])
+        columns = self._columns
+        if len(times) == 1:
+            return self._output_row(times[0], states[0])[None, :]
+        # Many points (dense output within a step): the states' and discrete values' columns whole.
+        parts = [states]
+        if columns.n_discrete:
+            parts.append(columns.discrete_values()[None, :].repeat(len(times), axis=0))
+        if columns.n_computed:
+            computed, read = np.empty((len(times), columns.n_computed)), columns.read_computed
+            for row, t in enumerate(times):
+                if self._continuous_mode:       # in event mode the FMU already holds (t, x)
+                    self._at(t, states[row])
+                computed[row] = read()
+            parts.append(computed)
+        # The parts side by side are [all states | discrete | computed]; order picks the columns.
+        table = np.concatenate(parts, axis=1) if len(parts) > 1 else np.array(states, dtype=float)
+        return table if columns.in_order(table.shape[1]) else table.take(columns.order, axis=1)
 
     def _output_row(self, t: float, x: np.ndarray) -> np.ndarray:
         """outputs() of one point, written into one row: [states | discrete | computed] in the

@@ -208,7 +208,7 @@ def test_a_system_with_its_own_derivatives_reuses_the_loop(example):
 
 def test_one_recorded_point_holds_what_the_fmu_reports(example):
     """outputs() of one point (the engine's usual call, written into one row) and of several
-    points (one row each) against the FMU's own getters, with the recorded columns in an
+    points (joined from parts) against the FMU's own getters, with the recorded columns in an
     order that mixes states, discrete Real and Boolean variables and computed outputs."""
     names = ["power", "driver.held_error", "speed", "standstill", "acceleration", "energy"]
     with Fmu(example("vldm")) as fmu:
