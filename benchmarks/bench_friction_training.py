@@ -7,19 +7,20 @@ collocation warm start; L-BFGS; RK4 at 0.01 s), without the rest of `hybridize` 
 no other candidates). After the warm start and after every optimizer step the hybrid is simulated
 over the test run and the whole training run and scored as MSE / noise variance per signal (1 =
 the noise floor): a measurement of how the test error moves with the work, which `hybridize`
-itself never looks at. Also printed: the loss, its terms per signal (each signal's MSE over the
-plain FMU's), the CPU time of one loss evaluation.
+itself never looks at. Also printed: the loss, its terms per signal (each signal's MSE over its
+divisor, see --loss), the CPU time of the training.
 
 Variants of the training, to compare on equal work: `--elements N` (the training part in N
-elements, hybridize: workflow.MIN_ELEMENTS), `--loss log` (the loss as the mean over the signals
-of log(MSE / the plain FMU's MSE) instead of the mean of the ratios; Trainer.batch_loss replaced
-for this run; `--loss noise`: each signal's MSE over its noise variance, TrainSettings.loss_scale,
-hybridize's for a run of one element; the loss and its terms then in noise variances),
+elements, hybridize: workflow.MIN_ELEMENTS), `--loss` (`noise`, hybridize's for a run of one
+element: the mean over the signals of MSE / noise variance, TrainSettings.loss_scale, the loss and
+its terms printed in noise variances; `relative`: of MSE / the plain FMU's MSE, hybridize's before
+and for runs of several elements; `log`: of log(MSE / the plain FMU's MSE), Trainer.batch_loss
+replaced for this run),
 `--validation` (end at the best score on the held-out late 20 % of the run,
 Trainer.validation_score, as the ANN on the fitted term does, instead of the lowest loss).
 
     python benchmarks/bench_friction_training.py [--cases stribeck,coulomb] [--budget N] [--elements N]
-                                                 [--loss relative|log|noise] [--validation]
+                                                 [--loss noise|relative|log] [--validation]
 """
 from __future__ import annotations
 
@@ -47,7 +48,7 @@ def main() -> None:
     parser.add_argument("--cases", default="stribeck,coulomb")
     parser.add_argument("--budget", type=int, default=5, help="loss evaluations")
     parser.add_argument("--elements", type=int, default=workflow.MIN_ELEMENTS)
-    parser.add_argument("--loss", choices=["relative", "log", "noise"], default="relative")
+    parser.add_argument("--loss", choices=["noise", "relative", "log"], default=workflow.ONE_ELEMENT_LOSS_SCALE)
     parser.add_argument("--validation", action="store_true", help="end at the best validation score")
     args = parser.parse_args()
     if args.loss == "log":
