@@ -7,9 +7,10 @@ import pytest
 import torch
 
 from fmubuilder.data import MeasuredData
+from fmubuilder.errors import FmuBuilderError
 from fmubuilder.neural.model import NeuralFMU
 from fmubuilder.neural.topology import TopologyConfig
-from fmubuilder.neural.train import Trainer, TrainSettings, noise_scale
+from fmubuilder.neural.train import Trainer, TrainSettings, noise_scale, train_neural_fmu
 
 from .conftest import plant_data
 
@@ -57,3 +58,9 @@ def test_the_noise_scaled_loss_counts_the_plain_error_in_noise_variances(plant_f
     # (0.2 against the declared 0.05) is far above the noise
     assert noise_loss == pytest.approx(plain_scale["w"] / NOISE ** 2, rel=1e-9)
     assert noise_loss > 10.0 and math.isfinite(noise_loss)
+
+
+def test_an_unknown_loss_scale_is_refused(plant_fmu, plant_with_spread):
+    with pytest.raises(FmuBuilderError, match="unknown loss scale 'noisy'"):
+        train_neural_fmu(plant_fmu, plant_with_spread, targets=["der(w)"], inputs=["w"], loss_scale="noisy",
+                         progress=False)
