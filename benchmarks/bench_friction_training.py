@@ -7,17 +7,20 @@ collocation warm start; L-BFGS; RK4 at 0.01 s), without the rest of `hybridize` 
 no other candidates). After the warm start and after every optimizer step the hybrid is simulated
 over the test run and the whole training run and scored as MSE / noise variance per signal (1 =
 the noise floor): a measurement of how the test error moves with the work, which `hybridize`
-itself never looks at. Also printed: the loss, its terms per signal (each signal's MSE over the
-plain FMU's), the CPU time of one loss evaluation.
+itself never looks at. Also printed: the loss, its terms per signal (each signal's MSE over its
+divisor, see --loss), the CPU time of the training.
 
 Variants of the training, to compare on equal work: `--elements N` (the training part in N
-elements, hybridize: workflow.MIN_ELEMENTS), `--loss log` (the loss as the mean over the signals
-of log(MSE / the plain FMU's MSE) instead of the mean of the ratios; Trainer.batch_loss replaced
-for this run), `--validation` (end at the best score on the held-out late 20 % of the run,
+elements, hybridize: workflow.MIN_ELEMENTS), `--loss` (`noise`, hybridize's for a run of one
+element: the mean over the signals of MSE / noise variance, TrainSettings.loss_scale, the loss and
+its terms printed in noise variances; `relative`: of MSE / the plain FMU's MSE, hybridize's before
+and for runs of several elements; `log`: of log(MSE / the plain FMU's MSE), Trainer.batch_loss
+replaced for this run),
+`--validation` (end at the best score on the held-out late 20 % of the run,
 Trainer.validation_score, as the ANN on the fitted term does, instead of the lowest loss).
 
     python benchmarks/bench_friction_training.py [--cases stribeck,coulomb] [--budget N] [--elements N]
-                                                 [--loss relative|log] [--validation]
+                                                 [--loss noise|relative|log] [--validation]
 """
 from __future__ import annotations
 
@@ -45,7 +48,7 @@ def main() -> None:
     parser.add_argument("--cases", default="stribeck,coulomb")
     parser.add_argument("--budget", type=int, default=5, help="loss evaluations")
     parser.add_argument("--elements", type=int, default=workflow.MIN_ELEMENTS)
-    parser.add_argument("--loss", choices=["relative", "log"], default="relative")
+    parser.add_argument("--loss", choices=["noise", "relative", "log"], default=workflow.ONE_ELEMENT_LOSS_SCALE)
     parser.add_argument("--validation", action="store_true", help="end at the best validation score")
     args = parser.parse_args()
     if args.loss == "log":
@@ -55,7 +58,7 @@ def main() -> None:
         rows += run_case(case.strip(), args)
     print(f"\nTest MSE / noise variance, {args.budget} loss evaluations, {args.elements} element(s), "
           f"loss {args.loss}, ending at {'the best validation score' if args.validation else 'the lowest loss'}:\n")
-    print("| case | after | loss (mean of the relative terms) | speed | current | power | energy | temperature |")
+    print("| case | after | loss (mean of the terms) | speed | current | power | energy | temperature |")
     print("|---|---|---|---|---|---|---|---|")
     for row in rows:
         print("| " + " | ".join(row) + " |")
@@ -87,7 +90,7 @@ def run_case(variant: str, args) -> list[list[str]]:
         terms = trainer.signal_losses()
         loss = float(np.mean(list(terms.values())))
         print(f"{variant} after {label}: loss {loss:.4g}, terms {_format(terms)}, "
-              f"whole training run {_format(ratios['run'])}", flush=True)
+              f"whole training run {_format(ratios['run'])}, test {_format(ratios['test'])}", flush=True)
         rows.append([variant, label, f"{loss:.4g}", *(f"{ratios['test'][s]:.3g}" for s in run.signals)])
 
     def on_epoch(epoch: int, trainer) -> bool:
@@ -102,7 +105,8 @@ def run_case(variant: str, args) -> list[list[str]]:
                               solver="rk4", step_size=STEP, progress=False, on_epoch=on_epoch,
                               validation=validation, loss_signals=LOSS_SIGNALS, warm_start=True,
                               element_length=(train.stop - train.start) / args.elements,
-                              ccpt_window=workflow.COLLOCATION_WINDOW, optimizer="lbfgs")
+                              ccpt_window=workflow.COLLOCATION_WINDOW, optimizer="lbfgs",
+                              loss_scale="noise" if args.loss == "noise" else "plain")
     cpu = time.process_time() - cpu
     print(f"{variant}: warm start {result.metrics['warm_start']}; validation {result.metrics['validation']}; "
           f"{result.metrics['loss_evaluations']} evaluations, {cpu:.0f} s CPU", flush=True)

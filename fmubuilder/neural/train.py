@@ -14,7 +14,8 @@ choices in numbers: docs/MEASUREMENTS.md, "How the training gets there").
    (warm_start.py) fits that target with L-BFGS and keeps it only if it lowers the training loss.
 4. Training on elements (default 100 s) simulated side by side; the loss is the mean over the
    measured signals of their MSE (weighted by <signal>_std columns), the model seen through the
-   sensors' lag (`sensor_lag`), divided by the plain FMU's. Adam with step-size decay per epoch and
+   sensors' lag (`sensor_lag`), divided by the plain FMU's (or, loss_scale "noise", by each signal's
+   noise variance: noise_scale). Adam with step-size decay per epoch and
    rewinds after a worse epoch (Trainer._keep_best), or one L-BFGS step over all elements per epoch;
    the work is `epochs`, or with `budget` loss evaluations spent exactly (Trainer.fit). The
    parameters of the lowest loss, or with `validation` data of the best validation score, are kept.
@@ -73,6 +74,7 @@ class TrainSettings:
     time_budget: float | None = None  # seconds for the whole training call
     seed: int = 0
     loss_signals: list[str] | None = None  # default: every measured signal
+    loss_scale: str = "plain"         # each signal's MSE divided by "plain": the plain FMU's, "noise": its noise variance
     # Measured outputs that the hybrid sets equal to a corrected derivative, {output: derivative}
     # (a power whose integral is an energy state): the training reads them from the hybrid's
     # derivative, as the exported hybrid does. Read from the FMU they stay the plain model's, and
@@ -173,7 +175,8 @@ def _settings(settings: TrainSettings | None, overrides: dict) -> TrainSettings:
     settings = dataclasses.replace(settings or TrainSettings(), **overrides)
     for name, what, choices in (("optimizer", "optimizer", ("adam", "lbfgs")),
                                 ("warm_start_target", "warm start target", ("pointwise", "integral")),
-                                ("order", "element order", ("random", "sequential"))):
+                                ("order", "element order", ("random", "sequential")),
+                                ("loss_scale", "loss scale", ("plain", "noise"))):
         if getattr(settings, name) not in choices:
             raise FmuBuilderError(f"unknown {what} '{getattr(settings, name)}': use {' or '.join(choices)}")
     if not settings.integral_window > 0:
@@ -350,9 +353,11 @@ class Trainer:
         return ref
 
     def _reference_scale(self) -> dict:
-        """Per-signal MSE of the plain FMU on the elements, floored at 1e-6 of the signal's variance
-        (a signal the FMU already matches exactly must not dominate the loss). One that overflowed
-        (values near the float range) would make every loss inf or nan: an error before training."""
+        """Per-signal divisor of the MSE in the loss: the plain FMU's MSE on the elements, floored at
+        1e-6 of the signal's variance (a signal the FMU already matches exactly must not dominate the
+        loss); with loss_scale "noise" the signal's noise variance where the data give one (see
+        noise_scale). One that overflowed (values near the float range) would make every loss inf or
+        nan: an error before training."""
         with torch.no_grad(), self.model.topology.ann_off():
             errors = self._signal_errors(self.elements, keep_final_state=False)
         scale = {name: max(float(errors[name]), 1e-6 * self.scale[name]) for name in self.loss_signals}
@@ -362,6 +367,8 @@ class Trainer:
                 f"the plain FMU's error on {', '.join(broken)} in {self.data.source} is not a finite number "
                 "(values far outside the float range, or a simulation that diverged); check the data's values "
                 "and units")
+        if self.settings.loss_scale == "noise":
+            scale = noise_scale(self.data, scale)
         return scale
 
     def _capture_starts(self, plain: bool):
@@ -821,6 +828,21 @@ LBFGS_LINE_SEARCH_EVALUATIONS = 10
 # A rise of the epoch loss up to this fraction is no overshoot: carried-over element starts move the
 # loss a little even where the parameters barely do.
 REWIND_TOLERANCE = 0.01
+
+
+def noise_scale(data: MeasuredData, plain: dict) -> dict:
+    """{signal: its noise variance} (the data's spread columns), the plain FMU's MSE for a signal
+    without one (as the choice's floors, hybridize.choice.floors_of). Divided by the plain FMU's
+    MSE, a signal the plain model already fits to a few times its noise weighs more than an
+    integrator (an energy, a temperature) far off: on the DC drive's Stribeck friction the power,
+    1.7 times its noise, made 0.049 of the loss and the temperature, 36 times, 0.0037, and the steps
+    traded the temperature for the current and the power (bench_friction_training.py). Divided by
+    the noise variance each term is what the held-out score counts."""
+    scale = {}
+    for name, fallback in plain.items():
+        variance = data.noise_variance(name)
+        scale[name] = variance if variance is not None and variance > 0 else fallback
+    return scale
 
 
 def plan_elements(start: float, stop: float, length: float, step: float) -> list[float]:

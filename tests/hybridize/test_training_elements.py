@@ -26,3 +26,10 @@ def test_a_long_run_keeps_elements_of_at_most_the_maximum_length():
     assert settings["element_length"] == workflow.MAX_ELEMENT_LENGTH
     starts = plan_elements(0.0, 881.0, settings["element_length"], 0.01)
     assert len(starts) == 8 and np.allclose(np.diff(starts), 100.0)
+
+
+def test_a_one_element_run_divides_the_loss_by_the_noise_and_a_long_one_by_the_plain_error():
+    # One element: each signal's MSE over its noise variance (the held-out score's unit); the VLDM's
+    # elements keep the plain FMU's MSE, where the noise scale was not measured.
+    assert _settings_for(47.9)["loss_scale"] == workflow.ONE_ELEMENT_LOSS_SCALE == "noise"
+    assert _settings_for(881.0)["loss_scale"] == "plain"
