@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..diagnose.trace import KIND_ORDER
 from ..simulation.results import equal_along
 from .evaluate import Scoring, simulate_over
 
@@ -73,8 +74,6 @@ TIE = 0.05
 SLOPE_WINDOW = 0.6
 # Pairs are tried among this many variables of lowest cross-validated error alone.
 PAIR_POOL = 8
-# Preference among copies of one variable: states, then outputs, inputs, locals, derivatives last.
-KIND_ORDER = {"state": 0, "output": 1, "input": 2, "local": 3, "derivative": 4}
 
 
 @dataclass
