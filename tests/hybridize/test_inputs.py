@@ -26,6 +26,7 @@ from fmubuilder.diagnose.trace import candidate_variables
 from fmubuilder.examples_zoo import cached_data, dc_drive_data_sets
 from fmubuilder.fmi import read_model_info
 from fmubuilder.hybridize import inputs
+from fmubuilder.neural import collocation
 from fmubuilder.hybridize.inputs import (MissingTermRun, choose_inputs, contiguous_folds, cross_validated_squared_errors,
                                          distinct_variables, forward_selection, outside_share,
                                          paired_t, time_blocks)
@@ -116,17 +117,17 @@ def test_a_second_set_of_channels_reuses_the_runs_and_equals_a_fresh_estimate(mo
     data = data.window(data.start, data.start + 5.0)
     step = info.default_experiment.step_size
     simulations = []
-    for name in ("_forced_run", "_plain_run"):
-        real = getattr(inputs, name)
-        monkeypatch.setattr(inputs, name, lambda *a, _real=real, _name=name, **k: simulations.append(_name) or _real(*a, **k))
+    for module, name in ((inputs, "_forced_run"), (inputs, "_plain_run"), (collocation, "_run")):
+        real = getattr(module, name)
+        monkeypatch.setattr(module, name, lambda *a, _real=real, _name=name, **k: simulations.append(_name) or _real(*a, **k))
     run = MissingTermRun(fmu, info, data, data.start_values, candidate_variables(info), step)
     run.estimate(["der(energy)"])
-    assert simulations == ["_plain_run", "_forced_run"]
+    assert simulations == ["_plain_run", "_forced_run", "_run"]     # the batch solver runs the forced run only
     channels = ["der(speed)", "der(energy)", "der(current)"]
     shared = run.estimate(channels)
-    assert len(simulations) == 2
+    assert len(simulations) == 3
     fresh = MissingTermRun(fmu, info, data, data.start_values, candidate_variables(info), step).estimate(channels)
-    assert len(simulations) == 4
+    assert len(simulations) == 6
     assert list(shared.missing) == list(fresh.missing) == channels
     for c in channels:
         np.testing.assert_array_equal(shared.missing[c], fresh.missing[c])
