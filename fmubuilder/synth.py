@@ -58,8 +58,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .data import (UNCERTAINTY_SUFFIX, first_order_lag, read_sidecar, sidecar_path,  # noqa: F401
-                   split_uncertainty_columns)
+from .data import UNCERTAINTY_SUFFIX, first_order_lag, sidecar_path
 from .errors import FmuBuilderError, suggestion
 from .files import file_sha256, refuse_existing, write_atomically
 

@@ -14,15 +14,13 @@ import pytest
 from fmpy import simulate_fmu
 
 from fmubuilder.build import example_fmu
+from fmubuilder.data import first_order_lag, sidecar_path, split_uncertainty_columns
 from fmubuilder.errors import FmuBuilderError
 from fmubuilder.synth import (
     DEFAULT_NOISE_STD,
     BenchSettings,
-    first_order_lag,
     measure,
     sample_times,
-    sidecar_path,
-    split_uncertainty_columns,
     unit_noise,
     write_measurement,
 )

@@ -72,7 +72,8 @@ SLOW_TRIAL_FACTOR = 10.0       # a trial needing this many times the plain run's
 MIN_TRIAL_CALLS = 1000         # derivative evaluations a trial may always use (times the factor)
 SCREEN_SIZE = 1e-3             # trial constant, relative to the derivative's RMS
 _ALIAS = 1.0 - 1e-9            # squared cosine of two forms that are the same trial
-_KIND_ORDER = {"state": 0, "output": 1, "input": 2, "local": 3, "derivative": 4}
+# Preference among variables alike: states, then outputs, inputs, locals, derivatives last.
+KIND_ORDER = {"state": 0, "output": 1, "input": 2, "local": 3, "derivative": 4}
 
 
 @dataclass
@@ -208,7 +209,7 @@ class Tracer:
         """(variable, basis, center, RMS of the form, aliases) for the distinct trial forms."""
         forms: list[tuple[str, str, float, float, list[str]]] = []
         shapes: list[np.ndarray] = []
-        for name in sorted(variables, key=lambda n: _KIND_ORDER[variable_kind(self.info, n)]):
+        for name in sorted(variables, key=lambda n: KIND_ORDER[variable_kind(self.info, n)]):
             w = self.nominal.trajectories[name]
             center = float(w[0])
             for basis in INPUT_FORMS:
@@ -334,7 +335,7 @@ def group_equivalent(info, trials: list[Trial]) -> list[list[Trial]]:
         else:
             groups.append([trial])
     for group in groups:
-        group.sort(key=lambda t: (_KIND_ORDER[variable_kind(info, t.variable)], _even_in_own_state(info, t),
+        group.sort(key=lambda t: (KIND_ORDER[variable_kind(info, t.variable)], _even_in_own_state(info, t),
                                   -t.shape_score))
     return groups
 
@@ -357,7 +358,7 @@ def prefer_simple(info, trials: list[Trial], score=lambda t: t.shape_score) -> l
         for j in range(i + 1, len(ranked)):
             if score(best) - score(ranked[j]) > tolerance:
                 break
-            if _KIND_ORDER[variable_kind(info, ranked[j].variable)] < _KIND_ORDER[variable_kind(info, best.variable)]:
+            if KIND_ORDER[variable_kind(info, ranked[j].variable)] < KIND_ORDER[variable_kind(info, best.variable)]:
                 ranked.insert(i, ranked.pop(j))
                 best = ranked[i]
     return ranked

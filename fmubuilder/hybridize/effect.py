@@ -51,9 +51,9 @@ def effect_of(spec_path: Path, declared_fmu: Path, data, start_values: dict, sco
                         output_interval=interval, record_events=False)
     channel = spec.channels[0]
     network = OnnxNetwork(spec.onnx)
-    values = np.column_stack([np.asarray(run[name], dtype=float) for name in spec.inputs])
-    learned = spec.p_ann[0] * np.array([network(row)[0] for row in values])
-    effect = Effect(channel, spec.term, {name: np.asarray(run[name], dtype=float) for name in spec.inputs}, learned)
+    inputs = {name: np.asarray(run[name], dtype=float) for name in spec.inputs}
+    learned = spec.p_ann[0] * np.array([network(row)[0] for row in np.column_stack(list(inputs.values()))])
+    effect = Effect(channel, spec.term, inputs, learned)
     try:
         truth_fmu, parameters, effect.truth_source = _truth_model(data)
         if truth_fmu is not None:

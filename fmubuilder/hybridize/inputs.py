@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..diagnose.trace import KIND_ORDER
 from ..simulation.results import equal_along
 from .evaluate import Scoring, simulate_over
 
@@ -73,8 +74,6 @@ TIE = 0.05
 SLOPE_WINDOW = 0.6
 # Pairs are tried among this many variables of lowest cross-validated error alone.
 PAIR_POOL = 8
-# Preference among copies of one variable: states, then outputs, inputs, locals, derivatives last.
-KIND_ORDER = {"state": 0, "output": 1, "input": 2, "local": 3, "derivative": 4}
 
 
 @dataclass
@@ -116,10 +115,10 @@ class MissingTermRun:
     """The missing terms of one run `data` for any channels asked for (`estimate`), from the FMU
     forced to the measured states over the whole run. The sensors' lag (the data's `sensor_lag`) is
     undone on the forced states and applied to the FMU's variables, so that both sides are compared
-    as the sensors saw them. The simulations are done once: the forced run records the candidates
-    and every measured channel, the plain run (needed by a channel that reads an unmeasured state)
-    every such channel. A second set of channels (the loop's measured derivatives) then costs no
-    simulation."""
+    as the sensors saw them. The simulations are done once: the plain run (by the engine) records
+    the unmeasured integrators, which the forced run follows, and every measured channel that reads
+    an unmeasured state; the forced run records the candidates and every measured channel. A second
+    set of channels (the loop's measured derivatives) then costs no simulation."""
 
     def __init__(self, model_fmu, info, data, start_values: dict, candidates: list[str], step: float,
                  solver: str = "euler"):
@@ -128,7 +127,7 @@ class MissingTermRun:
         self.measured_channels = _measured_channels(info, data)
         self.lag = float(data.sensor_lag or 0.0)
         self._forced = None       # (grid, {name: values}, {name: values seen through the lag})
-        self._plain = None        # {channel: plain run seen through the lag, on the forced grid}
+        self._plain = None        # (time, {name: values}) of the plain run
 
     def estimate(self, channels: list[str]) -> MissingTerm | None:
         """The missing term of each of `channels`; None when no channel's state is measured."""
@@ -136,6 +135,7 @@ class MissingTermRun:
 
         from ..diagnose.trace import variable_kind
         from ..neural.collocation import local_slope
+        from ..simulation.results import sample_settled
         info, data = self.info, self.data
         states = [v.name for v in info.states]
         derivatives = [v.name for v in info.derivatives]
@@ -148,11 +148,12 @@ class MissingTermRun:
         seen = dict(seen)
         # A channel whose derivative reads an unmeasured state (a controller's integrator) is compared
         # with the plain model's run instead: its unmeasured states are right as long as the effect
-        # does not feed back into them (the forced run takes its integrators from it too, see
-        # collocation.with_plain_unmeasured), and its measured ones are the closed loop's own.
+        # does not feed back into them (the forced run takes its integrators from it too), and its
+        # measured ones are the closed loop's own.
         unforced = [c for c in channels if not _reads_measured_only(info, c, data)]
         if unforced:
-            seen.update(self._plain_run(unforced))
+            time, plain = self._plain_run()
+            seen.update({c: sample_settled(time, self._seen(time, plain[c]), grid) for c in unforced})
         at = data.time
         sampled = {n: np.interp(at, grid, values[n]) for n in candidates}
         aliases = {c: equal_to(sampled, c) for c in channels}
@@ -179,25 +180,31 @@ class MissingTermRun:
         from ..data import first_order_lag
         return first_order_lag(grid, values, self.lag) if self.lag > 0 else values
 
+    def _integrators(self) -> list[str]:
+        """The unmeasured integrators: the forced run takes them from the plain run (as
+        collocation.with_plain_unmeasured would, by a plain run of its own)."""
+        from ..neural.collocation import is_integrator
+        info = self.info
+        return [v.name for v in info.states if v.name not in self.data.signals and is_integrator(info, v.name)]
+
     def _forced_run(self, names: list[str]):
         if self._forced is None or any(n not in self._forced[1] for n in names):
             data, states = self.data, [v.name for v in self.info.states]
             forced = {s: _undo_lag(data.time, data.signals[s], self.lag) for s in states if s in data.signals}
+            integrators = self._integrators() if forced else []
+            plain = self._plain_run() if integrators else None
             recorded = list(dict.fromkeys([*names, *self.measured_channels]))
             grid, values = _forced_run(self.model_fmu, self.info, data, self.start_values, forced, recorded,
-                                       self.step, self.solver)
+                                       self.step, self.solver, integrators, plain)
             self._forced = grid, values, {n: self._seen(grid, v) for n, v in values.items()}
         return self._forced
 
-    def _plain_run(self, channels: list[str]) -> dict:
-        from ..simulation.results import sample_settled
-        if self._plain is None or any(c not in self._plain for c in channels):
-            wanted = [c for c in self.measured_channels if not _reads_measured_only(self.info, c, self.data)]
-            recorded = list(dict.fromkeys([*channels, *wanted]))
-            time, values = _plain_run(self.model_fmu, self.data, self.start_values, recorded, self.step, self.solver)
-            grid = self._forced[0]
-            self._plain = {c: sample_settled(time, self._seen(time, values[c]), grid) for c in recorded}
-        return {c: self._plain[c] for c in channels}
+    def _plain_run(self):
+        if self._plain is None:
+            compared = [c for c in self.measured_channels if not _reads_measured_only(self.info, c, self.data)]
+            recorded = list(dict.fromkeys([*self._integrators(), *compared]))
+            self._plain = _plain_run(self.model_fmu, self.data, self.start_values, recorded, self.step, self.solver)
+        return self._plain
 
 
 def _plain_run(model_fmu, data, start_values: dict, names: list[str], step: float, solver: str):
@@ -226,23 +233,26 @@ def _undo_lag(time: np.ndarray, measured: np.ndarray, lag: float) -> np.ndarray:
     return measured + lag * np.where(valid, slope, 0.0)
 
 
-def _forced_run(model_fmu, info, data, start_values, forced: dict, names, step, solver):
+def _forced_run(model_fmu, info, data, start_values, forced: dict, names, step, solver, integrators=(), plain=None):
     """(grid, {name: values}) of the plain FMU with the states in `forced` (name -> values at the
-    data's stamps) set after every step, so that its controllers react to the measured behaviour
-    (none forced: the plain run)."""
+    data's stamps) set after every step, so that its controllers react to the measured behaviour,
+    and the `integrators` to the run `plain` ((time, {name: values})); none forced: the plain run."""
     from ..neural import NeuralFMU
     from ..neural.collocation import forced_run
     from ..neural.topology import TopologyConfig
+    from ..simulation.results import sample_settled
     states = [v.name for v in info.states]
-    order = list(forced)
 
     def values_at(t):
-        return np.stack([np.interp(t, data.time, forced[s]) for s in order], axis=1)
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        return np.stack([np.interp(t, data.time, forced[s]) for s in forced]
+                        + [sample_settled(plain[0], plain[1][s], t) for s in integrators], axis=1)
 
     config = TopologyConfig(channels=[info.derivatives[0].name], inputs=[states[0]], kind="residual")
     model = NeuralFMU(model_fmu, config, start_values)
     try:
-        run = forced_run(model, data, step, solver, order, values_at, list(names), data.input_signals(info))
+        run = forced_run(model, data, step, solver, [*forced, *integrators], values_at, list(names),
+                         data.input_signals(info))
         return data.start + np.asarray(run.times), {n: np.asarray(run.numpy(n)[:, 0], dtype=float) for n in names}
     finally:
         model.close()

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import torch
 from torch import nn
 
 from ..errors import FmuBuilderError
@@ -15,8 +14,6 @@ from ..export import freeze
 from ..export.spec import HybridSpec
 from ..neural.base_term import FittedTerm
 from .term_started import fmu_term_inputs
-
-DTYPE = torch.float64
 
 
 class _Correction(nn.Module):

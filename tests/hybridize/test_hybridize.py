@@ -23,6 +23,7 @@ from fmpy.validation import validate_fmu
 
 from fmubuilder import synth
 from fmubuilder.build import example_fmu
+from fmubuilder.data import read_sidecar
 from fmubuilder.examples_zoo import dc_drive_truth_term
 from fmubuilder.hybridize import hybridize
 from fmubuilder.cli.hybridize import summary
@@ -102,7 +103,7 @@ def lagged(time, values, lag):
 
 def fmpy_mse(fmu, data_csv, signals):
     """MSE of the FMU simulated by fmpy (CVode) against the measured data, per signal."""
-    meta = synth.read_sidecar(data_csv)
+    meta = read_sidecar(data_csv)
     measured = np.genfromtxt(data_csv, delimiter=",", names=True)
     result = simulate_fmu(str(fmu), start_time=meta["start_time"], stop_time=meta["stop_time"],
                           start_values=meta["start_values"], relative_tolerance=1e-8, output_interval=0.005,

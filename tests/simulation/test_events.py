@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from fmubuilder.simulation.events import EVENT, STEP, EventSequence, any_crossed, crossed, locate
+from fmubuilder.simulation.events import EVENT, STEP, EventSequence, crossed, locate
 
 
 @pytest.mark.parametrize("z0, z1, fires", [
@@ -16,7 +16,6 @@ from fmubuilder.simulation.events import EVENT, STEP, EventSequence, any_crossed
 ])
 def test_crossing_convention(z0, z1, fires):
     assert crossed(np.array([z0]), np.array([z1]))[0] == fires
-    assert any_crossed(np.array([z0]), np.array([z1])) == fires
 
 
 def evaluate(functions):
