@@ -858,7 +858,7 @@ def plan_elements(start: float, stop: float, length: float, step: float) -> list
 
 def sensor_kernel(step: float, lag: float, tolerance: float = 1e-12) -> np.ndarray:
     """Weights w[m] of u[k - m] in the output y[k] of `lag * dy/dt = u - y` for an input linear
-    between grid points `step` apart (synth.first_order_lag's discretisation), cut where the memory
+    between grid points `step` apart (data.first_order_lag's discretisation), cut where the memory
     falls below `tolerance` and rescaled to a static gain of 1."""
     a = math.exp(-step / lag)
     c = 1.0 - lag / step * -math.expm1(-step / lag)     # weight of the current input
