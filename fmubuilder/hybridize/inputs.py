@@ -183,9 +183,8 @@ class MissingTermRun:
     def _integrators(self) -> list[str]:
         """The unmeasured integrators: the forced run takes them from the plain run (as
         collocation.with_plain_unmeasured would, by a plain run of its own)."""
-        from ..neural.collocation import is_integrator
-        info = self.info
-        return [v.name for v in info.states if v.name not in self.data.signals and is_integrator(info, v.name)]
+        from ..neural.collocation import unmeasured_integrators
+        return unmeasured_integrators(self.info, self.data.signals)
 
     def _forced_run(self, names: list[str]):
         if self._forced is None or any(n not in self._forced[1] for n in names):

@@ -226,7 +226,7 @@ def with_plain_unmeasured(model: NeuralFMU, data: MeasuredData, step: float, sol
     (0.03-0.09 rms on the DC drive's frictions). A state that reads itself (a current through an
     inductance) forgets its past and follows the forced states as the truth's did: it stays free,
     as do the states of a model that declares no dependencies."""
-    others = unmeasured_integrators(model, forced)
+    others = unmeasured_integrators(model.info, forced)
     if not others:
         return forced, values
     plain = _run(model, data, step, solver, [], None, others, inputs)
@@ -240,10 +240,10 @@ def with_plain_unmeasured(model: NeuralFMU, data: MeasuredData, step: float, sol
     return [*forced, *others], extended
 
 
-def unmeasured_integrators(model: NeuralFMU, measured) -> list[str]:
+def unmeasured_integrators(info, measured) -> list[str]:
     """The model's states not in `measured` whose derivative, by the declared dependencies, does
     not read the state itself (a controller's integrator): those that follow the plain run."""
-    return [s for s in model.state_names() if s not in measured and is_integrator(model.info, s)]
+    return [v.name for v in info.states if v.name not in measured and is_integrator(info, v.name)]
 
 
 def is_integrator(info, state: str) -> bool:

@@ -172,7 +172,7 @@ def warm_start(trainer) -> dict:
         _loss_from_own_starts(trainer)      # the element starts back at the kept parameters
     # simulations without gradient: the forced run (and the plain run its unmeasured states follow),
     # and a capture and a loss per evaluation
-    unmeasured = bool(unmeasured_integrators(trainer.model, trainer.data.signals))
+    unmeasured = bool(unmeasured_integrators(trainer.model.info, trainer.data.signals))
     return {"samples": int(target.shape[0]), "target": trainer.settings.warm_start_target, "fit_error": error,
             "loss_before": loss_before, "loss_after": loss_after, "kept": kept,
             "simulations": (5 if kept else 7) + unmeasured}
