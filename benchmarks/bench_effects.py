@@ -58,6 +58,8 @@ def main() -> None:
                         help="the NeuralFMU's warm start target (default: hybridize's)")
     parser.add_argument("--integral-window", type=float, default=None,
                         help="seconds per window of the integral warm start target (default: hybridize's)")
+    parser.add_argument("--last-layer", type=int, default=None,
+                        help="simulations of the last layer's refinement per loss evaluation (default: hybridize's)")
     parser.add_argument("--truth-only", action="store_true",
                         help="score the truth FMU alone (checks the scoring; no hybridize)")
     args = parser.parse_args()
@@ -71,6 +73,8 @@ def main() -> None:
             if not args.integral_window > 0:
                 raise ValueError(f"--integral-window: give positive seconds, got {args.integral_window}")
             workflow.INTEGRAL_WINDOW = args.integral_window
+        if args.last_layer is not None:
+            workflow.LAST_LAYER_SIMULATIONS_PER_EVALUATION = args.last_layer
         if args.elements is not None:
             if args.elements < 1:
                 raise ValueError(f"--elements: give 1 or more, got {args.elements}")

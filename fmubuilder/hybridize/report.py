@@ -229,6 +229,12 @@ def _candidate_note(model: dict, training: dict | None) -> str:
                          if training.get("cut_short_by_time_budget") else "no training was asked for")
         elif training.get("cut_short_by_time_budget"):
             notes.append("cut short by the wall-clock cap")
+        refined = model.get("last_layer")
+        if refined and refined["kept"]:
+            notes.append(f"last layer refined through the simulation: training loss {refined['loss_before']:.4g} -> "
+                         f"{refined['loss_after']:.4g} ({refined['simulations']} sims)")
+        elif refined:
+            notes.append(f"last layer's refinement not kept ({refined['simulations']} sims)")
     elif model.get("calibrated"):
         notes.append(f"calibrated by Gauss-Newton on `{model.get('fitted_on', 'the training data')}` in "
                      f"{model.get('simulations', '?')} simulations, no training")

@@ -69,6 +69,12 @@ COLLOCATION_WINDOW = 0.5
 # on the DC drive's effects: docs/MEASUREMENTS.md, "Warm starts, optimizers and an ANN on the fitted term").
 WARM_START_TARGET = "pointwise"
 INTEGRAL_WINDOW = 0.5
+# After the training through the solver of a run trained as one element: Levenberg-Marquardt on the
+# ANN's last layer (neural/last_layer.py), this many engine simulations without gradient per loss
+# evaluation of the budget (on the DC drive a loss evaluation costs about 18 of them: 8.1 s against
+# 0.45 s). On the Coulomb friction, budget 5, the training loss after 40 / 100 / 200 simulations:
+# 13.2 / 11.1 / 11.0, from 16.0 (docs/MEASUREMENTS.md, "The last layer refined through the simulation").
+LAST_LAYER_SIMULATIONS_PER_EVALUATION = 20
 # Seconds of the training data on which outputs equal to the corrected derivative are detected.
 ALIAS_SPAN = 60.0
 
@@ -326,7 +332,7 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
     aliases = {name: c for channel in channels for name, c in _aliases_of(ctx, channel).items()}
     ctx.say(f"[3/5] training a NeuralFMU: ANN on {_wiring(channels, inputs, channel_inputs)} "
             f"({ctx.budget} loss evaluations) ...")
-    settings = _training_settings(ctx.roles.train[0].samples(), diagnosis)
+    settings = _training_settings(ctx.roles.train[0].samples(), diagnosis, ctx.budget)
     candidates.append(_neural_candidate(ctx, channels, inputs, aliases, settings, channel_inputs=channel_inputs))
     from .term_started import NAME, term_start
     # the ANN on the term reads the inputs chosen for the term's derivative, when it is one of the ANN's
@@ -525,14 +531,15 @@ def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], ali
                "training_seconds": metrics.get("seconds"),
                "loss_signals": settings["loss_signals"], "trained_on": first.label,
                "input_choice": ctx.input_choice if not base_terms else None,
-               "warm_start": metrics.get("warm_start"), "validation_checkpoint": metrics.get("validation")}
+               "warm_start": metrics.get("warm_start"), "last_layer": metrics.get("last_layer"),
+               "validation_checkpoint": metrics.get("validation")}
     description = f"ANN on {_wiring(channels, inputs, channel_inputs)}"
     if base_terms:
         description += " added to the fitted term"
     return _candidate(ctx, name, description, fmu, folder, details)
 
 
-def _training_settings(data: MeasuredData, diagnosis) -> dict:
+def _training_settings(data: MeasuredData, diagnosis, budget: int) -> dict:
     """Element length and loss signals of the NeuralFMU training: the loss is on the signals in
     which the diagnosis found the effect (all of them if it found it in none alone). The others sit
     at the noise level and their fit to noise pulls the ANN away from the effect."""
@@ -543,7 +550,8 @@ def _training_settings(data: MeasuredData, diagnosis) -> dict:
     return {"element_length": element_length, "loss_signals": showing or None,
             "loss_scale": ONE_ELEMENT_LOSS_SCALE if one_element else "plain",
             "warm_start": WARM_START, "ccpt_window": COLLOCATION_WINDOW, "warm_start_target": WARM_START_TARGET,
-            "integral_window": INTEGRAL_WINDOW, "optimizer": OPTIMIZER}
+            "integral_window": INTEGRAL_WINDOW, "optimizer": OPTIMIZER,
+            "last_layer_simulations": LAST_LAYER_SIMULATIONS_PER_EVALUATION * budget if one_element else 0}
 
 
 def _roundtrip(chosen: Candidate, test: Part) -> dict:

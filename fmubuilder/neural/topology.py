@@ -215,6 +215,15 @@ class Topology(nn.Module):
         last = self.ann[-1]
         return not (bool(last.weight.any()) or bool(last.bias.any()) or bool(self.post_shift.any()))
 
+    def last_layer_free(self) -> torch.Tensor:
+        """[C, H] bool: the last Linear layer's entries that may be non-zero (each channel's own
+        hidden units with per-channel inputs, see block_diagonal; all of them otherwise)."""
+        weight = self.ann[-1].weight
+        if not self.config.input_blocks():
+            return torch.ones_like(weight, dtype=torch.bool)
+        owner = torch.arange(weight.shape[1]) // self.config.hidden[-1]
+        return owner[None, :] == torch.arange(weight.shape[0])[:, None]
+
     def ann_inputs(self, x: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
         """The raw ANN inputs [B, n_in] from states x [B, n] and FMU results out [B, n + k]."""
         if self._inputs_from_states:

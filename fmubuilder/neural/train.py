@@ -20,6 +20,8 @@ choices in numbers: docs/MEASUREMENTS.md, "How the training gets there").
    the work is `epochs`, or with `budget` loss evaluations spent exactly (Trainer.fit). The
    parameters of the lowest loss, or with `validation` data of the best validation score, are kept.
    Fixed seeds, a time budget, a checkpoint after every epoch, and resume.
+   Then, with `last_layer_simulations`, the ANN's last layer refined through the engine by
+   Levenberg-Marquardt (last_layer.py).
 5. Errors before (plain FMU) and after (trained hybrid) over the whole data, with the engine.
 """
 from __future__ import annotations
@@ -69,6 +71,7 @@ class TrainSettings:
     ccpt_window: float = 1.0          # seconds of data per local derivative fit
     warm_start: bool = False          # fit the ANN to the collocation estimate (L-BFGS) before training
     warm_start_iterations: int = 300  # L-BFGS iterations of the warm start
+    last_layer_simulations: int = 0   # after the training: simulations of the last layer's refinement (last_layer.py)
     warm_start_target: str = "pointwise"  # "pointwise": local slopes; "integral": window increments (warm_start.py)
     integral_window: float = 0.5      # seconds per window of the integral target
     time_budget: float | None = None  # seconds for the whole training call
@@ -153,6 +156,7 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
                    "loss": trainer.history[-1]["loss"] if trainer.history else None,
                    "settings": asdict(settings), "element_start_replays": dict(model.replays),
                    "loss_evaluations": trainer.loss_evaluations, "warm_start": trainer.warm_start,
+                   "last_layer": trainer.last_layer,
                    "validation": trainer.validation_summary()}
         if test_data is not None:
             test = test_data if isinstance(test_data, MeasuredData) else load_data(test_data, model.info)
@@ -234,12 +238,18 @@ def data_errors(data: MeasuredData, result, sensor_lag: float = 0.0, aliases: di
     errors = {}
     aliases = aliases or {}
     for name in data.signals:
-        simulated = result[aliases.get(name, name)]
-        predicted = np.interp(data.time, result.time, first_order_lag(result.time, simulated, sensor_lag))
-        diff = predicted - data.signals[name]
+        diff = predicted_at_samples(data, result, name, sensor_lag, aliases) - data.signals[name]
         errors[name] = {"mse": float(np.mean(diff ** 2)), "max_abs": float(np.max(np.abs(diff))),
                         "final": float(abs(diff[-1]))}
     return errors
+
+
+def predicted_at_samples(data: MeasuredData, result, name: str, sensor_lag: float = 0.0,
+                         aliases: dict | None = None) -> np.ndarray:
+    """What the sensor of signal `name` shows at the data's samples: the engine result's value (or
+    the derivative it is an alias of) through the sensors' first-order lag."""
+    simulated = result[(aliases or {}).get(name, name)]
+    return np.interp(data.time, result.time, first_order_lag(result.time, simulated, sensor_lag))
 
 
 def simulate_over(model: NeuralFMU, data: MeasuredData, step: float, solver: str = "euler",
@@ -305,6 +315,7 @@ class Trainer:
         self.elements: list[_Element] = []
         self.reference = None
         self.warm_start: dict | None = None   # what the warm start did (see warm_start.py)
+        self.last_layer: dict | None = None   # what the last layer's refinement did (see last_layer.py)
         self.best_loss, self.best_state, self._best = math.inf, None, None   # see _keep_best
         self._lbfgs_seen: list = []   # ((parameters, element starts), loss, gradients) of recent L-BFGS evaluations
         self._lbfgs_tried: list = []  # (parameters, loss) of the points the current L-BFGS step asked for
@@ -494,6 +505,27 @@ class Trainer:
         if isinstance(optimizer, torch.optim.LBFGS):
             self._keep_last_lbfgs_point()
         self.restore_best()
+        self._refine_last_layer()
+
+    def engine_differences(self) -> dict:
+        """{loss signal: the hybrid's value seen through the sensor - the measured, at the samples}
+        over the training data, simulated by the engine (no gradient) from the data's start."""
+        aliases = self.settings.aliases
+        result = simulate_over(self.model, self.data, self.step, self.settings.solver, aliases=aliases)
+        return {name: predicted_at_samples(self.data, result, name, self.sensor_lag, aliases) - self.data.signals[name]
+                for name in self.loss_signals}
+
+    def _refine_last_layer(self) -> None:
+        """Levenberg-Marquardt on the ANN's last layer (last_layer.py); with validation data its
+        result is scored there too and kept only if it is the best."""
+        if not self.settings.last_layer_simulations or self.cut_short:
+            return
+        from .last_layer import refine_last_layer
+        self.last_layer = refine_last_layer(self, self.settings.last_layer_simulations)
+        if self.last_layer is not None and self.validation is not None:
+            self.last_layer["validation"] = self._track_validation(self.epochs_done + 1)
+            self.last_layer["kept"] &= self.validation_best[1] == self.epochs_done + 1
+            self.restore_best()
 
     def _planned_work(self) -> int:
         """The bar's total: loss evaluations with a budget, else batches."""

@@ -206,6 +206,13 @@ def test_candidate_notes_say_how_each_kind_was_made():
     assert "coefficient kept" in unrefined and "->" not in unrefined
     assert calibrated.startswith("calibrated by Gauss-Newton on `a.csv` in 7 simulations")
     assert on_term.startswith("trained with 4 of 10 loss evaluations")
+    last_layer = {"kept": True, "loss_before": 3.7257, "loss_after": 1.5942, "simulations": 37}
+    refined_ann = _candidate_note({"name": "neural", "loss_evaluations": 5, "last_layer": last_layer, **scores},
+                                  {"budget": 5})
+    assert "last layer refined through the simulation: training loss 3.726 -> 1.594 (37 sims)" in refined_ann
+    unrefined_ann = _candidate_note({"name": "neural", "loss_evaluations": 5, **scores,
+                                     "last_layer": {**last_layer, "kept": False}}, {"budget": 5})
+    assert "last layer's refinement not kept (37 sims)" in unrefined_ann and "->" not in unrefined_ann
 
 
 def test_the_summary_names_what_each_kind_of_candidate_ships():

@@ -10,7 +10,7 @@ from fmubuilder.neural.train import plan_elements
 def _settings_for(span: float) -> dict:
     data = SimpleNamespace(time=np.arange(0.0, span + 1e-9, 0.1))
     diagnosis = SimpleNamespace(errors=[SimpleNamespace(signal="temperature", significant=True)])
-    return workflow._training_settings(data, diagnosis)
+    return workflow._training_settings(data, diagnosis, budget=5)
 
 
 def test_a_short_run_is_one_element_so_the_loss_sees_a_slow_signal_drift():
@@ -33,3 +33,10 @@ def test_a_one_element_run_divides_the_loss_by_the_noise_and_a_long_one_by_the_p
     # elements keep the plain FMU's MSE, where the noise scale was not measured.
     assert _settings_for(47.9)["loss_scale"] == workflow.ONE_ELEMENT_LOSS_SCALE == "noise"
     assert _settings_for(881.0)["loss_scale"] == "plain"
+
+
+def test_a_one_element_run_refines_the_last_layer_on_simulations_counted_with_the_budget():
+    # A loss evaluation costs about 18 engine simulations on the DC drive: the refinement's work grows
+    # with the budget. The VLDM's elements: not measured there, no refinement.
+    assert _settings_for(47.9)["last_layer_simulations"] == 5 * workflow.LAST_LAYER_SIMULATIONS_PER_EVALUATION
+    assert _settings_for(881.0)["last_layer_simulations"] == 0

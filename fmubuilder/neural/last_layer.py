@@ -1,0 +1,130 @@
+"""The ANN's last layer refined through the simulation, after the training (Levenberg-Marquardt).
+
+A few loss evaluations of L-BFGS leave the effect's level off by a fraction of a percent, and the
+signals that integrate it (an energy, a temperature) turn that into tens of times their noise. The
+correction is linear in the last layer's weights and bias, and the simulated signals nearly so: a
+small least-squares problem (16 or 17 unknowns per channel), which Gauss-Newton solves in a few
+steps where a gradient method crawls.
+
+    unknowns   -> the last Linear layer's free entries (the blocks of its sub-networks) and biases
+    residuals  -> (the hybrid's signals seen through the sensor lag - measured) / sqrt(N scale count),
+                  over the training data, squared sum: the training loss (Trainer.scale)
+    simulation -> the engine with the training's solver and step (no gradient: cheap)
+    search     -> Levenberg-Marquardt, Jacobian by forward differences (one simulation per unknown),
+                  a step kept only if it lowers the loss; at most `simulations` simulations
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from ..progress import progress
+
+# Finite-difference step of an unknown, relative to the largest entry of the layer (the hidden
+# units' outputs lie in [-1, 1], so each unknown moves the correction alike).
+PERTURBATION = 1e-3
+DAMPING = 1e-3            # Marquardt's, relative to the diagonal of J^T J
+DAMPING_FACTOR = 10.0
+
+
+def refine_last_layer(trainer, simulations: int) -> dict | None:
+    """Levenberg-Marquardt on the last layer of `trainer`'s ANN over its training data (see the
+    module docstring); the parameters are left at the lowest loss found. Returns what it did, or
+    None when there is no layer to refine or no budget for one step."""
+    topology = trainer.model.topology
+    free = topology.last_layer_free() if topology.has_ann else None
+    layer = topology.ann[-1] if free is not None else None
+    if layer is None or simulations < int(free.sum()) + layer.bias.numel() + 2:
+        return None
+    problem = _Problem(trainer, layer, free)
+    with progress(simulations, "refining the ANN's last layer", "simulation", show=trainer.settings.progress) as bar:
+        problem.bar = bar
+        start = problem.get()
+        residual = problem.residual(start)
+        before = _cost(residual)
+        if not math.isfinite(before):
+            bar.stop("the trained hybrid does not simulate over the training data")
+            return {"simulations": problem.simulations, "loss_before": None, "loss_after": None, "kept": False}
+        theta, after, ended = _levenberg_marquardt(problem, start, residual, simulations)
+        problem.set(theta)
+        bar.stop(ended)
+    return {"simulations": problem.simulations, "loss_before": before, "loss_after": after,
+            "kept": after < before, "unknowns": start.size, "ended": ended}
+
+
+class _Problem:
+    """The last layer's free entries as a vector, and the training residuals at a vector."""
+
+    def __init__(self, trainer, layer: torch.nn.Linear, free: torch.Tensor):
+        self.trainer, self.layer, self.free = trainer, layer, free
+        self.simulations = 0
+        self.bar = None
+        data = trainer.data
+        count = len(trainer.loss_signals)
+        self.norm = {name: math.sqrt(data.time.size * trainer.scale[name] * count) for name in trainer.loss_signals}
+
+    def get(self) -> np.ndarray:
+        values = torch.cat([self.layer.weight.detach()[self.free], self.layer.bias.detach()])
+        return values.numpy().copy()
+
+    def set(self, theta: np.ndarray) -> None:
+        n = int(self.free.sum())
+        with torch.no_grad():
+            weight = self.layer.weight.detach().clone()
+            weight[self.free] = torch.from_numpy(theta[:n])
+            self.layer.weight.copy_(weight)
+            self.layer.bias.copy_(torch.from_numpy(theta[n:]))
+
+    def residual(self, theta: np.ndarray) -> np.ndarray:
+        """One simulation of the training data; all residuals inf when it fails."""
+        trainer = self.trainer
+        self.set(theta)
+        self.simulations += 1
+        if self.bar is not None:
+            self.bar.advance(1)
+        try:
+            differences = trainer.engine_differences()
+        except Exception:      # a trial step that makes the hybrid fail is a step not taken
+            return np.full(trainer.data.time.size * len(trainer.loss_signals), math.inf)
+        return np.concatenate([differences[name] / self.norm[name] for name in trainer.loss_signals])
+
+
+def _levenberg_marquardt(problem: _Problem, theta: np.ndarray, residual: np.ndarray, budget: int):
+    """(unknowns, their loss, why it ended)."""
+    cost, damping = _cost(residual), DAMPING
+    n = theta.size
+    while problem.simulations + n + 1 <= budget:
+        jacobian = _jacobian(problem, theta, residual)
+        if not np.all(np.isfinite(jacobian)):
+            return theta, cost, "a perturbed run failed"
+        gradient, curvature = jacobian.T @ residual, jacobian.T @ jacobian
+        diagonal = np.diag(np.diag(curvature)) + 1e-12 * np.trace(curvature) / n * np.eye(n)
+        accepted = False
+        while problem.simulations < budget:
+            step = np.linalg.solve(curvature + damping * diagonal, -gradient)
+            trial = problem.residual(theta + step)
+            if _cost(trial) < cost:
+                theta, residual, cost, accepted = theta + step, trial, _cost(trial), True
+                damping /= DAMPING_FACTOR
+                break
+            damping *= DAMPING_FACTOR
+        if not accepted:
+            return theta, cost, "no lower training loss found"
+    return theta, cost, "the budget is spent"
+
+
+def _jacobian(problem: _Problem, theta: np.ndarray, residual: np.ndarray) -> np.ndarray:
+    """Forward differences, one simulation per unknown."""
+    delta = PERTURBATION * max(float(np.max(np.abs(theta))), 1e-2)
+    columns = []
+    for k in range(theta.size):
+        moved = theta.copy()
+        moved[k] += delta
+        columns.append((problem.residual(moved) - residual) / delta)
+    return np.column_stack(columns)
+
+
+def _cost(residual: np.ndarray) -> float:
+    return float(residual @ residual)
