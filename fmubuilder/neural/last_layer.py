@@ -3,7 +3,7 @@
 A few loss evaluations of L-BFGS leave the effect's level off by a fraction of a percent, and the
 signals that integrate it (an energy, a temperature) turn that into tens of times their noise. The
 correction is linear in the last layer's weights and bias, and the simulated signals nearly so: a
-small least-squares problem (16 or 17 unknowns per channel), which Gauss-Newton solves in a few
+small least-squares problem (17 unknowns per channel of 16 hidden units), which Gauss-Newton solves in a few
 steps where a gradient method crawls.
 
     unknowns   -> the last Linear layer's free entries (the blocks of its sub-networks) and biases
@@ -24,6 +24,7 @@ import math
 import numpy as np
 import torch
 
+from ..errors import FmuBuilderError
 from ..progress import progress
 
 # Finite-difference step of an unknown, relative to the largest entry of the layer (the hidden
@@ -91,7 +92,7 @@ class _Problem:
             self.bar.advance(1)
         try:
             differences = trainer.engine_differences()
-        except Exception:      # a trial step that makes the hybrid fail is a step not taken
+        except (FmuBuilderError, ArithmeticError):   # a trial step that makes the hybrid fail is not taken
             return np.full(trainer.data.time.size * len(trainer.loss_signals), math.inf)
         return np.concatenate([differences[name] / self.norm[name] for name in trainer.loss_signals])
 
