@@ -15,7 +15,7 @@ steps where a gradient method crawls.
                   simulation each); a step kept only if it lowers the loss; at most `simulations`
                   simulations. On the DC drive's Coulomb friction (budget 5, 17 unknowns) the training
                   loss 16.0 fell to 11.0 with fresh differences every step (200 simulations), to
-                  9.0 / 7.9 with Broyden's update (40 / 100; docs/MEASUREMENTS.md)
+                  10.3 with Broyden's update and the ridge (100; docs/MEASUREMENTS.md)
 """
 from __future__ import annotations
 
@@ -33,6 +33,7 @@ PERTURBATION = 1e-3
 DAMPING = 1e-3            # Marquardt's, relative to the diagonal of J^T J
 DAMPING_FACTOR = 10.0
 MAX_DAMPING = 1e3         # beyond it the Jacobian is taken by differences again (or, fresh, the search ends)
+RIDGE = 1e-8              # weight of |unknowns - start|^2, relative to the mean diagonal of J^T J
 
 
 def refine_last_layer(trainer, simulations: int) -> dict | None:
@@ -100,9 +101,13 @@ class _Problem:
 def _levenberg_marquardt(problem: _Problem, theta: np.ndarray, residual: np.ndarray, budget: int):
     """(unknowns, their loss, why it ended). The Jacobian by forward differences, then corrected by
     Broyden's rank-one update after every trial (one simulation each instead of n + 1); taken by
-    differences again when a step the updated one proposes fails at a large damping."""
-    cost, damping = _cost(residual), DAMPING
-    n = theta.size
+    differences again when a step the updated one proposes fails at a large damping. The objective
+    adds a ridge on the move from the start (RIDGE): hidden units with nearly the same output along
+    the data leave directions the loss hardly sees, and steps along them grow weights of opposite
+    signs that cancel (an ONNX export of such a layer no longer agrees with torch to round-off)."""
+    origin, n = theta.copy(), theta.size
+    ridge, damping = 0.0, DAMPING
+    objective = lambda at, r: _cost(r) + ridge * float((at - origin) @ (at - origin))   # noqa: E731
     jacobian, fresh = None, False
     while problem.simulations < budget:
         if jacobian is None:
@@ -110,23 +115,24 @@ def _levenberg_marquardt(problem: _Problem, theta: np.ndarray, residual: np.ndar
                 break
             jacobian, fresh, damping = _jacobian(problem, theta, residual), True, DAMPING
             if not np.all(np.isfinite(jacobian)):
-                return theta, cost, "a perturbed run failed"
-        curvature = jacobian.T @ jacobian
-        diagonal = np.diag(np.diag(curvature)) + 1e-12 * np.trace(curvature) / n * np.eye(n)
-        step = np.linalg.solve(curvature + damping * diagonal, -(jacobian.T @ residual))
+                return theta, _cost(residual), "a perturbed run failed"
+            ridge = ridge or RIDGE * float(np.sum(jacobian ** 2)) / n
+        curvature = jacobian.T @ jacobian + ridge * np.eye(n)
+        gradient = jacobian.T @ residual + ridge * (theta - origin)
+        step = np.linalg.solve(curvature + damping * np.diag(np.diag(curvature)), -gradient)
         trial = problem.residual(theta + step)
         if np.all(np.isfinite(trial)) and step @ step > 0:
             jacobian = jacobian + np.outer(trial - residual - jacobian @ step, step) / (step @ step)
-        if _cost(trial) < cost:
-            theta, residual, cost, fresh = theta + step, trial, _cost(trial), False
+        if objective(theta + step, trial) < objective(theta, residual):
+            theta, residual, fresh = theta + step, trial, False
             damping /= DAMPING_FACTOR
             continue
         damping *= DAMPING_FACTOR
         if damping > MAX_DAMPING:
             if fresh:           # the differences' own Jacobian finds no lower loss
-                return theta, cost, "no lower training loss found"
+                return theta, _cost(residual), "no lower training loss found"
             jacobian = None
-    return theta, cost, "the budget is spent"
+    return theta, _cost(residual), "the budget is spent"
 
 
 def _jacobian(problem: _Problem, theta: np.ndarray, residual: np.ndarray) -> np.ndarray:
