@@ -72,8 +72,8 @@ INTEGRAL_WINDOW = 0.5
 # After the training through the solver of a run trained as one element: Levenberg-Marquardt on the
 # ANN's last layer (neural/last_layer.py), this many engine simulations without gradient per loss
 # evaluation of the budget (on the DC drive a loss evaluation costs about 18 of them: 8.1 s against
-# 0.45 s). On the Coulomb friction, budget 5, the training loss 16.0 after 100 simulations: 10.3
-# (docs/MEASUREMENTS.md, "The last layer refined through the simulation").
+# 0.45 s). On the Coulomb friction, budget 5, 100 simulations took the training loss from 16.0 to
+# 10.3 (docs/MEASUREMENTS.md, "The last layer refined through the simulation").
 LAST_LAYER_SIMULATIONS_PER_EVALUATION = 20
 # Seconds of the training data on which outputs equal to the corrected derivative are detected.
 ALIAS_SPAN = 60.0

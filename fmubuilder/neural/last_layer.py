@@ -3,8 +3,8 @@
 A few loss evaluations of L-BFGS leave the effect's level off by a fraction of a percent, and the
 signals that integrate it (an energy, a temperature) turn that into tens of times their noise. The
 correction is linear in the last layer's weights and bias, and the simulated signals nearly so: a
-small least-squares problem (17 unknowns per channel of 16 hidden units), which Gauss-Newton solves in a few
-steps where a gradient method crawls.
+small least-squares problem (17 unknowns per channel of 16 hidden units), which Gauss-Newton solves
+in a few steps where a gradient method crawls.
 
     unknowns   -> the last Linear layer's free entries (the blocks of its sub-networks) and biases
     residuals  -> (the hybrid's signals seen through the sensor lag - measured) / sqrt(N scale count),

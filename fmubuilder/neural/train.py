@@ -71,9 +71,9 @@ class TrainSettings:
     ccpt_window: float = 1.0          # seconds of data per local derivative fit
     warm_start: bool = False          # fit the ANN to the collocation estimate (L-BFGS) before training
     warm_start_iterations: int = 300  # L-BFGS iterations of the warm start
-    last_layer_simulations: int = 0   # after the training: simulations of the last layer's refinement (last_layer.py)
     warm_start_target: str = "pointwise"  # "pointwise": local slopes; "integral": window increments (warm_start.py)
     integral_window: float = 0.5      # seconds per window of the integral target
+    last_layer_simulations: int = 0   # after the training: simulations of the last layer's refinement (last_layer.py)
     time_budget: float | None = None  # seconds for the whole training call
     seed: int = 0
     loss_signals: list[str] | None = None  # default: every measured signal
