@@ -41,14 +41,14 @@ def refine_last_layer(trainer, simulations: int) -> dict | None:
     module docstring); the parameters are left at the lowest loss found. Returns what it did, or
     None when there is no layer to refine or no budget for one step."""
     topology = trainer.model.topology
-    free = topology.last_layer_free() if topology.has_ann else None
-    layer = topology.ann[-1] if free is not None else None
-    if layer is None or simulations < int(free.sum()) + layer.bias.numel() + 2:
+    if not topology.has_ann:
         return None
-    problem = _Problem(trainer, layer, free)
+    problem = _Problem(trainer, topology.ann[-1], topology.last_layer_free())
+    start = problem.get()
+    if simulations < start.size + 2:       # the start, a column per unknown, one trial
+        return None
     with progress(simulations, "refining the ANN's last layer", "simulation", show=trainer.settings.progress) as bar:
         problem.bar = bar
-        start = problem.get()
         residual = problem.residual(start)
         before = _cost(residual)
         if not math.isfinite(before):
