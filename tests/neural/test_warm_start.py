@@ -92,3 +92,35 @@ def _ratios(model, data, split):
     hybrid = data_errors(held_out, simulate_over(model, data, 0.002))
     plain = data_errors(held_out, simulate_over(model, data, 0.002, plain=True))
     return [hybrid[name]["mse"] / plain[name]["mse"] for name in data.signals]
+
+
+@pytest.fixture(scope="module")
+def coulomb_data():
+    """25 s of the drive with an undeclared Coulomb friction (a sign over 1 rad/s): start-up, load
+    steps, a reversal through standstill, a stop; speed and current measured with noise."""
+    truth = simulate(example_fmu("dc_drive_truth_coulomb"), stop_time=25.0, solver="rk4", step_size=0.0005,
+                     output_interval=0.01, variables=["speed", "current"])
+    rng = np.random.default_rng(1)
+    signals = {"speed": truth["speed"] + 0.1 * rng.standard_normal(truth.time.size),
+               "current": truth["current"] + 0.02 * rng.standard_normal(truth.time.size)}
+    return MeasuredData(truth.time, signals, source="dc_drive coulomb")
+
+
+def test_the_warm_start_keeps_the_weight_decay_whose_fit_simulates_best(dc_drive_fmu, coulomb_data, monkeypatch):
+    """Each decay's fit is simulated; the kept one has the lowest training loss, whichever order they
+    were fitted in, and the training's first epoch measures that loss at the parameters it keeps.
+    The sign's step is steep against the speed's range: the weak decay fits it, the strong one
+    rounds it off and simulates worse."""
+    from fmubuilder.neural import warm_start as module
+    kept = {}
+    for order in (module.WEIGHT_DECAYS, module.WEIGHT_DECAYS[::-1]):
+        monkeypatch.setattr(module, "WEIGHT_DECAYS", order)
+        loss, result = first_loss(dc_drive_fmu, coulomb_data, warm_start=True)
+        result.model.close()
+        report = result.metrics["warm_start"]
+        losses = {fit["decay"]: fit["loss"] for fit in report["fits"]}
+        assert report["kept"] and report["loss_after"] == min(losses.values())
+        assert loss == pytest.approx(report["loss_after"], rel=1e-9)
+        kept[order] = report["weight_decay"], loss
+    assert len(set(kept.values())) == 1
+    assert kept[module.WEIGHT_DECAYS][0] == min(losses) and losses[min(losses)] < 0.8 * losses[max(losses)]
