@@ -224,6 +224,21 @@ class Topology(nn.Module):
         owner = torch.arange(weight.shape[1]) // self.config.hidden[-1]
         return owner[None, :] == torch.arange(weight.shape[0])[:, None]
 
+    def row_channels(self) -> list[torch.Tensor] | None:
+        """Per parameter of `ann` (in parameters() order) the channel each row (dim 0) belongs to,
+        with per-channel sub-networks (see block_diagonal: no weight joins two of them); None for
+        one network over all inputs."""
+        if not self.config.input_blocks():
+            return None
+        widths = iter(self.config.hidden)
+        owners = []
+        for layer in (m for m in self.ann if isinstance(m, nn.Linear)):
+            rows = layer.weight.shape[0]
+            width = next(widths, None)
+            owner = torch.arange(rows) // width if width is not None else torch.arange(rows)
+            owners += [owner, owner]        # weight, bias
+        return owners
+
     def ann_inputs(self, x: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
         """The raw ANN inputs [B, n_in] from states x [B, n] and FMU results out [B, n + k]."""
         if self._inputs_from_states:

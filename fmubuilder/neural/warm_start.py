@@ -104,7 +104,7 @@ def fit_full_batch(topology, x: torch.Tensor, target: torch.Tensor, iterations: 
     every x and its window means are what meets the target, one row per window; the range bound
     stays on the pointwise correction."""
     average = average or (lambda values: values)
-    scale = target.var(dim=0, unbiased=False).clamp_min(1e-12) if len(target) > 1 else torch.ones(target.shape[1])
+    scale = _target_scale(target)
     parameters = list(topology.ann.parameters())
     penalty = range_penalty(x, target, scale) if bounded else (lambda _: 0.0)
     optimizer = torch.optim.LBFGS(parameters, lr=1.0, max_iter=iterations, max_eval=int(iterations * 1.25) + 1,
@@ -130,7 +130,20 @@ def fit_full_batch(topology, x: torch.Tensor, target: torch.Tensor, iterations: 
         loss = float(objective())
         if not math.isfinite(loss) or loss > start_loss:     # a diverged line search: keep the start
             _restore(parameters, best)
-        return float((((average(topology.correction(x)) - target) ** 2) / scale).mean())
+        return fit_error(topology, x, target, average)
+
+
+def fit_error(topology, x: torch.Tensor, target: torch.Tensor, average=None) -> float:
+    """Mean squared error of the correction (window means with `average`) against the target,
+    relative to the target's variance per channel."""
+    with torch.no_grad():
+        correction = topology.correction(x)
+        correction = average(correction) if average is not None else correction
+        return float((((correction - target) ** 2) / _target_scale(target)).mean())
+
+
+def _target_scale(target: torch.Tensor) -> torch.Tensor:
+    return target.var(dim=0, unbiased=False).clamp_min(1e-12) if len(target) > 1 else torch.ones(target.shape[1])
 
 
 def range_penalty(x: torch.Tensor, target: torch.Tensor, scale: torch.Tensor, points: int = RANGE_POINTS):
@@ -155,40 +168,67 @@ def warm_start(trainer) -> dict:
     each of WEIGHT_DECAYS, and keep the fit with the lowest training loss (simulated over all
     elements, each from the start the hybrid reaches) if it is lower than without a fit: where the
     forced controllers react to sensor noise and lag more than to the effect, the estimate is
-    wrong. Returns what it did: samples (windows with the integral target), the target, relative
-    fit error (nan without a measured channel state), the loss before and after, the decay
-    kept, whether a fit was kept."""
+    wrong. With a sub-network per channel, each channel then tries the other decays' fits of its
+    own block, one channel at a time (two effects may ask for different decays). Returns what it
+    did: samples (windows with the integral target), the target, relative fit error (nan without a
+    measured channel state), the loss before and after, the decay kept per channel, every trial,
+    whether a fit was kept."""
     integral = trainer.settings.warm_start_target == "integral"
     samples = integral_targets(trainer) if integral else collocation_targets(trainer)
     if samples is None:
         return {"samples": 0, "fit_error": math.nan, "kept": False}
     topology = trainer.model.topology
     parameters = list(topology.ann.parameters())
+    channels = len(topology.config.channels)
     loss_before = _loss_from_own_starts(trainer)
     x, target, average = samples if integral else (*samples, None)
     scale_output_to_effect(topology, target)
     unfitted = _copy(parameters)
-    best = {"loss": loss_before, "parameters": unfitted, "decay": None, "fit_error": math.nan}
-    fits = []
+    fitted, trials = {}, []
+    best = {"loss": loss_before, "decays": None, "fit_error": math.nan}
+
+    def simulate(decays: list[float], fit_error: float) -> None:
+        nonlocal best
+        trials.append({"decays": decays, "fit_error": fit_error, "loss": _loss_from_own_starts(trainer)})
+        if trials[-1]["loss"] < best["loss"]:
+            best = trials[-1]
+
     for decay in WEIGHT_DECAYS:
         _restore(parameters, unfitted)
         error = fit_full_batch(topology, x, target, trainer.settings.warm_start_iterations, weight_decay=decay,
                                average=average)
-        fits.append({"decay": decay, "fit_error": error, "loss": _loss_from_own_starts(trainer)})
-        if fits[-1]["loss"] < best["loss"]:
-            best = {**fits[-1], "parameters": _copy(parameters)}
-    if fits[-1]["decay"] != best["decay"]:
-        _restore(parameters, best["parameters"])
+        fitted[decay] = _copy(parameters)
+        simulate([decay] * channels, error)
+    owners = topology.row_channels()
+    if owners is not None and best["decays"] is not None:
+        for channel in range(channels):
+            for decay in WEIGHT_DECAYS:
+                if decay != best["decays"][channel]:
+                    decays = [*best["decays"][:channel], decay, *best["decays"][channel + 1:]]
+                    _restore(parameters, _spliced(fitted, decays, owners))
+                    simulate(decays, fit_error(topology, x, target, average))
+    if trials[-1] is not best:
+        _restore(parameters, unfitted if best["decays"] is None else _spliced(fitted, best["decays"], owners))
         _loss_from_own_starts(trainer)      # the element starts back at the kept parameters
     # simulations without gradient: the forced run (and the plain run its unmeasured states follow),
-    # a capture and a loss before and per fit, and one more each when the last fit is not the one kept
+    # a capture and a loss before and per trial, and one more each when the last trial is not the one kept
     unmeasured = bool(unmeasured_integrators(trainer.model.info, trainer.data.signals))
-    kept = best["decay"] is not None
+    kept = best["decays"] is not None
     return {"samples": int(target.shape[0]), "target": trainer.settings.warm_start_target,
-            "fit_error": best["fit_error"] if kept else fits[-1]["fit_error"], "loss_before": loss_before,
-            "loss_after": best["loss"], "kept": kept, "weight_decay": best["decay"],
-            "fits": fits,
-            "simulations": 3 + 2 * len(fits) + 2 * (fits[-1]["decay"] != best["decay"]) + unmeasured}
+            "fit_error": best["fit_error"] if kept else trials[-1]["fit_error"], "loss_before": loss_before,
+            "loss_after": best["loss"], "kept": kept, "weight_decay": best["decays"], "trials": trials,
+            "simulations": 3 + 2 * len(trials) + 2 * (trials[-1] is not best) + unmeasured}
+
+
+def _spliced(fitted: dict, decays: list[float], owners: list[torch.Tensor] | None) -> list[torch.Tensor]:
+    """The ANN's parameters with channel c's rows from the fit with decays[c] (one decay: that fit)."""
+    if owners is None or len(set(decays)) == 1:
+        return fitted[decays[0]]
+    spliced = []
+    for i, owner in enumerate(owners):
+        rows = [fitted[decays[int(c)]][i][r] for r, c in enumerate(owner)]
+        spliced.append(torch.stack(rows))
+    return spliced
 
 
 def scale_output_to_effect(topology, target: torch.Tensor) -> None:

@@ -118,9 +118,36 @@ def test_the_warm_start_keeps_the_weight_decay_whose_fit_simulates_best(dc_drive
         loss, result = first_loss(dc_drive_fmu, coulomb_data, warm_start=True)
         result.model.close()
         report = result.metrics["warm_start"]
-        losses = {fit["decay"]: fit["loss"] for fit in report["fits"]}
+        losses = {trial["decays"][0]: trial["loss"] for trial in report["trials"]}
         assert report["kept"] and report["loss_after"] == min(losses.values())
         assert loss == pytest.approx(report["loss_after"], rel=1e-9)
         kept[order] = report["weight_decay"], loss
-    assert len(set(kept.values())) == 1
-    assert kept[module.WEIGHT_DECAYS][0] == min(losses) and losses[min(losses)] < 0.8 * losses[max(losses)]
+        assert len(report["trials"]) == len(order)       # one channel: no splicing
+    assert len({(tuple(decays), loss) for decays, loss in kept.values()}) == 1
+    assert kept[module.WEIGHT_DECAYS][0] == [min(losses)] and losses[min(losses)] < 0.8 * losses[max(losses)]
+
+
+def test_a_spliced_warm_start_takes_each_channel_s_block_from_its_own_fit(dc_drive_fmu):
+    """With a sub-network per channel, the parameters spliced from two fits give each channel the
+    correction of the fit it was taken from, exactly."""
+    from fmubuilder.fmi import read_model_info
+    from fmubuilder.neural.topology import Topology, TopologyConfig
+    from fmubuilder.neural.warm_start import _spliced
+    config = TopologyConfig(channels=["der(speed)", "der(energy)"], inputs=["speed", "current"], hidden=[4, 3],
+                            kind="residual", channel_inputs=[["speed"], ["current", "speed"]])
+    topology = Topology(config, read_model_info(dc_drive_fmu), [])
+    x = torch.randn(50, 2, dtype=torch.float64)
+    fits, corrections = {}, {}
+    for decay in (1e-4, 1e-6):
+        with torch.no_grad():
+            for p in topology.ann.parameters():
+                p.copy_(torch.randn_like(p) * (p != 0))      # keep the blocks' zeros
+            corrections[decay] = topology.correction(x)
+        fits[decay] = [p.detach().clone() for p in topology.ann.parameters()]
+    spliced = _spliced(fits, [1e-6, 1e-4], topology.row_channels())
+    with torch.no_grad():
+        for p, value in zip(topology.ann.parameters(), spliced):
+            p.copy_(value)
+        mixed = topology.correction(x)
+    torch.testing.assert_close(mixed[:, 0], corrections[1e-6][:, 0], rtol=0, atol=0)
+    torch.testing.assert_close(mixed[:, 1], corrections[1e-4][:, 1], rtol=0, atol=0)
