@@ -34,8 +34,9 @@ RANGE_QUANTILE = 0.001
 WEIGHT_DECAY = 1e-4
 # The decays the warm start fits with, each from the same start; the simulated training loss picks
 # one. The strong one keeps a fit to a noisy estimate from turning on the noise; the weak one lets a
-# steep effect be steep (a Coulomb friction's sign over 1 rad/s of the DC drive's +-150: its
-# warm-started hybrid's training loss 22.8 with the strong decay, 2.87 with the weak).
+# steep effect be steep (a Coulomb friction's sign over 1 rad/s of the DC drive's speeds from -120 to
+# 200 rad/s: its warm-started hybrid's training loss 22.8 with the strong decay, 2.87 with the weak;
+# docs/MEASUREMENTS.md, "The warm start's weight decay chosen by the simulation").
 WEIGHT_DECAYS = (WEIGHT_DECAY, 1e-6)
 
 
@@ -187,9 +188,9 @@ def warm_start(trainer) -> dict:
     fitted, trials = {}, []
     best = {"loss": loss_before, "decays": None, "fit_error": math.nan}
 
-    def simulate(decays: list[float], fit_error: float) -> None:
+    def simulate(decays: list[float], error: float) -> None:
         nonlocal best
-        trials.append({"decays": decays, "fit_error": fit_error, "loss": _loss_from_own_starts(trainer)})
+        trials.append({"decays": decays, "fit_error": error, "loss": _loss_from_own_starts(trainer)})
         if trials[-1]["loss"] < best["loss"]:
             best = trials[-1]
 

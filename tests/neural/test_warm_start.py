@@ -13,15 +13,20 @@ from fmubuilder.simulation import simulate
 WINDAGE_PER_INERTIA = 3e-6 / 0.01
 
 
+def measured(truth_variant: str, stop_time: float, speed_noise: float, current_noise: float, seed: int):
+    """The speed-controlled drive's truth variant simulated, speed and current measured with noise."""
+    truth = simulate(example_fmu(f"dc_drive_truth_{truth_variant}"), stop_time=stop_time, solver="rk4",
+                     step_size=0.0005, output_interval=0.01, variables=["speed", "current"])
+    rng = np.random.default_rng(seed)
+    signals = {"speed": truth["speed"] + speed_noise * rng.standard_normal(truth.time.size),
+               "current": truth["current"] + current_noise * rng.standard_normal(truth.time.size)}
+    return MeasuredData(truth.time, signals, source=f"dc_drive {truth_variant}")
+
+
 @pytest.fixture(scope="module")
 def windage_data():
-    """10 s of the speed-controlled drive with undeclared windage; speed and current measured with noise."""
-    truth = simulate(example_fmu("dc_drive_truth_windage"), stop_time=10.0, solver="rk4", step_size=0.0005,
-                     output_interval=0.01, variables=["speed", "current"])
-    rng = np.random.default_rng(0)
-    signals = {"speed": truth["speed"] + 0.5 * rng.standard_normal(truth.time.size),
-               "current": truth["current"] + 0.05 * rng.standard_normal(truth.time.size)}
-    return MeasuredData(truth.time, signals, source="dc_drive windage")
+    """10 s of the drive with undeclared windage."""
+    return measured("windage", 10.0, 0.5, 0.05, seed=0)
 
 
 def first_loss(fmu, data, **settings):
@@ -97,13 +102,8 @@ def _ratios(model, data, split):
 @pytest.fixture(scope="module")
 def coulomb_data():
     """25 s of the drive with an undeclared Coulomb friction (a sign over 1 rad/s): start-up, load
-    steps, a reversal through standstill, a stop; speed and current measured with noise."""
-    truth = simulate(example_fmu("dc_drive_truth_coulomb"), stop_time=25.0, solver="rk4", step_size=0.0005,
-                     output_interval=0.01, variables=["speed", "current"])
-    rng = np.random.default_rng(1)
-    signals = {"speed": truth["speed"] + 0.1 * rng.standard_normal(truth.time.size),
-               "current": truth["current"] + 0.02 * rng.standard_normal(truth.time.size)}
-    return MeasuredData(truth.time, signals, source="dc_drive coulomb")
+    steps, a reversal through standstill, a stop."""
+    return measured("coulomb", 25.0, 0.1, 0.02, seed=1)
 
 
 def test_the_warm_start_keeps_the_weight_decay_whose_fit_simulates_best(dc_drive_fmu, coulomb_data, monkeypatch):
