@@ -134,16 +134,18 @@ def test_a_spliced_warm_start_takes_each_channel_s_block_from_its_own_fit(dc_dri
     from fmubuilder.neural.topology import Topology, TopologyConfig
     from fmubuilder.neural.warm_start import _spliced
     config = TopologyConfig(channels=["der(speed)", "der(energy)"], inputs=["speed", "current"], hidden=[4, 3],
-                            kind="residual", channel_inputs=[["speed"], ["current", "speed"]])
-    topology = Topology(config, read_model_info(dc_drive_fmu), [])
+                            kind="gates", channel_inputs=[["speed"], ["current", "speed"]])
+    topology = Topology(config, read_model_info(dc_drive_fmu), [])     # gates: no layer starts at zero
+    blocks = [p != 0 for p in topology.ann.parameters()]
     x = torch.randn(50, 2, dtype=torch.float64)
     fits, corrections = {}, {}
     for decay in (1e-4, 1e-6):
         with torch.no_grad():
-            for p in topology.ann.parameters():
-                p.copy_(torch.randn_like(p) * (p != 0))      # keep the blocks' zeros
+            for p, block in zip(topology.ann.parameters(), blocks):
+                p.copy_(torch.randn_like(p) * block)      # keep the zeros between the channels' blocks
             corrections[decay] = topology.correction(x)
         fits[decay] = [p.detach().clone() for p in topology.ann.parameters()]
+    assert (corrections[1e-4] - corrections[1e-6]).abs().min() > 0      # the fits differ in both channels
     spliced = _spliced(fits, [1e-6, 1e-4], topology.row_channels())
     with torch.no_grad():
         for p, value in zip(topology.ann.parameters(), spliced):
