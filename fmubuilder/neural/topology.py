@@ -230,14 +230,7 @@ class Topology(nn.Module):
         one network over all inputs."""
         if not self.config.input_blocks():
             return None
-        widths = iter(self.config.hidden)
-        owners = []
-        for layer in (m for m in self.ann if isinstance(m, nn.Linear)):
-            rows = layer.weight.shape[0]
-            width = next(widths, None)
-            owner = torch.arange(rows) // width if width is not None else torch.arange(rows)
-            owners += [owner, owner]        # weight, bias
-        return owners
+        return [owner for _, owner in _row_owners(self.ann, self.config.hidden) for _weight_and_bias in range(2)]
 
     def ann_inputs(self, x: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
         """The raw ANN inputs [B, n_in] from states x [B, n] and FMU results out [B, n + k]."""
@@ -342,11 +335,8 @@ def block_diagonal(ann: nn.Sequential, blocks: list[list[int]], hidden: list[int
     nn.Linear draws them, for the block's own fan-in."""
     n_out = len(blocks)
     owner_in = None          # per column of the next Linear: the output whose block it belongs to
-    widths = iter(hidden)
-    for layer in (m for m in ann if isinstance(m, nn.Linear)):
+    for layer, owner_out in _row_owners(ann, hidden):
         rows, cols = layer.weight.shape
-        width = next(widths, None)
-        owner_out = torch.arange(rows) // width if width is not None else torch.arange(rows)
         if owner_in is None:
             mask = torch.zeros(rows, cols, dtype=DTYPE)
             for j, columns in enumerate(blocks):
@@ -360,6 +350,16 @@ def block_diagonal(ann: nn.Sequential, blocks: list[list[int]], hidden: list[int
         layer.weight.register_hook(_masked_gradient(mask))
         owner_in = owner_out
     assert owner_in is not None and len(owner_in) == n_out
+
+
+def _row_owners(ann: nn.Sequential, hidden: list[int]):
+    """(Linear layer, the output each of its rows belongs to) for an ANN of one sub-network per
+    output with hidden[k] units each in hidden layer k (block_diagonal)."""
+    widths = iter(hidden)
+    for layer in (m for m in ann if isinstance(m, nn.Linear)):
+        rows = layer.weight.shape[0]
+        width = next(widths, None)
+        yield layer, torch.arange(rows) // width if width is not None else torch.arange(rows)
 
 
 def _masked_gradient(mask: torch.Tensor):
