@@ -44,6 +44,31 @@ def test_onnx_file_reproduces_torch_network(tmp_path):
     np.testing.assert_allclose(np.array(actual), np.array(expected), rtol=1e-13, atol=1e-13)
 
 
+def test_an_output_near_zero_among_large_ones_is_round_off_not_a_mismatch(tmp_path):
+    """Outputs up to about 1e5 (a network whose scales carry a power or an energy): one that comes
+    out near zero is a difference of terms as large as the others, so onnxruntime's and torch's
+    orders of summation differ there by the round-off of 1e5, not of 1. The check is relative to
+    the outputs' range; onnxruntime is compared here independently of it."""
+    torch.manual_seed(0)
+    network = torch.nn.Sequential(torch.nn.Linear(1, 16), torch.nn.Tanh(), torch.nn.Linear(16, 1)).double()
+    checked = np.random.default_rng(0).standard_normal((256, 1))      # the samples freeze() checks
+    with torch.no_grad():
+        network[2].weight.mul_(1e5)
+        nearest_zero = torch.from_numpy(checked[np.argmin(np.abs(checked)), None])
+        network[2].bias.sub_(network(nearest_zero).item())              # that sample's output: ~0
+
+    frozen = freeze(network, 1, tmp_path / "net.onnx")
+
+    session = onnxruntime.InferenceSession(str(frozen.path), providers=["CPUExecutionProvider"])
+    with torch.no_grad():
+        expected = network(torch.from_numpy(checked)).numpy()
+    actual = np.array([session.run(None, {"input": x[None]})[0][0] for x in checked])
+    largest = np.max(np.abs(expected))
+    assert largest > 1e4
+    np.testing.assert_allclose(actual, expected, rtol=0, atol=1e-13 * largest)
+    assert frozen.max_abs_diff <= 1e-13 * largest
+
+
 def test_module_is_left_untouched(tmp_path):
     network = small_network()
     before = {name: value.clone() for name, value in network.state_dict().items()}
