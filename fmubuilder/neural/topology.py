@@ -230,7 +230,10 @@ class Topology(nn.Module):
         one network over all inputs."""
         if not self.config.input_blocks():
             return None
-        return [owner for _, owner in _row_owners(self.ann, self.config.hidden) for _weight_and_bias in range(2)]
+        owners = []
+        for _, owner in _row_owners(self.ann, self.config.hidden):
+            owners += [owner, owner]        # weight, bias
+        return owners
 
     def ann_inputs(self, x: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
         """The raw ANN inputs [B, n_in] from states x [B, n] and FMU results out [B, n + k]."""
