@@ -122,3 +122,20 @@ def test_an_element_start_keeps_the_runs_state_where_the_data_agree():
     line = np.polyfit(time[first:first + START_SAMPLES] - at, values[first:first + START_SAMPLES], 1)
     assert moved == pytest.approx(line[1], rel=1e-12)
     assert abs(moved - np.sin(0.3 * at)) < 0.03
+
+
+@pytest.mark.parametrize("offset", [1.5, 10.0])
+def test_samples_that_happen_to_lie_on_a_line_do_not_outweigh_the_noise_the_data_state(offset):
+    """A handful of noisy samples can lie close to a line by chance, and their residuals alone then
+    call a start a noise deviation or two away wrong: the run starts at a noisy sample's offset (and
+    a training from it learns to make that offset up). The data's spread columns say how noisy a
+    sample is; a start that far from the line is kept, one ten deviations away is not."""
+    time = np.arange(0.0, 5.0, 0.1)
+    runs, deviation = 2, 0.7                         # the noise of the measured value (mean over the runs)
+    values = offset * deviation + 0.4 * time          # on a line: the residuals are zero
+    spread = {"x": np.full(time.size, deviation * np.sqrt(runs))}
+    line = np.polyfit(time[:START_SAMPLES], values[:START_SAMPLES], 1)[1]
+    without_spread = measured_initial_states(_stand_in_model(0.0), MeasuredData(time, {"x": values}))["x"]
+    assert without_spread == pytest.approx(line, rel=1e-12)          # nothing says the samples are noisy
+    start = measured_initial_states(_stand_in_model(0.0), MeasuredData(time, {"x": values}, std=spread, runs=runs))["x"]
+    assert start == (0.0 if offset < 3 else pytest.approx(line, rel=1e-12))
