@@ -59,6 +59,30 @@ def test_warm_start_lowers_the_initial_loss_and_finds_the_windage(dc_drive_fmu, 
         result.model.close()
 
 
+def test_an_estimate_blind_to_the_effect_is_replaced_by_a_fit_through_the_simulation(dc_drive_fmu, windage_data,
+                                                                                     monkeypatch):
+    """Where a controller hides the effect from the measured derivative, the collocation estimate is
+    noise (here: replaced by noise of the estimate's size); its fits hardly lower the loss, and the
+    last layer fitted through the simulation takes it to the loss of the truth's own windage term."""
+    from fmubuilder.neural import warm_start as module
+    estimate = module.collocation_targets
+
+    def blind(trainer):
+        x, target = estimate(trainer)
+        noise = torch.randn(target.shape, generator=torch.Generator().manual_seed(0), dtype=target.dtype)
+        return x, target.std() * noise
+    monkeypatch.setattr(module, "collocation_targets", blind)
+    warm, result = first_loss(dc_drive_fmu, windage_data, warm_start=True)
+    result.model.close()
+    report = result.metrics["warm_start"]
+    assert min(trial["loss"] for trial in report["trials"]) > 0.9
+    assert report["through_simulation"]["kept"] and warm == pytest.approx(report["loss_after"], rel=1e-9)
+    exact = [{"variable": "speed", "basis": "w*|w|", "center": 0.0, "coefficient": -WINDAGE_PER_INERTIA}]
+    truth_term, with_term = first_loss(dc_drive_fmu, windage_data, base_terms=exact)
+    with_term.model.close()
+    assert warm < 1.05 * truth_term < 0.6
+
+
 @pytest.mark.parametrize("coefficient", [1.0, 0.5])
 def test_an_ann_started_from_a_term_never_ends_worse_on_validation(dc_drive_fmu, windage_data, coefficient):
     """The ANN adds to a fitted windage term (exact, or half of it) and trains with a step size that
