@@ -88,8 +88,11 @@ def summary(result) -> str:
                      f"{selection.get('plain_score', float('nan')):.3g}, an ANN must beat the simpler by "
                      f"x{selection.get('margin', 1.0):.3g}): {scores}")
     if report["models"]:
-        lines.append("  test MSE relative to the plain FMU (touched once, after the choice): " +
+        lines.append("  test MSE relative to the plain FMU, mean over the signals (touched once, after the choice): " +
                      ", ".join(f"{m['name']} {m['test_relative_mse']:.3g}" for m in report["models"]))
+        lines.append(f"  test MSE / noise variance, geometric mean over the signals (the validation score's measure; "
+                     f"plain FMU {report.get('test_plain_score', float('nan')):.3g}): " +
+                     ", ".join(f"{m['name']} {m.get('test_score', float('nan')):.3g}" for m in report["models"]))
     if result.hybrid_fmu:
         head = f"wrote {result.hybrid_fmu}"
     elif not report["models"] and not report["diagnosis"]["significant"]:

@@ -19,6 +19,7 @@ from ..diagnose.plots import RESIDUAL, cumulative_signals, units_of
 from ..errors import FmuBuilderError
 from ..files import write_atomically
 from ..fmi import read_model_info
+from .choice import floors_of, validation_score
 from .evaluate import relative_mse
 
 ROLES = ("train", "validation", "test")
@@ -37,6 +38,7 @@ def write_report(folder: Path, *, model_fmu, diagnosis, plain, candidates, chose
     cumulative = cumulative_signals(first.data.names, plain.runs[id(first.data)].predicted,
                                     {s.name for s in info.states})
     after = chosen.scores if chosen else plain
+    test_floors = _test_floors(plain, roles)
     report = {
         "summary": "",
         "diagnosis": {
@@ -63,8 +65,10 @@ def write_report(folder: Path, *, model_fmu, diagnosis, plain, candidates, chose
                     **{f"{role}_relative_mse": relative_mse(plain.errors[role], c.scores.errors[role])
                        for role in ROLES},
                     **{f"{role}_mse_factor": _factors(plain.errors[role], c.scores.errors[role]) for role in ROLES},
+                    "test_score": validation_score(c.scores.errors["test"], test_floors),
                     "chosen": c is chosen, **c.details}
                    for c in candidates],
+        "test_plain_score": validation_score(plain.errors["test"], test_floors),
         "test_note": TEST_NOTE,
         "roundtrip": {key: roundtrip[key] if roundtrip else None
                       for key in ("max_rel_error", "passed", "not_compared", "span")},
@@ -119,6 +123,13 @@ def _gain(ratio: float) -> str:
     if ratio <= 0:
         return "exact"
     return f"{1 / ratio:.3g}× lower" if ratio < 1 else f"{ratio:.3g}× higher"
+
+
+def _test_floors(plain, roles) -> dict:
+    """The validation score's floors on the test data (its noise variance), so that the test
+    numbers can be read on the scale the choice was made on."""
+    noise = {name: roles.test.data.noise_variance(name) for name in plain.errors["test"]}
+    return floors_of(plain.errors["test"], noise)
 
 
 def summary_line(report: dict) -> str:
@@ -195,13 +206,15 @@ def _candidates_section(report: dict) -> list[str]:
     lines = ["## Candidates", "",
              "Train, validation, test: MSE after / MSE before, mean over the signals (below 1: better than the "
              "declared FMU). Validation score (chooses): validation MSE / noise variance, geometric mean over the signals "
-             f"(the declared FMU: {selection.get('plain_score', float('nan')):.3g}).", "",
-             "| candidate | what it adds | train | validation | validation score (chooses) | test (touched once) | chosen | note |",
-             "|:---|:---|---:|---:|---:|---:|:---|:---|"]
+             f"(the declared FMU: {selection.get('plain_score', float('nan')):.3g}); test score: the same on the test "
+             f"data (the declared FMU: {report.get('test_plain_score', float('nan')):.3g}).", "",
+             "| candidate | what it adds | train | validation | validation score (chooses) | test (touched once) "
+             "| test score | chosen | note |",
+             "|:---|:---|---:|---:|---:|---:|---:|:---|:---|"]
     for m in report["models"]:
         lines.append(f"| {m['name']} | {_cell(m['description'])} | {m['train_relative_mse']:.3g} | "
                      f"{m['validation_relative_mse']:.3g} | {scores.get(m['name'], float('nan')):.3g} | "
-                     f"{m['test_relative_mse']:.3g} | "
+                     f"{m['test_relative_mse']:.3g} | {m.get('test_score', float('nan')):.3g} | "
                      f"{'**yes**' if m['chosen'] else 'no'} | {_candidate_note(m, report.get('training'))} |")
     lines.append(f"\nChosen on the validation data: **{selection['chosen'] or 'none (no candidate improved it)'}** "
                  f"({selection['rule']}). {report['test_note']}")

@@ -98,7 +98,22 @@ def test_the_candidate_table_explains_each_row(published):
     neural = next(line for line in candidates.splitlines() if line.startswith("| neural |"))
     assert "trained with 1 of 1 loss evaluations" in neural
     fitted = next(line for line in candidates.splitlines() if line.startswith("| fitted term |"))
-    assert "speed*\\|speed\\|" in fitted and fitted.count(" | ") == 7   # the term's bars do not split the row
+    assert "speed*\\|speed\\|" in fitted and fitted.count(" | ") == 8   # the term's bars do not split the row
+
+
+def test_the_test_data_are_scored_on_the_scale_the_choice_was_made_on(published, files):
+    """The test score is the validation score's measure on the test data: the geometric mean over
+    the signals of the test MSE over the noise variance the test data's spread columns give."""
+    report = published.report
+    test = load_data(files["test"], read_model_info(example_fmu("dc_drive")))
+    chosen = next(m for m in report["models"] if m["chosen"])
+    for model, errors in ((chosen, report["errors"]["test"]["after"]), (report, report["errors"]["test"]["before"])):
+        ratios = [errors[name]["mse"] / test.noise_variance(name) for name in test.names]
+        expected = float(np.exp(np.mean(np.log(ratios))))
+        score = model["test_score"] if model is chosen else model["test_plain_score"]
+        assert score == pytest.approx(expected, rel=1e-9)
+    assert chosen["test_score"] < report["test_plain_score"]
+    assert f"{chosen['test_score']:.3g}" in section((published.report_dir / "report.md").read_text(), "Candidates")
 
 
 def test_a_network_that_trained_zero_epochs_says_why():
