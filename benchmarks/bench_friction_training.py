@@ -48,7 +48,7 @@ def main() -> None:
     parser.add_argument("--cases", default="stribeck,coulomb")
     parser.add_argument("--budget", type=int, default=5, help="loss evaluations")
     parser.add_argument("--elements", type=int, default=workflow.MIN_ELEMENTS)
-    parser.add_argument("--loss", choices=["noise", "relative", "log"], default=workflow.ONE_ELEMENT_LOSS_SCALE)
+    parser.add_argument("--loss", choices=["noise", "relative", "log"], default=workflow.LOSS_SCALE)
     parser.add_argument("--validation", action="store_true", help="end at the best validation score")
     args = parser.parse_args()
     if args.loss == "log":

@@ -115,7 +115,7 @@ TARGETS, INPUTS = ["der(speed)"], ["speed"]
 EXTRA_DRAG_LINEAR, EXTRA_DRAG_QUADRATIC = 1.5, 0.06
 
 
-def training(evaluations: int, optimizer: str) -> None:
+def training(evaluations: int, optimizer: str, loss_scale: str) -> None:
     from fmubuilder.data import load_data, read_sidecar
     from fmubuilder.examples_zoo import cached_data, vldm_data_sets
     from fmubuilder.hybridize import workflow
@@ -136,10 +136,12 @@ def training(evaluations: int, optimizer: str) -> None:
     span = train.stop - train.start
     settings = dict(element_length=min(workflow.MAX_ELEMENT_LENGTH, span / workflow.MIN_ELEMENTS),
                     loss_signals=list(train.names), warm_start=workflow.WARM_START,
-                    ccpt_window=workflow.COLLOCATION_WINDOW, optimizer=optimizer, solver="rk4", step_size=STEP)
+                    ccpt_window=workflow.COLLOCATION_WINDOW, optimizer=optimizer, solver="rk4", step_size=STEP,
+                    loss_scale=loss_scale)
     print(f"(b) training on {train_csv.name} [{train.start:g}, {train.stop:g}] s, testing on {test_csv.name} "
           f"({generated} data set(s) generated first): ANN on {', '.join(TARGETS)} reading {', '.join(INPUTS)}, "
-          f"loss on {', '.join(train.names)}, {optimizer}, {evaluations} loss evaluations, sensor lag {lag} s")
+          f"loss on {', '.join(train.names)} (scale: {loss_scale}), {optimizer}, {evaluations} loss evaluations, "
+          f"sensor lag {lag} s")
     trainers = []
 
     def keep_trainer(epoch, trainer):
@@ -160,7 +162,8 @@ def training(evaluations: int, optimizer: str) -> None:
     fit_error = fit_true_effect(model, train)
     true = trainer.signal_losses()
     print(f"    the same ANN fitted to the true effect (relative fit error {fit_error:.2g}); the training's loss "
-          f"on its elements, per signal MSE / the plain FMU's, and their mean (the loss):")
+          f"on its elements, per signal MSE / {'the plain FMU' if loss_scale == 'plain' else 'the noise variance'}'s, "
+          f"and their mean (the loss):")
     print("    | signal | trained | true effect | ratio (target <= 3) |\n    |---|---|---|---|")
     for name, value in [*trained.items(), ("loss", None)]:
         a = value if value is not None else sum(trained.values()) / len(trained)
@@ -277,11 +280,15 @@ def cost(repeats: int, vldm_span: float) -> None:
 
 
 def main() -> None:
+    from fmubuilder.hybridize import workflow
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--part", choices=["a", "b", "cost", "all"], default="all")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--evaluations", type=int, default=10, help="the training's budget of loss evaluations")
     parser.add_argument("--optimizer", choices=["lbfgs", "adam"], default="lbfgs")
+    parser.add_argument("--loss-scale", choices=["plain", "noise"], default=workflow.LOSS_SCALE,
+                        help="each signal's MSE in the loss divided by the plain FMU's or by its noise variance "
+                             "(default: hybridize's)")
     parser.add_argument("--vldm-span", type=float, default=200.0,
                         help="seconds of the VLDM's training data in the cost part (elements of 100 s)")
     args = parser.parse_args()
@@ -289,7 +296,7 @@ def main() -> None:
     if args.part in ("a", "all"):
         forward(args.repeats)
     if args.part in ("b", "all"):
-        training(args.evaluations, args.optimizer)
+        training(args.evaluations, args.optimizer, args.loss_scale)
     if args.part in ("cost", "all"):
         cost(args.repeats, args.vldm_span)
 

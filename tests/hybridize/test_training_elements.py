@@ -28,11 +28,10 @@ def test_a_long_run_keeps_elements_of_at_most_the_maximum_length():
     assert len(starts) == 8 and np.allclose(np.diff(starts), 100.0)
 
 
-def test_a_one_element_run_divides_the_loss_by_the_noise_and_a_long_one_by_the_plain_error():
-    # One element: each signal's MSE over its noise variance (the held-out score's unit); the VLDM's
-    # elements keep the plain FMU's MSE, where the noise scale was not measured.
-    assert _settings_for(47.9)["loss_scale"] == workflow.ONE_ELEMENT_LOSS_SCALE == "noise"
-    assert _settings_for(881.0)["loss_scale"] == "plain"
+def test_one_element_or_several_the_loss_divides_each_signal_by_its_noise():
+    # Each signal's MSE over its noise variance (the held-out score's unit), on one element (the DC
+    # drive) and on the VLDM's elements of 100 s alike.
+    assert _settings_for(47.9)["loss_scale"] == _settings_for(881.0)["loss_scale"] == workflow.LOSS_SCALE == "noise"
 
 
 def test_a_one_element_run_refines_the_last_layer_on_simulations_counted_with_the_budget():
