@@ -72,3 +72,29 @@ def test_a_budget_below_one_step_leaves_the_layer(plant_fmu, truth):
         before = model.topology.ann[-1].weight.detach().clone()
         assert refine_last_layer(trainer, 8) is None        # 6 weights and a bias: 9 simulations for a step (the start, 7 columns, a trial)
         torch.testing.assert_close(model.topology.ann[-1].weight, before, atol=0, rtol=0)
+
+
+def test_the_search_ends_when_converged_where_the_whole_budget_finds_no_lower_loss(plant_fmu, truth, monkeypatch):
+    """On noisy data the best layer leaves the noise: once there, the Gauss-Newton step promises
+    nothing and the search ends, at the loss of the known layer and of the same search with its
+    whole budget."""
+    from fmubuilder.neural import last_layer
+    data, state = truth
+    noise = np.random.default_rng(3).normal(0.0, 0.01, data.time.size)
+    noisy = MeasuredData(data.time, {"w": data.signals["w"] + noise}, {}, data.inputs, "the known hybrid, noisy")
+    budget, default = 60, last_layer.CONVERGED_BELOW
+    results = {}
+    for converged_below in (default, 0.0):
+        monkeypatch.setattr(last_layer, "CONVERGED_BELOW", converged_below)
+        trainer = _trainer(plant_fmu, noisy)
+        with trainer.model as model:
+            model.topology.load_state_dict({k: (v * 0.5 if k.startswith("ann.2.") else v) for k, v in state.items()})
+            results[converged_below] = refine_last_layer(trainer, budget)
+            model.topology.load_state_dict(state)
+            known = float(np.mean(trainer.engine_differences()["w"] ** 2)) / trainer.scale["w"]
+    stopped, whole = results[default], results[0.0]
+    assert stopped["ended"] == "converged" and stopped["simulations"] < budget / 2
+    assert whole["ended"] == "the budget is spent"
+    assert stopped["loss_after"] < 0.5 * stopped["loss_before"]
+    assert stopped["loss_after"] <= 1.001 * known
+    assert stopped["loss_after"] == pytest.approx(whole["loss_after"], rel=1e-4)
