@@ -28,7 +28,7 @@ fitted to the true effect.
     simulation (explicit Euler, h = 0.01 s) over the same span, measured in the same run: the
     ratios compare versions of fmubuilder on a busy machine. Best of --repeats, CPU and wall time.
 
-    python benchmarks/bench_neural.py [--part a|b|cost|all] [--repeats R] [--evaluations N]
+    python benchmarks/bench_neural.py [--part a|b|cost|all] [--repeats R] [--evaluations N] [--last-layer S]
                                       [--optimizer lbfgs|adam] [--vldm-span S]
 """
 from __future__ import annotations
@@ -115,7 +115,7 @@ TARGETS, INPUTS = ["der(speed)"], ["speed"]
 EXTRA_DRAG_LINEAR, EXTRA_DRAG_QUADRATIC = 1.5, 0.06
 
 
-def training(evaluations: int, optimizer: str, loss_scale: str) -> None:
+def training(evaluations: int, optimizer: str, loss_scale: str, last_layer: int) -> None:
     from fmubuilder.data import load_data, read_sidecar
     from fmubuilder.examples_zoo import cached_data, vldm_data_sets
     from fmubuilder.hybridize import workflow
@@ -137,7 +137,7 @@ def training(evaluations: int, optimizer: str, loss_scale: str) -> None:
     settings = dict(element_length=min(workflow.MAX_ELEMENT_LENGTH, span / workflow.MIN_ELEMENTS),
                     loss_signals=list(train.names), warm_start=workflow.WARM_START,
                     ccpt_window=workflow.COLLOCATION_WINDOW, optimizer=optimizer, solver="rk4", step_size=STEP,
-                    loss_scale=loss_scale)
+                    loss_scale=loss_scale, last_layer_simulations=last_layer)
     print(f"(b) training on {train_csv.name} [{train.start:g}, {train.stop:g}] s, testing on {test_csv.name} "
           f"({generated} data set(s) generated first): ANN on {', '.join(TARGETS)} reading {', '.join(INPUTS)}, "
           f"loss on {', '.join(train.names)} (scale: {loss_scale}), {optimizer}, {evaluations} loss evaluations, "
@@ -156,6 +156,8 @@ def training(evaluations: int, optimizer: str, loss_scale: str) -> None:
                               **settings)
     cpu = time.process_time() - cpu
     print(f"    trained in {cpu:.1f} s CPU ({os.cpu_count()} cores); warm start: {result.metrics['warm_start']}")
+    if last_layer:
+        print(f"    last layer refined on the whole training run: {result.metrics['last_layer']}")
     trainer, model = trainers[0], result.model
     trained = trainer.signal_losses()
     trained_state = {k: v.clone() for k, v in model.topology.state_dict().items()}
@@ -289,6 +291,9 @@ def main() -> None:
     parser.add_argument("--loss-scale", choices=["plain", "noise"], default=workflow.LOSS_SCALE,
                         help="each signal's MSE in the loss divided by the plain FMU's or by its noise variance "
                              "(default: hybridize's)")
+    parser.add_argument("--last-layer", type=int, default=0,
+                        help="after the training, at most this many simulations of the whole training run refining "
+                             "the ANN's last layer (neural/last_layer.py; default 0: none, as hybridize on several elements)")
     parser.add_argument("--vldm-span", type=float, default=200.0,
                         help="seconds of the VLDM's training data in the cost part (elements of 100 s)")
     args = parser.parse_args()
@@ -296,7 +301,7 @@ def main() -> None:
     if args.part in ("a", "all"):
         forward(args.repeats)
     if args.part in ("b", "all"):
-        training(args.evaluations, args.optimizer, args.loss_scale)
+        training(args.evaluations, args.optimizer, args.loss_scale, args.last_layer)
     if args.part in ("cost", "all"):
         cost(args.repeats, args.vldm_span)
 

@@ -15,8 +15,8 @@ from .conftest import plant_data
 STEP = 0.002
 
 
-def _trainer(plant_fmu, data: MeasuredData, simulations: int = 0) -> Trainer:
-    settings = TrainSettings(element_length=10.0, step_size=STEP, solver="rk4", progress=False, sensor_lag=0.0,
+def _trainer(plant_fmu, data: MeasuredData, simulations: int = 0, element_length: float = 10.0) -> Trainer:
+    settings = TrainSettings(element_length=element_length, step_size=STEP, solver="rk4", progress=False, sensor_lag=0.0,
                              last_layer_simulations=simulations)
     config = TopologyConfig(channels=["der(w)"], inputs=["w"], hidden=[6], kind="residual")
     torch.manual_seed(1)
@@ -42,9 +42,11 @@ def truth(plant_fmu):
         return measured, model.topology.state_dict()
 
 
-def test_the_refinement_finds_a_known_last_layer_again(plant_fmu, truth):
+@pytest.mark.parametrize("element_length", [10.0, 1.0])
+def test_the_refinement_finds_a_known_last_layer_again(plant_fmu, truth, element_length):
+    """Trained as one element or as four: the refinement simulates the whole run either way."""
     data, state = truth
-    trainer = _trainer(plant_fmu, data, simulations=40)
+    trainer = _trainer(plant_fmu, data, simulations=40, element_length=element_length)
     with trainer.model as model:
         wrong = {k: (v * 0.5 if k.startswith("ann.2.") else v) for k, v in state.items()}
         model.topology.load_state_dict(wrong)
