@@ -12,8 +12,8 @@ fitted to the true effect.
     reading the speed, the first 80 % of the CADC road cycle (measured speed, power, energy from
     `fmubuilder synth` of the extra-resistance truth FMU) in 100 s elements, the loss on all three
     signals, the workflow's warm start and optimizer, a budget of --evaluations loss evaluations
-    (work, not seconds), then the last layer refined over the whole training run (--last-layer
-    simulations, default hybridize's). Then the same ANN is fitted, without the solver, to the resistance the
+    (work, not seconds); with --last-layer S, then the last layer refined over the whole training run
+    (S simulations; hybridize does not on several elements). Then the same ANN is fitted, without the solver, to the resistance the
     truth adds (examples/vldm/model.c), and both are scored by the training's loss on the same
     elements: the ratio trained / true-effect shows how much of the data's information the training
     uses (target <= 3). Both end with the paper's table (energy MSE, max and final error, FMU against
@@ -292,10 +292,9 @@ def main() -> None:
     parser.add_argument("--loss-scale", choices=["plain", "noise"], default=workflow.LOSS_SCALE,
                         help="each signal's MSE in the loss divided by the plain FMU's or by its noise variance "
                              "(default: hybridize's)")
-    parser.add_argument("--last-layer", type=int, default=None,
+    parser.add_argument("--last-layer", type=int, default=0,
                         help="after the training, at most this many simulations of the whole training run refining "
-                             "the ANN's last layer (neural/last_layer.py; default: hybridize's for a run of several "
-                             "elements, workflow.WHOLE_RUN_LAST_LAYER_SIMULATIONS_PER_EVALUATION per evaluation; 0: none)")
+                             "the ANN's last layer (neural/last_layer.py; default 0: none, as hybridize on several elements)")
     parser.add_argument("--vldm-span", type=float, default=200.0,
                         help="seconds of the VLDM's training data in the cost part (elements of 100 s)")
     args = parser.parse_args()
@@ -303,10 +302,7 @@ def main() -> None:
     if args.part in ("a", "all"):
         forward(args.repeats)
     if args.part in ("b", "all"):
-        last_layer = args.last_layer
-        if last_layer is None:
-            last_layer = workflow.WHOLE_RUN_LAST_LAYER_SIMULATIONS_PER_EVALUATION * args.evaluations
-        training(args.evaluations, args.optimizer, args.loss_scale, last_layer)
+        training(args.evaluations, args.optimizer, args.loss_scale, args.last_layer)
     if args.part in ("cost", "all"):
         cost(args.repeats, args.vldm_span)
 

@@ -34,8 +34,8 @@ def test_one_element_or_several_the_loss_divides_each_signal_by_its_noise():
     assert _settings_for(47.9)["loss_scale"] == _settings_for(881.0)["loss_scale"] == workflow.LOSS_SCALE == "noise"
 
 
-def test_the_last_layer_is_refined_on_simulations_counted_with_the_budget():
-    # A loss evaluation costs about 18 engine simulations on the DC drive, about 10 simulations of the
-    # whole run on the VLDM's elements: the refinement's work grows with the budget.
+def test_a_one_element_run_refines_the_last_layer_on_simulations_counted_with_the_budget():
+    # A loss evaluation costs about 18 engine simulations on the DC drive: the refinement's work grows
+    # with the budget. The VLDM's elements: not measured there, no refinement.
     assert _settings_for(47.9)["last_layer_simulations"] == 5 * workflow.LAST_LAYER_SIMULATIONS_PER_EVALUATION
-    assert _settings_for(881.0)["last_layer_simulations"] == 5 * workflow.WHOLE_RUN_LAST_LAYER_SIMULATIONS_PER_EVALUATION
+    assert _settings_for(881.0)["last_layer_simulations"] == 0
