@@ -12,9 +12,9 @@ fitted to the true effect.
     reading the speed, the first 80 % of the CADC road cycle (measured speed, power, energy from
     `fmubuilder synth` of the extra-resistance truth FMU) in 100 s elements, the loss on all three
     signals, the workflow's warm start and optimizer, a budget of --evaluations loss evaluations
-    (work, not seconds); with --last-layer S, then the last layer refined over the whole training run
-    (S simulations; hybridize does not on several elements). Then the same ANN is fitted, without the solver, to the resistance the
-    truth adds (examples/vldm/model.c), and both are scored by the training's loss on the same
+    (work, not seconds); with --last-layer S, then the last layer refined over the whole training
+    run (S simulations; hybridize does not on several elements). Then the same ANN is fitted,
+    without the solver, to the resistance the truth adds (examples/vldm/model.c), and both are scored by the training's loss on the same
     elements: the ratio trained / true-effect shows how much of the data's information the training
     uses (target <= 3). Both end with the paper's table (energy MSE, max and final error, FMU against
     the hybrid, whole training and test cycles, Euler h = 0.01 s, solver steps and events).
