@@ -41,10 +41,10 @@ RIDGE = 1e-8              # weight of |unknowns - start|^2, relative to the mean
 CONVERGED_BELOW = 1e-5
 
 
-def refine_last_layer(trainer, simulations: int) -> dict | None:
+def refine_last_layer(trainer, simulations: int, label: str = "refining the ANN's last layer") -> dict | None:
     """Levenberg-Marquardt on the last layer of `trainer`'s ANN over its training data (see the
     module docstring); the parameters are left at the lowest loss found. Returns what it did, or
-    None when there is no layer to refine or no budget for one step."""
+    None when there is no layer to refine or no budget for one step. `label`: the progress bar's."""
     topology = trainer.model.topology
     if not topology.has_ann:
         return None
@@ -52,7 +52,7 @@ def refine_last_layer(trainer, simulations: int) -> dict | None:
     start = problem.get()
     if simulations < start.size + 2:       # the start, a column per unknown, one trial
         return None
-    with progress(simulations, "refining the ANN's last layer", "simulation", show=trainer.settings.progress) as bar:
+    with progress(simulations, label, "simulation", show=trainer.settings.progress) as bar:
         problem.bar = bar
         residual = problem.residual(start)
         before = _cost(residual)

@@ -252,7 +252,8 @@ def _through_simulation(trainer, loss: float) -> dict:
     parameters = list(topology.ann.parameters())
     start = _copy(parameters)
     unknowns = int(topology.last_layer_free().sum()) + topology.ann[-1].bias.numel()
-    refined = refine_last_layer(trainer, unknowns + 1 + THROUGH_SIMULATION_TRIALS)
+    refined = refine_last_layer(trainer, unknowns + 1 + THROUGH_SIMULATION_TRIALS,
+                                "warm start: the ANN's last layer through the simulation")
     if refined is None:
         return None
     done = {"simulations": refined["simulations"], "loss": loss, "kept": False}
