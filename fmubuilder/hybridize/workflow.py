@@ -79,8 +79,9 @@ LAST_LAYER_SIMULATIONS_PER_EVALUATION = 20
 # Not on runs of several elements: on the demo, 40 simulations of the whole 881 s after each ANN
 # candidate's training lowered the validation scores (neural 61.1 -> 43.2, the ANN on the term 68.2
 # -> 30.5, which it then shipped); the test scores moved both ways (4.08 -> 5.62, 6.06 -> 5.01), the
-# shipped hybrid's test energy from 62 to 107 times its noise, and the demo took 30-40 minutes longer
-# (docs/MEASUREMENTS.md, "The last layer refined through the simulation"; bench_neural.py --last-layer).
+# shipped hybrid's test energy from 62 to 107 times its noise, and the 80 simulations took about 20
+# minutes (docs/MEASUREMENTS.md, "The last layer refined through the simulation"; bench_neural.py
+# --last-layer).
 # Seconds of the training data on which outputs equal to the corrected derivative are detected.
 ALIAS_SPAN = 60.0
 
