@@ -14,8 +14,8 @@ fitted to the true effect.
     signals, the workflow's warm start and optimizer, a budget of --evaluations loss evaluations
     (work, not seconds); with --last-layer S, then the last layer refined over the whole training
     run (S simulations; hybridize does not on several elements). Then the same ANN is fitted,
-    without the solver, to the resistance the truth adds (examples/vldm/model.c), and both are scored by the training's loss on the same
-    elements: the ratio trained / true-effect shows how much of the data's information the training
+    without the solver, to the resistance the truth adds (examples/vldm/model.c), and both are
+    scored by the training's loss on the same elements: the ratio trained / true-effect shows how much of the data's information the training
     uses (target <= 3). Both end with the paper's table (energy MSE, max and final error, FMU against
     the hybrid, whole training and test cycles, Euler h = 0.01 s, solver steps and events).
 
