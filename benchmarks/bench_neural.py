@@ -19,6 +19,13 @@ fitted to the true effect.
     uses (target <= 3). Both end with the paper's table (energy MSE, max and final error, FMU against
     the hybrid, whole training and test cycles, Euler h = 0.01 s, solver steps and events).
 
+(floor) What the data, the ANN's function class and the scoring allow on the same data: the exact
+    resistance as a term, its two coefficients fitted on the training part through the simulation,
+    and the ANN fitted to the exact resistance, each scored with RK4 (as hybridize scores) and Euler
+    (the paper's table) over the whole CADC run and the test run (MSE / noise variance per signal).
+    With --hybrid, a VLDM hybrid's ANN against the exact resistance per band of speed, and its ANN
+    gate refined through the training part as hybridize refines a fitted term's scale.
+
 (cost) What the training's loss evaluation (all elements side by side, forward and backward, as
     `hybridize` trains: RK4 at h = 0.01 s, the residual ANN on der(speed) reading speed, elements as
     `hybridize` cuts them: at most 100 s, at least workflow.MIN_ELEMENTS; the DC drive's 48 s are one
@@ -29,8 +36,8 @@ fitted to the true effect.
     simulation (explicit Euler, h = 0.01 s) over the same span, measured in the same run: the
     ratios compare versions of fmubuilder on a busy machine. Best of --repeats, CPU and wall time.
 
-    python benchmarks/bench_neural.py [--part a|b|cost|all] [--repeats R] [--evaluations N] [--last-layer S]
-                                      [--optimizer lbfgs|adam] [--vldm-span S]
+    python benchmarks/bench_neural.py [--part a|b|floor|cost|all] [--repeats R] [--evaluations N] [--last-layer S]
+                                      [--optimizer lbfgs|adam] [--vldm-span S] [--hybrid VLDM_HYBRID.fmu]
 """
 from __future__ import annotations
 
@@ -116,24 +123,32 @@ TARGETS, INPUTS = ["der(speed)"], ["speed"]
 EXTRA_DRAG_LINEAR, EXTRA_DRAG_QUADRATIC = 1.5, 0.06
 
 
-def training(evaluations: int, optimizer: str, loss_scale: str, last_layer: int) -> None:
+def extra_resistance_data():
+    """The demo's VLDM extra-resistance data: (FMU, (train csv, test csv), data sets generated first,
+    (whole CADC run, its first 80 % as hybridize trains on it, WLTC class 2 test run),
+    (train start values, test start values), sensor lag)."""
     from fmubuilder.data import load_data, read_sidecar
     from fmubuilder.examples_zoo import cached_data, vldm_data_sets
+    from fmubuilder.fmi import read_model_info
     from fmubuilder.hybridize import workflow
-    from fmubuilder.neural.train import train_neural_fmu
 
-    sets = [d for d in vldm_data_sets() if d.variant.key == "extra_resistance"]
-    paths, generated = cached_data(sets)
+    paths, generated = cached_data([d for d in vldm_data_sets() if d.variant.key == "extra_resistance"])
     train_csv = next(p for p in paths if "_train_" in p.name)
     test_csv = next(p for p in paths if "_test_" in p.name)
     fmu = example_fmu("vldm")
-    info_model = NeuralFMU(fmu, TopologyConfig())
-    whole, test = load_data(train_csv, info_model.info), load_data(test_csv, info_model.info)
-    info_model.close()
+    info = read_model_info(fmu)
+    whole, test = load_data(train_csv, info), load_data(test_csv, info)
     split = whole.start + (1.0 - workflow.VALIDATION_SHARE) * (whole.stop - whole.start)
     train = whole.window(whole.start, float(whole.time[np.searchsorted(whole.time, split, side="right") - 1]))
-    train_start, test_start = read_sidecar(train_csv)["start_values"], read_sidecar(test_csv)["start_values"]
-    lag = read_sidecar(train_csv)["bench"]["lag"]
+    starts = read_sidecar(train_csv)["start_values"], read_sidecar(test_csv)["start_values"]
+    return fmu, (train_csv, test_csv), generated, (whole, train, test), starts, read_sidecar(train_csv)["bench"]["lag"]
+
+
+def training(evaluations: int, optimizer: str, loss_scale: str, last_layer: int) -> None:
+    from fmubuilder.hybridize import workflow
+    from fmubuilder.neural.train import train_neural_fmu
+
+    fmu, (train_csv, test_csv), generated, (whole, train, test), (train_start, test_start), lag = extra_resistance_data()
     span = train.stop - train.start
     settings = dict(element_length=min(workflow.MAX_ELEMENT_LENGTH, span / workflow.MIN_ELEMENTS),
                     loss_signals=list(train.names), warm_start=workflow.WARM_START,
@@ -184,16 +199,141 @@ def fit_true_effect(model, train) -> float:
     measured speeds of the training data (the effect is a function of the speed alone, so the
     target is exact at any sample); returns the relative error of the fit."""
     from fmubuilder.neural.warm_start import fit_full_batch, scale_output_to_effect
-    start = {name: float(model.start_values.get(name, model.info.variable(name).start))
-             for name in ("mass", "mass_factor")}
+    linear, quadratic = exact_coefficients(model)
     speed = torch.from_numpy(np.asarray(train.signals["speed"], dtype=float))
-    target = -(EXTRA_DRAG_LINEAR * speed + EXTRA_DRAG_QUADRATIC * speed * speed.abs()) / (
-        start["mass"] * start["mass_factor"])
-    x, target = speed[:, None], target[:, None]
+    x, target = speed[:, None], (linear * speed + quadratic * speed * speed.abs())[:, None]
     scale_output_to_effect(model.topology, target)
     fit_full_batch(model.topology, x, target, iterations=1000, bounded=False, weight_decay=0.0)
     with torch.no_grad():
         return float(((model.topology.correction(x) - target) ** 2).mean() / (target ** 2).mean())
+
+
+def exact_coefficients(model) -> tuple[float, float]:
+    """The resistance the truth adds as der(speed) += linear * v + quadratic * v|v| (the force over
+    the model's mass times its mass factor, from its start values)."""
+    mass, factor = (float(model.start_values.get(name, model.info.variable(name).start)) for name in ("mass", "mass_factor"))
+    return -EXTRA_DRAG_LINEAR / (mass * factor), -EXTRA_DRAG_QUADRATIC / (mass * factor)
+
+
+def floor() -> None:
+    """(floor) What the data, the function class and the scoring allow, on the demo's data: MSE /
+    noise variance per signal, whole CADC run and WLTC class 2 test run, RK4 (as hybridize scores)
+    and Euler (the paper's table), h = 0.01 s, through the sensor lag, for the plain FMU, the exact
+    resistance as a term c1 v + c2 v|v| on der(speed), those two coefficients fitted again on the
+    training part through the simulation (Gauss-Newton, finite differences), and the demo's ANN
+    (16x16 tanh on der(speed) reading speed) fitted to the exact resistance without the solver."""
+    from fmubuilder.neural.train import data_errors, predicted_at_samples, simulate_over
+
+    fmu, _, _, (whole, train, test), (train_start, test_start), lag = extra_resistance_data()
+    runs = {"whole CADC": (whole, train_start), "test WLTC2": (test, test_start)}
+
+    def with_term(coefficients) -> NeuralFMU:
+        """The declared model with der(speed) += c1 v + c2 v|v| (a base term, its ANN zero)."""
+        terms = [{"variable": "speed", "basis": basis, "center": 0.0, "coefficient": float(c)}
+                 for basis, c in zip(("w", "w*|w|"), coefficients)]
+        return NeuralFMU(fmu, TopologyConfig(channels=TARGETS, inputs=INPUTS, kind="residual", base_terms=terms),
+                         start_values=train_start)
+
+    probe = NeuralFMU(fmu, TopologyConfig(), start_values=train_start)
+    exact = np.array(exact_coefficients(probe))
+    probe.close()
+
+    def training_residuals(coefficients) -> np.ndarray:
+        model = with_term(coefficients)
+        run = simulate_over(model, whole, STEP, "rk4", train_start)
+        model.close()
+        part = whole.time <= train.stop
+        return np.concatenate([(predicted_at_samples(whole, run, name, lag) - whole.signals[name])[part]
+                               / np.sqrt(whole.noise_variance(name)) for name in whole.signals])
+
+    fitted = exact.copy()
+    for _ in range(3):
+        base = training_residuals(fitted)
+        columns = []
+        for j in range(2):
+            moved = fitted.copy()
+            moved[j] *= 1.01
+            columns.append((training_residuals(moved) - base) / (moved[j] - fitted[j]))
+        fitted = fitted + np.linalg.lstsq(np.stack(columns, axis=1), -base, rcond=None)[0]
+    torch.manual_seed(0)
+    ann = NeuralFMU(fmu, TopologyConfig(channels=TARGETS, inputs=INPUTS, kind="residual", hidden=[16, 16]),
+                    start_values=train_start)
+    speeds = np.asarray(train.signals["speed"], dtype=float)[:, None]
+    ann.topology.initialise_scaling(speeds, exact[0] * speeds + exact[1] * speeds * np.abs(speeds))
+    fit_error = fit_true_effect(ann, train)
+    exact_term = with_term(exact)
+    models = {"plain FMU": (exact_term, True), "exact resistance (term)": (exact_term, False),
+              f"term fitted on the training part (coefficients x{fitted[0] / exact[0]:.5f}, x{fitted[1] / exact[1]:.5f})":
+                  (with_term(fitted), False),
+              f"16x16 tanh ANN fitted to the exact resistance (relative error {fit_error:.2g})": (ann, False)}
+    names = list(whole.signals)
+    print("(floor) MSE / noise variance per signal (" + ", ".join(names) + ")")
+    print("| model | data | RK4 | Euler |\n|---|---|---|---|")
+    for label, (model, plain) in models.items():
+        for data_label, (data, start) in runs.items():
+            cells = []
+            for solver in ("rk4", "euler"):
+                errors = data_errors(data, simulate_over(model, data, STEP, solver, start, plain=plain), lag)
+                cells.append(", ".join(f"{errors[n]['mse'] / data.noise_variance(n):.3g}" for n in names))
+            print(f"| {label} | {data_label} | {cells[0]} | {cells[1]} |", flush=True)
+    for model in {id(m): m for m, _ in models.values()}.values():
+        model.close()
+
+
+SPEED_BANDS = (0.5, 2.0, 5.0, 8.0, 11.0, 14.0, 17.0, 20.0, 23.0, 26.0, 29.0)
+
+
+def hybrid_against_truth(hybrid_fmu: str) -> None:
+    """(floor --hybrid) A VLDM hybrid whose ANN on der(speed) reads the speed (`fmubuilder demo`'s
+    NeuralFMU): its network (the ONNX in the FMU, by onnxruntime) against the exact resistance, the
+    mean ratio over bands of speed, beside each run's share of the resistance's energy |F v| dt in
+    the band; then its ANN gate refined as hybridize refines a fitted term's scale, through the
+    simulation of the training part, and the hybrid scored with the gate at 1 and refined (RK4)."""
+    import math
+    import tempfile
+    from pathlib import Path
+
+    from fmubuilder.export.network import OnnxNetwork
+    from fmubuilder.export.validate import _embedded_spec
+    from fmubuilder.hybridize.evaluate import Scoring, evaluate
+    from fmubuilder.hybridize.refine_term import refine_scales
+
+    fmu, _, _, (whole, train, test), (train_start, test_start), _ = extra_resistance_data()
+    probe = NeuralFMU(fmu, TopologyConfig(), start_values=train_start)
+    linear, quadratic = exact_coefficients(probe)
+    probe.close()
+    with tempfile.TemporaryDirectory() as folder:
+        spec, gates = _embedded_spec(Path(hybrid_fmu), Path(folder))
+        if spec.channels != TARGETS or spec.inputs != INPUTS:
+            raise SystemExit(f"{hybrid_fmu}: its ANN corrects {spec.channels} reading {spec.inputs}; "
+                             f"give a hybrid whose ANN corrects {TARGETS} reading {INPUTS}")
+        network = OnnxNetwork(spec.onnx)
+        gate = next(name for name, (_, kind) in gates.items() if kind == "p_ann")
+
+        def energy_share(data, low, high):
+            speed = np.asarray(data.signals["speed"], dtype=float)
+            power = np.abs((linear * speed + quadratic * speed * np.abs(speed)) * speed)
+            return power[(speed >= low) & (speed < high)].sum() / power.sum()
+
+        print(f"\n(floor) {hybrid_fmu}: its ANN against the exact resistance, per band of speed")
+        print("| speed [m/s] | ANN / truth | share of the training part's resistance energy | test's |\n|---|---|---|---|")
+        for low, high in zip(SPEED_BANDS[:-1], SPEED_BANDS[1:]):
+            speeds = np.linspace(low, high, 20)
+            ann = np.array([network(np.array([v]))[0] for v in speeds])
+            ratio = np.mean(ann / (linear * speeds + quadratic * speeds * speeds))
+            print(f"| {low:g}-{high:g} | {ratio:.3f} | {energy_share(train, low, high):.3f} | "
+                  f"{energy_share(test, low, high):.3f} |", flush=True)
+    scoring = Scoring("rk4", STEP)
+    noise = {name: math.sqrt(train.noise_variance(name)) for name in train.names}
+    refined = refine_scales(hybrid_fmu, [gate], [(train, train_start)], noise, STEP, show=False)
+    print(f"\n{gate} refined through the training part: {refined.to_dict()}")
+    print("| gate | training part | test WLTC2 |\n|---|---|---|")
+    for scale in (1.0, refined.scales[0]):
+        cells = []
+        for data, start in ((train, train_start), (test, test_start)):
+            errors = evaluate(Path(hybrid_fmu), data, {**start, gate: scale}, scoring).errors
+            cells.append(", ".join(f"{errors[n]['mse'] / data.noise_variance(n):.3g}" for n in data.names))
+        print(f"| {scale:.6g} | {cells[0]} | {cells[1]} |", flush=True)
 
 
 def paper_table(model, data_sets: dict, lag: float, title: str) -> None:
@@ -285,7 +425,7 @@ def cost(repeats: int, vldm_span: float) -> None:
 def main() -> None:
     from fmubuilder.hybridize import workflow
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--part", choices=["a", "b", "cost", "all"], default="all")
+    parser.add_argument("--part", choices=["a", "b", "floor", "cost", "all"], default="all")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--evaluations", type=int, default=10, help="the training's budget of loss evaluations")
     parser.add_argument("--optimizer", choices=["lbfgs", "adam"], default="lbfgs")
@@ -295,6 +435,8 @@ def main() -> None:
     parser.add_argument("--last-layer", type=int, default=0,
                         help="after the training, at most this many simulations of the whole training run refining "
                              "the ANN's last layer (neural/last_layer.py; default 0: none, as hybridize on several elements)")
+    parser.add_argument("--hybrid", help="with --part floor: also this VLDM hybrid's ANN against the exact resistance "
+                                         "(e.g. fmubuilder demo's vldm_hybrid.fmu when it ships the NeuralFMU)")
     parser.add_argument("--vldm-span", type=float, default=200.0,
                         help="seconds of the VLDM's training data in the cost part (elements of 100 s)")
     args = parser.parse_args()
@@ -303,6 +445,10 @@ def main() -> None:
         forward(args.repeats)
     if args.part in ("b", "all"):
         training(args.evaluations, args.optimizer, args.loss_scale, args.last_layer)
+    if args.part in ("floor", "all"):
+        floor()
+        if args.hybrid:
+            hybrid_against_truth(args.hybrid)
     if args.part in ("cost", "all"):
         cost(args.repeats, args.vldm_span)
 
