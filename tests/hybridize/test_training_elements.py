@@ -36,6 +36,6 @@ def test_one_element_or_several_the_loss_divides_each_signal_by_its_noise():
 
 def test_a_one_element_run_refines_the_last_layer_on_simulations_counted_with_the_budget():
     # A loss evaluation costs about 18 engine simulations on the DC drive: the refinement's work grows
-    # with the budget. The VLDM's elements: not measured there, no refinement.
+    # with the budget. Runs of several elements (the VLDM's): measured on the demo, not kept (workflow.py).
     assert _settings_for(47.9)["last_layer_simulations"] == 5 * workflow.LAST_LAYER_SIMULATIONS_PER_EVALUATION
     assert _settings_for(881.0)["last_layer_simulations"] == 0
