@@ -26,6 +26,10 @@ fitted to the true effect.
     With --hybrid, a VLDM hybrid's ANN against the exact resistance per band of speed, and its ANN
     gate refined through the training part as hybridize refines a fitted term's scale.
 
+(forms) The fitted term's form as `hybridize` chooses it on the same data (hybridize/term_forms.py):
+    the diagnosis' term and its leading variables' forms, each fitted through the simulation of the
+    training part, scored on the held-out tail (the choice) and on the test run (MSE / noise variance).
+
 (cost) What the training's loss evaluation (all elements side by side, forward and backward, as
     `hybridize` trains: RK4 at h = 0.01 s, the residual ANN on der(speed) reading speed, elements as
     `hybridize` cuts them: at most 100 s, at least workflow.MIN_ELEMENTS; the DC drive's 48 s are one
@@ -36,7 +40,7 @@ fitted to the true effect.
     simulation (explicit Euler, h = 0.01 s) over the same span, measured in the same run: the
     ratios compare versions of fmubuilder on a busy machine. Best of --repeats, CPU and wall time.
 
-    python benchmarks/bench_neural.py [--part a|b|floor|cost|all] [--repeats R] [--evaluations N] [--last-layer S]
+    python benchmarks/bench_neural.py [--part a|b|floor|forms|cost|all] [--repeats R] [--evaluations N] [--last-layer S]
                                       [--optimizer lbfgs|adam] [--vldm-span S] [--hybrid VLDM_HYBRID.fmu]
 """
 from __future__ import annotations
@@ -280,6 +284,54 @@ def floor() -> None:
         model.close()
 
 
+def term_forms() -> None:
+    """(forms) The fitted term's form as `hybridize` chooses it (hybridize/term_forms.py), no truth: the
+    diagnosis of the training part, then its term and its leading variables' forms, each fitted
+    through the simulation of the training part, scored on the held-out tail (the score that
+    chooses) and, here only, on the test run; MSE / noise variance per signal."""
+    import math
+
+    from fmubuilder.diagnose import diagnose
+    from fmubuilder.hybridize.choice import noise_margin
+    from fmubuilder.hybridize.evaluate import Scoring
+    from fmubuilder.hybridize.term_forms import candidate_forms, choose_form, fit_forms
+    from fmubuilder.hybridize.workflow import Part
+    from fmubuilder.neural.train import data_errors, simulate_over
+
+    fmu, _, _, (whole, train, test), (train_start, test_start), lag = extra_resistance_data()
+    diagnosis = diagnose(fmu, train, train_start)
+    train_start = {**train_start, **diagnosis.start_values}
+    tail = Part(whole, train_start, (float(whole.time[whole.time > train.stop][0]), whole.stop))
+    noise = {e.signal: e.noise for e in diagnosis.errors}
+    forms = candidate_forms(diagnosis)
+    cpu = time.process_time()
+    fits = fit_forms(fmu, diagnosis.channel, forms, [(train, train_start)], [tail], Scoring("rk4", STEP), noise, {},
+                     show=False)
+    cpu = time.process_time() - cpu
+    margin = noise_margin([tail.samples().time], len(train.names))
+    chosen = choose_form(fits, margin)
+    names = list(train.names)
+    print(f"(forms) the diagnosis' term: {diagnosis.fitted_term['expression']}; MSE / noise variance "
+          f"({', '.join(names)}), RK4 h = {STEP} s; margin x{margin:.3g}; the forms' fits and validation "
+          f"{cpu:.0f} s CPU")
+    print("| form | coefficients (x the start) | simulations | training part | held-out tail | validation score "
+          "| test WLTC2 | chosen |\n|---|---|---|---|---|---|---|---|")
+    for fit in fits:
+        model = NeuralFMU(fmu, TopologyConfig(channels=[diagnosis.channel], kind="residual",
+                                              inputs=list(dict.fromkeys(t["variable"] for t in fit.terms)),
+                                              base_terms=fit.terms), start_values=train_start)
+        cells = []
+        for data, run_data, start in ((train, train, train_start), (tail.samples(), whole, train_start),
+                                      (test, test, test_start)):
+            errors = data_errors(data, simulate_over(model, run_data, STEP, "rk4", start), lag)
+            cells.append(", ".join(f"{errors[n]['mse'] / data.noise_variance(n):.3g}" for n in names))
+        model.close()
+        moved = ", ".join(f"{t['coefficient']:.4g} (x{t['coefficient'] / c:.3g})" for t, c in zip(fit.terms, fit.start))
+        score = f"{fit.validation_score:.3g}" if math.isfinite(fit.validation_score) else "does not simulate"
+        print(f"| {fit.label} | {moved} | {fit.simulations} | {cells[0]} | {cells[1]} | {score} | {cells[2]} | "
+              f"{'**yes**' if fit is chosen else 'no'} |", flush=True)
+
+
 SPEED_BANDS = (0.5, 2.0, 5.0, 8.0, 11.0, 14.0, 17.0, 20.0, 23.0, 26.0, 29.0)
 
 
@@ -425,7 +477,7 @@ def cost(repeats: int, vldm_span: float) -> None:
 def main() -> None:
     from fmubuilder.hybridize import workflow
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--part", choices=["a", "b", "floor", "cost", "all"], default="all")
+    parser.add_argument("--part", choices=["a", "b", "floor", "forms", "cost", "all"], default="all")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--evaluations", type=int, default=10, help="the training's budget of loss evaluations")
     parser.add_argument("--optimizer", choices=["lbfgs", "adam"], default="lbfgs")
@@ -449,6 +501,8 @@ def main() -> None:
         floor()
         if args.hybrid:
             hybrid_against_truth(args.hybrid)
+    if args.part in ("forms", "all"):
+        term_forms()
     if args.part in ("cost", "all"):
         cost(args.repeats, args.vldm_span)
 

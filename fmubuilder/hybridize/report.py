@@ -225,6 +225,10 @@ def _code_list(names) -> str:
     return ", ".join(f"`{name}`" for name in names)
 
 
+def _score(value) -> str:
+    return "does not simulate" if value is None else f"{value:.3g}"
+
+
 def _cell(text: str) -> str:
     """Text for a markdown table cell: a '|' (as in |speed|) would end the cell."""
     return str(text).replace("|", "\\|")
@@ -255,7 +259,15 @@ def _candidate_note(model: dict, training: dict | None) -> str:
             notes.append(f"{', '.join(model['equivalent_parameters'])} moved the signals alike in the screening: "
                          "the same candidate, not fitted apart")
     else:
-        notes.append(f"fitted by the diagnosis on `{model.get('fitted_on', 'the training data')}`, no training")
+        forms = model.get("forms")
+        if forms and forms["fitted"]:
+            scores = ", ".join(f"`{_cell(f['form'])}` {_score(f['validation_score'])}" for f in forms["fitted"])
+            notes.append(f"fitted through the simulation on `{model.get('fitted_on', 'the training data')}`, no "
+                         f"training; its form chosen on the validation data among the diagnosis' and its leading "
+                         f"variables' forms (validation scores: {scores}; another than the diagnosis' must score "
+                         f"lower by x{forms['margin']:.3g})")
+        else:
+            notes.append(f"fitted by the diagnosis on `{model.get('fitted_on', 'the training data')}`, no training")
         refinement = model.get("refinement")
         if refinement and refinement["kept"]:
             notes.append(f"coefficient refined through the simulation: {refinement['coefficients_before']} -> "

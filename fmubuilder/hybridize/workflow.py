@@ -328,9 +328,10 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
     candidates = []
     fitted = diagnosis.fitted_term
     if fitted and fitted.get("offered"):
-        ctx.say(f"[2/5] exporting the fitted term: {fitted['expression']}")
+        ctx.say(f"[2/5] fitting the term: the diagnosis' {fitted['expression']}, and the forms of its leading "
+                "variables ...")
         noise = {e.signal: e.noise for e in diagnosis.errors}
-        term = _fitted_term_candidate(ctx, fitted, _aliases_of(ctx, fitted["channel"]), noise)
+        term = _fitted_term_candidate(ctx, diagnosis, _aliases_of(ctx, fitted["channel"]), noise)
         if term is not None:
             candidates.append(term)
             fitted = term.details["fitted_term"]      # refined: the ANN on the term starts from it
@@ -431,16 +432,29 @@ def _ann_inputs(diagnosis, info) -> list[str]:
     return usable[:MAX_ANN_INPUTS]
 
 
-def _fitted_term_candidate(ctx: _Context, fitted: dict, aliases: dict[str, str],
+def _fitted_term_candidate(ctx: _Context, diagnosis, aliases: dict[str, str],
                            noise: dict[str, float]) -> Candidate | None:
-    """The diagnosis' term exported as a hybrid, its coefficient refined through the simulation on
-    the training data (hybridize/refine_term.py) when that lowers the training error."""
+    """The fitted term in the form the validation data choose among the leading variables' forms,
+    each fitted through the simulation of the training runs (hybridize/term_forms.py), exported as a
+    hybrid, its coefficients' common scale refined through the simulation on the training data
+    (hybridize/refine_term.py) when that lowers the training error."""
+    from .choice import noise_margin
     from .refine_term import coefficients_text, refine_scales, scaled_term, term_gates
+    from .term_forms import candidate_forms, choose_form, fit_forms, fitted_term_of
+    fitted = diagnosis.fitted_term
+    runs = [(p.samples(), p.start_values) for p in ctx.roles.train]
+    fits = fit_forms(ctx.model_fmu, fitted["channel"], candidate_forms(diagnosis), runs, ctx.roles.validation,
+                     ctx.scoring, noise, aliases, show=None if ctx.progress else False)
+    margin = noise_margin([p.samples().time for p in ctx.roles.validation], len(ctx.roles.train[0].data.names))
+    form = choose_form(fits, margin)
+    if form is not None:
+        fitted = fitted_term_of(fitted, form.terms)
+        ctx.say(f"      form chosen on the validation data among {len(fits)} fitted through the simulation: "
+                f"{fitted['expression']}")
     diagnosed = _export_fitted_term(ctx, fitted, aliases, "fitted_term_diagnosed")
     if diagnosed is None:
         return None
     spec, fmu = diagnosed
-    runs = [(p.samples(), p.start_values) for p in ctx.roles.train]
     refinement = refine_scales(fmu, term_gates(spec), runs, noise, ctx.scoring.step,
                                show=None if ctx.progress else False)
     term = fitted
@@ -454,7 +468,9 @@ def _fitted_term_candidate(ctx: _Context, fitted: dict, aliases: dict[str, str],
                 f"error ({refinement.simulations} simulations)")
     return _candidate(ctx, "fitted term", term["expression"], fmu, spec.onnx.parent,
                       {"expression": term["expression"], "aliases": aliases, "fitted_on": ctx.roles.train[0].label,
-                       "fitted_term": term, "refinement": {
+                       "fitted_term": term, "forms": {
+                           "chosen": form.label if form is not None else None, "margin": margin,
+                           "fitted": [f.to_dict() for f in fits]}, "refinement": {
                            **refinement.to_dict(), "coefficients_before": coefficients_text(fitted),
                            "coefficients_after": coefficients_text(term),
                            "refined_on": [p.label for p in ctx.roles.train]}})

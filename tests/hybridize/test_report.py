@@ -213,6 +213,11 @@ def test_candidate_notes_say_how_each_kind_was_made():
                                   "fitted_on": "a.csv", **scores}, None)
     on_term = _candidate_note({"name": "neural on the fitted term", "loss_evaluations": 4, **scores}, {"budget": 10})
     assert term.startswith("fitted by the diagnosis on `a.csv`")
+    forms = {"chosen": "v + v*|v|", "margin": 1.19, "fitted": [{"form": "v", "validation_score": 349.0},
+                                                              {"form": "v + v*|v|", "validation_score": None}]}
+    chosen_form = _candidate_note({"name": "fitted term", "fitted_on": "a.csv", "forms": forms, **scores}, None)
+    assert chosen_form.startswith("fitted through the simulation on `a.csv`")
+    assert "`v` 349, `v + v*\\|v\\|` does not simulate" in chosen_form and "lower by x1.19" in chosen_form
     refinement = {"kept": True, "coefficients_before": "-0.000298", "coefficients_after": "-0.0003", "simulations": 5}
     refined = _candidate_note({"name": "fitted term", "fitted_on": "a.csv", "refinement": refinement, **scores}, None)
     assert "coefficient refined through the simulation: -0.000298 -> -0.0003 (5 sims)" in refined
