@@ -66,7 +66,7 @@ def refine_scales(hybrid_fmu, gates: list[str], runs: Runs, noise: dict[str, flo
     noise: the noise level of each measured signal (per sample); output_step: the grid on which the
     sensor lag is applied (the scoring's step)."""
     objective = Objective(hybrid_fmu, runs, Scoring.accurate(output_step, ACCURATE_RTOL))
-    objective.units = objective.per_signal(lambda data, name: _noise_level(noise, name, data))
+    objective.units = objective.per_signal(lambda data, name: noise_level(noise, name, data))
     start = np.ones(len(gates))
     with progress(budget, "refining the fitted term through the simulation", "simulation", show=show) as bar:
         objective.bar = bar
@@ -74,7 +74,7 @@ def refine_scales(hybrid_fmu, gates: list[str], runs: Runs, noise: dict[str, flo
         if residual is None:       # the term as exported does not simulate: nothing to refine from
             bar.stop("the hybrid does not simulate over the training data")
             return Refinement(gates, start.tolist(), math.inf, math.inf, objective.simulations, False)
-        scales, after, ended = _levenberg_marquardt(objective, gates, start, residual, budget)
+        scales, after, ended = levenberg_marquardt(objective, gates, start, residual, budget)
         bar.stop(ended)
     before = _cost(residual)
     kept = after < before
@@ -82,9 +82,11 @@ def refine_scales(hybrid_fmu, gates: list[str], runs: Runs, noise: dict[str, flo
                       objective.simulations, kept)
 
 
-def _levenberg_marquardt(objective: Objective, gates: list[str], scales: np.ndarray, residual: np.ndarray,
-                         budget: int):
-    """(scales, their objective, why it ended before the budget)."""
+def levenberg_marquardt(objective: Objective, gates: list[str], scales: np.ndarray, residual: np.ndarray,
+                        budget: int):
+    """(scales, their objective, why it ended before the budget). `objective` is anything with
+    `simulations` (spent so far) and `errors({gate: scale})` (residuals, None where a run fails), an
+    Objective here, term_forms.TermObjective for the forms of a term."""
     cost = _cost(residual)
     damping, relative_delta = DAMPING, PERTURBATION
     n = scales.size
@@ -137,7 +139,7 @@ def _cost(residual: np.ndarray) -> float:
     return float(residual @ residual) / residual.size
 
 
-def _noise_level(noise: dict[str, float], name: str, data: MeasuredData) -> float:
+def noise_level(noise: dict[str, float], name: str, data: MeasuredData) -> float:
     """The signal's noise level; a zero or missing one falls back to a tiny share of its range, so
     that a noise-free signal weighs much but finitely."""
     level = noise.get(name, 0.0)

@@ -141,21 +141,21 @@ def fit_forms(model_fmu, channel: str, forms: dict[str, list[dict]], train_runs,
     """Each form's coefficients fitted on the training runs (data, start values), then scored on the
     validation parts (whole run simulated, its window scored)."""
     from .choice import validation_score
-    from .refine_term import _levenberg_marquardt, _noise_level
+    from .refine_term import levenberg_marquardt, noise_level
     fits = []
     per_form = SIMULATIONS_PER_FORM + 1         # the fit's, then one over the validation parts
     with progress(per_form * len(forms), "fitting the term's forms through the simulation", "simulation",
                   show=show) as bar:
         for label, terms in forms.items():
             objective = TermObjective(model_fmu, channel, terms, train_runs, scoring,
-                                      lambda data, name: _noise_level(noise, name, data), aliases)
+                                      lambda data, name: noise_level(noise, name, data), aliases)
             objective.bar = bar
             try:
                 start = np.ones(len(terms))
                 residual = objective.errors(dict(zip(objective.labels, start)))
                 scales, cost = start, math.inf
                 if residual is not None:
-                    scales, cost, _ = _levenberg_marquardt(objective, objective.labels, start, residual,
+                    scales, cost, _ = levenberg_marquardt(objective, objective.labels, start, residual,
                                                            SIMULATIONS_PER_FORM)
                 objective.set_scales(scales)
                 bar.advance(SIMULATIONS_PER_FORM - objective.simulations)
@@ -207,9 +207,12 @@ def choose_form(fits: list[FormFit], margin: float) -> FormFit | None:
 
 
 def fitted_term_of(fitted: dict, terms: list[dict]) -> dict:
-    """The diagnosis' fitted term (dict) with other terms, its expression rewritten."""
+    """The diagnosis' fitted term (dict) with other terms, its expression rewritten; what the
+    diagnosis measured of its own term (explained variances, p-value) stays with the diagnosis."""
     from .refine_term import scaled_term
-    return scaled_term({**fitted, "terms": terms}, 1.0)
+    own = {"channel": fitted["channel"], "terms": terms, "offered": fitted.get("offered", True),
+           "diagnosed": fitted["expression"]}
+    return scaled_term(own, 1.0)
 
 
 def _finite(value: float) -> float | None:

@@ -449,8 +449,10 @@ def _fitted_term_candidate(ctx: _Context, diagnosis, aliases: dict[str, str],
     form = choose_form(fits, margin)
     if form is not None:
         fitted = fitted_term_of(fitted, form.terms)
-        ctx.say(f"      form chosen on the validation data among {len(fits)} fitted through the simulation: "
-                f"{fitted['expression']}")
+        own = form.label == " + ".join(t["form"] for t in diagnosis.fitted_term["terms"])
+        kept = "the diagnosis' form kept" if own else "another form chosen"
+        ctx.say(f"      {len(fits)} forms fitted through the simulation, {kept} on the validation data "
+                f"(margin x{margin:.3g}): {fitted['expression']}")
     diagnosed = _export_fitted_term(ctx, fitted, aliases, "fitted_term_diagnosed")
     if diagnosed is None:
         return None
