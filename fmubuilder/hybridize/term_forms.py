@@ -147,8 +147,13 @@ def fit_forms(model_fmu, channel: str, forms: dict[str, list[dict]], train_runs,
     with progress(per_form * len(forms), "fitting the term's forms through the simulation", "simulation",
                   show=show) as bar:
         for label, terms in forms.items():
-            objective = TermObjective(model_fmu, channel, terms, train_runs, scoring,
-                                      lambda data, name: noise_level(noise, name, data), aliases)
+            try:
+                objective = TermObjective(model_fmu, channel, terms, train_runs, scoring,
+                                          lambda data, name: noise_level(noise, name, data), aliases)
+            except FmuBuilderError:     # a form a NeuralFMU cannot hold: it does not simulate
+                bar.advance(per_form)
+                fits.append(FormFit(label, terms, [float(t["coefficient"]) for t in terms], math.inf, math.inf, 0))
+                continue
             objective.bar = bar
             try:
                 start = np.ones(len(terms))

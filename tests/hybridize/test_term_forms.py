@@ -76,3 +76,11 @@ def test_a_pair_of_forms_fitted_through_the_simulation_finds_the_truths_resistan
     assert [t["coefficient"] for t in fitted_pair.terms] == [pytest.approx(c, rel=0.03) for c in exact]
     assert fitted_pair.validation_score < 3.0 < fitted_single.validation_score
     assert fitted_pair.simulations <= 11 and fitted_pair.training_objective < fitted_single.training_objective
+
+
+def test_a_form_no_neuralfmu_can_hold_is_scored_as_not_simulating():
+    """A variable the model does not have (or one a NeuralFMU cannot read) fails that form alone."""
+    forms = {"unknown": [{"variable": "no_such_variable", "basis": "w", "center": 0.0, "coefficient": 1.0}]}
+    fit, = fit_forms(example_fmu("dc_drive"), "der(speed)", forms, [], [], Scoring("rk4", 0.01), {}, {}, show=False)
+    assert math.isinf(fit.training_objective) and math.isinf(fit.validation_score) and fit.simulations == 0
+    assert choose_form([fit], 1.5) is None
