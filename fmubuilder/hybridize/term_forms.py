@@ -101,7 +101,8 @@ class TermObjective:
 
     def set_scales(self, scales) -> None:
         with torch.no_grad():
-            self.model.topology.base.weights.copy_(self.weights * torch.tensor(scales, dtype=self.weights.dtype)[None, :, None])
+            per_form = torch.tensor(scales, dtype=self.weights.dtype)[None, :, None]   # weights: [basis, form, 1]
+            self.model.topology.base.weights.copy_(self.weights * per_form)
 
     def errors(self, values: dict) -> np.ndarray | None:
         self.simulations += 1
@@ -161,7 +162,7 @@ def fit_forms(model_fmu, channel: str, forms: dict[str, list[dict]], train_runs,
                 scales, cost = start, math.inf
                 if residual is not None:
                     scales, cost, _ = levenberg_marquardt(objective, objective.labels, start, residual,
-                                                           SIMULATIONS_PER_FORM)
+                                                          SIMULATIONS_PER_FORM)
                 objective.set_scales(scales)
                 bar.advance(SIMULATIONS_PER_FORM - objective.simulations)
                 fitted = [{**t, "coefficient": float(t["coefficient"] * s)} for t, s in zip(terms, scales)]

@@ -55,7 +55,8 @@ def test_a_pair_of_forms_fitted_through_the_simulation_finds_the_truths_resistan
     start did; a form the effect does not have (v alone) stays far above it there."""
     truth = example_fmu("vldm_truth_extra_resistance")
     measurement = synth.measure(truth, stop_time=200.0, start_values={"cycle": 1},
-                                settings=synth.BenchSettings(seed=3, signals=("speed", "power", "energy"), **SENSOR_NOISE))
+                                settings=synth.BenchSettings(seed=3, signals=("speed", "power", "energy"),
+                                                             **SENSOR_NOISE))
     path = tmp_path / "cadc.csv"
     synth.write_measurement(measurement, path)
     model = example_fmu("vldm")
