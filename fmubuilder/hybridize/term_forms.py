@@ -54,7 +54,7 @@ def candidate_forms(diagnosis) -> dict[str, list[dict]]:
     fitted = diagnosis.fitted_term
     forms = {}
     if fitted and fmu_term_inputs(fitted["terms"]) and all(t["basis"] != "1" for t in fitted["terms"]):
-        forms[" + ".join(t["form"] for t in fitted["terms"])] = [dict(t) for t in fitted["terms"]]
+        forms[label_of(fitted["terms"])] = [dict(t) for t in fitted["terms"]]
     # generic shapes (a constant, a ramp in time: no variable) are not forms of a variable
     ranked = [c for c in diagnosis.candidates
               if c.channel == diagnosis.channel and c.inputs and c.inputs[0] not in (None, "time")]
@@ -62,9 +62,13 @@ def candidate_forms(diagnosis) -> dict[str, list[dict]]:
         own = [term_of(c) for c in ranked if c.inputs[0] == variable]
         forms.setdefault(own[0]["form"], own[:1])
         if len(own) > 1:
-            forms.setdefault(f"{own[0]['form']} + {own[1]['form']}",
-                             [{**t, "coefficient": t["coefficient"] / 2} for t in own[:2]])
+            forms.setdefault(label_of(own[:2]), [{**t, "coefficient": t["coefficient"] / 2} for t in own[:2]])
     return forms
+
+
+def label_of(terms: list[dict]) -> str:
+    """A form's name: its terms' forms, e.g. 'speed + speed*|speed|'."""
+    return " + ".join(t["form"] for t in terms)
 
 
 def term_of(candidate) -> dict:

@@ -440,7 +440,7 @@ def _fitted_term_candidate(ctx: _Context, diagnosis, aliases: dict[str, str],
     (hybridize/refine_term.py) when that lowers the training error."""
     from .choice import noise_margin
     from .refine_term import coefficients_text, refine_scales, scaled_term, term_gates
-    from .term_forms import candidate_forms, choose_form, fit_forms, fitted_term_of
+    from .term_forms import candidate_forms, choose_form, fit_forms, fitted_term_of, label_of
     fitted = diagnosis.fitted_term
     runs = [(p.samples(), p.start_values) for p in ctx.roles.train]
     fits = fit_forms(ctx.model_fmu, fitted["channel"], candidate_forms(diagnosis), runs, ctx.roles.validation,
@@ -449,8 +449,8 @@ def _fitted_term_candidate(ctx: _Context, diagnosis, aliases: dict[str, str],
     form = choose_form(fits, margin)
     if form is not None:
         fitted = fitted_term_of(fitted, form.terms)
-        own = form.label == " + ".join(t["form"] for t in diagnosis.fitted_term["terms"])
-        kept = "the diagnosis' form kept" if own else "another form chosen"
+        kept = "the diagnosis' form kept" if form.label == label_of(diagnosis.fitted_term["terms"]) \
+            else "another form chosen"
         ctx.say(f"      {len(fits)} forms fitted through the simulation, {kept} on the validation data "
                 f"(margin x{margin:.3g}): {fitted['expression']}")
     diagnosed = _export_fitted_term(ctx, fitted, aliases, "fitted_term_diagnosed")
