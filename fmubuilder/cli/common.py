@@ -53,3 +53,14 @@ def loss_evaluations(text: str) -> int:
     if value < 0:
         raise argparse.ArgumentTypeError(f"{value}: give 0 or more loss evaluations")
     return value
+
+
+def processes(text: str) -> int:
+    """--jobs: a whole number of processes, 1 or more."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number of processes") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value}: give 1 or more processes")
+    return value

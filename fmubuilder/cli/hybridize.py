@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from .common import loss_evaluations, parse_assignments
+from .common import loss_evaluations, parse_assignments, processes
 
 
 class _TrainFile(argparse.Action):
@@ -57,6 +57,9 @@ def add_hybridize_parser(subparsers, common=None) -> None:
     p.add_argument("--ann-on-term", action=argparse.BooleanOptionalAction, default=True,
                    help="also train an ANN that starts from the fitted term and learns what it leaves, whenever a "
                         "term is offered (default: on; --no-ann-on-term leaves it out and saves its training)")
+    p.add_argument("--jobs", "-j", type=processes, default=None, metavar="N",
+                   help="processes for the candidates: 2 trains the NeuralFMU beside the others, 1 one after the "
+                        "other; the same numbers either way (default: 2 when the machine has two cores)")
     p.add_argument("--force", action="store_true",
                    help="overwrite the outputs; the old ones stay in place until the new ones are complete")
     p.set_defaults(func=cmd_hybridize, outputs=lambda args: [args.output, args.report])
@@ -71,7 +74,8 @@ def cmd_hybridize(args) -> None:
                        validation_start=parse_assignments(args.validation_start, "--validation-start"),
                        test_start=parse_assignments(args.test_start, "--test-start"), budget=args.budget,
                        seed=args.seed, time_budget=args.time_budget, force=args.force,
-                       allow_insignificant=args.allow_insignificant, ann_on_term=args.ann_on_term)
+                       allow_insignificant=args.allow_insignificant, ann_on_term=args.ann_on_term,
+                       jobs=args.jobs)
     print(summary(result))
 
 

@@ -4,7 +4,9 @@ The parent forks once per command and waits; the whole simulation runs in the wo
 no FMI call crosses a process boundary. The worker reports its exit code in the shared
 breadcrumb page (fmi/breadcrumb.py) before it exits; a worker that dies by a signal, exits
 without that report (an exit() inside the FMU) or stays inside one FMI call longer than
---call-timeout is reported by the parent from the breadcrumb in one `error:` line.
+--call-timeout is reported by the parent from the breadcrumb in one `error:` line. A helper the
+worker runs beside it (fmi/side_process.py) leaves its crumbs on a page of its own: the parent
+watches its calls the same way and stops it with the worker.
 
 The parent also owns the command's temporary folder (the worker's TMPDIR: extracted FMUs,
 build folders) and removes it on every exit path, together with the outputs the failed
@@ -25,7 +27,7 @@ from pathlib import Path
 
 from ..files import PARTIAL_SUFFIX, partial_files
 from ..fmi import breadcrumb
-from ..fmi.breadcrumb import CALL, PING_SLOT, REPORT_SLOT, REPORTED
+from ..fmi.breadcrumb import CALL, HELPER, PID_SLOT, PING_SLOT, REPORT_SLOT, REPORTED
 
 INTERRUPT_GRACE = 5.0       # seconds the worker gets to stop cleanly after Ctrl-C
 EXIT_HANG = 124             # as timeout(1)
@@ -55,6 +57,7 @@ def run_supervised(args, execute) -> int:
             os.waitpid(pid, 0)
         code, message, hint = 130, "interrupted", ""
     finally:
+        _stop_helper()   # a worker that died cannot stop its helper
         shutil.rmtree(temp_root, ignore_errors=True)
     if code != 0:
         _remove_outputs_of_failed_run(before)
@@ -116,7 +119,8 @@ class _Supervisor:
         self.pid = pid
         self.call_timeout = call_timeout
         self.poll = min(0.2, call_timeout / 10) if call_timeout > 0 else 0.2
-        self.ping_sent: float | None = None
+        self.worker = _Watch(CALL, lambda: pid, helper=False)
+        self.helper = _Watch(HELPER, lambda: HELPER[PID_SLOT], helper=True) if HELPER is not None else None
         self.interrupted_at: float | None = None
         self.terminated = False
         self.pidfd = _open_pidfd(pid)
@@ -165,23 +169,12 @@ class _Supervisor:
         return status if pid else None
 
     def _check_hang(self) -> str | None:
-        """The worker is stuck in an FMI call when the call is in progress and the worker has not
-        run any Python code (its SIGUSR1 handler) for call_timeout seconds."""
         if self.call_timeout <= 0:
             return None
-        function, in_call, t = breadcrumb.last_call()
-        now = time.monotonic()
-        if not in_call:
-            self.ping_sent = None
-        elif self.ping_sent is None or CALL[PING_SLOT] == 0:
-            CALL[PING_SLOT] = 1
-            self.ping_sent = now
-            _send(self.pid, signal.SIGUSR1)
-        elif now - self.ping_sent >= self.call_timeout:
-            return f"{_who()} did not return from {function}{_at(t)} within {self.call_timeout:g} s and was stopped"
-        return None
+        return self.worker.check_hang(self.call_timeout) or (self.helper and self.helper.check_hang(self.call_timeout))
 
     def _kill(self) -> None:
+        _stop_helper()
         _send(self.pid, signal.SIGKILL)
         with contextlib.suppress(ChildProcessError):
             os.waitpid(self.pid, 0)
@@ -194,28 +187,50 @@ class _Supervisor:
             sig = os.WTERMSIG(status)
             if self.interrupted_at is not None:
                 return 130, "interrupted", ""
-            return 128 + sig, *_crash_message(f"crashed ({signal.Signals(sig).name})")
+            return 128 + sig, *breadcrumb.crash_message(f"crashed ({signal.Signals(sig).name})")
         code = os.WEXITSTATUS(status)
         if reported >= REPORTED:
             return code, "", ""  # the worker printed its own messages
-        return code or EXIT_UNEXPECTED, *_crash_message(f"ended the process (exit code {code})")
+        return code or EXIT_UNEXPECTED, *breadcrumb.crash_message(f"ended the process (exit code {code})")
 
 
-def _crash_message(what: str) -> tuple[str, str]:
-    function, in_call, t = breadcrumb.last_call()
-    if in_call:
-        return f"{_who()} {what} in {function}{_at(t)}", "the FMU is faulty: report it to its vendor"
-    last = f" (last FMI call: {function}{_at(t)})" if function else ""
-    return f"the command {what} outside a call into an FMU{last}", "rerun with --debug and please report it"
+class _Watch:
+    """The calls of one process, the worker or its helper: it is stuck in an FMI call when the
+    call is in progress and the process has not run any Python code (its SIGUSR1 handler) for
+    call_timeout seconds."""
+
+    def __init__(self, calls, pid, helper: bool):
+        self.calls, self.pid, self.helper = calls, pid, helper
+        self.ping_sent: float | None = None
+
+    def check_hang(self, call_timeout: float) -> str | None:
+        function, in_call, t = breadcrumb.last_call(self.helper)
+        pid, now = self.pid(), time.monotonic()
+        if not in_call or not _running(pid):
+            self.ping_sent = None    # a helper that ended is reported by the worker, which reaps it
+        elif self.ping_sent is None or self.calls[PING_SLOT] == 0:
+            self.calls[PING_SLOT] = 1
+            self.ping_sent = now
+            _send(pid, signal.SIGUSR1)
+        elif now - self.ping_sent >= call_timeout:
+            return (f"{breadcrumb.who(self.helper)} did not return from {function}{breadcrumb.at(t)} within "
+                    f"{call_timeout:g} s and was stopped")
+        return None
 
 
-def _who() -> str:
-    model = breadcrumb.model()
-    return f"the FMU's binary ({model})" if model else "the FMU's binary"
+def _running(pid: int) -> bool:
+    """Alive and not yet a zombie (a helper's parent reaps it only when it asks for its result)."""
+    if not pid:
+        return False
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as stat:
+            return stat.read().rsplit(b")", 1)[1].split()[0] not in (b"Z", b"X")
+    except (OSError, IndexError):
+        return True     # no /proc: taken as alive
 
-
-def _at(t: float) -> str:
-    return "" if math.isnan(t) else f" at t = {t:.6g} s"
+def _stop_helper() -> None:
+    if HELPER is not None and HELPER[PID_SLOT]:
+        _send(HELPER[PID_SLOT], signal.SIGKILL)
 
 
 def _send(pid: int, sig: int) -> None:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import shutil
 import tempfile
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +20,9 @@ from ..data import MeasuredData
 from ..errors import FmuBuilderError
 from ..files import copy_atomically, refuse_existing, replace_folder, staging_folder
 from ..fmi import read_model_info
+from ..fmi.side_process import SideProcess, can_run_beside, cores
 from ..progress import counted
+from ..progress import set_enabled as set_progress_enabled
 from .evaluate import Scoring, evaluate, read_data, relative_mse, signal_errors
 
 # Share of each training run (its end) held out of the fit for validation, when no separate
@@ -150,13 +152,15 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
               train_start: dict | list | None = None, validation_start: dict | None = None,
               test_start: dict | None = None, budget: int = DEFAULT_BUDGET, seed: int = 0,
               time_budget: float | None = None, force: bool = False, allow_insignificant: bool = False,
-              ann_on_term: bool = True, progress: bool = True) -> HybridizeResult:
+              ann_on_term: bool = True, progress: bool = True, jobs: int | None = None) -> HybridizeResult:
     """train_csv: one data file or a list of them; train_start: start values for all of them, or a
     list with one dict per file (added to each file's sidecar). time_budget: optional wall-clock cap
     in seconds on the NeuralFMU's training (the work is `budget`, in loss evaluations). force: overwrite the outputs (the
     old ones stay until the new ones are complete); allow_insignificant: build the candidates even
     when the diagnosis finds no significant effect; ann_on_term: also train an ANN that starts from
-    the fitted term and learns what it leaves, whenever a term is offered (term_started.py)."""
+    the fitted term and learns what it leaves, whenever a term is offered (term_started.py); jobs:
+    processes for the candidates, 2 to train the NeuralFMU beside the others (the default with two
+    or more cores), 1 for one after the other; the numbers are the same."""
     started = time.perf_counter()
     model_fmu, output_fmu, report_dir = Path(model_fmu), Path(output_fmu), Path(report_dir)
     _check_outputs(output_fmu, report_dir, force)
@@ -164,6 +168,10 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
         raise FmuBuilderError(f"the training budget must be a whole number of loss evaluations >= 0, got {budget}")
     if time_budget is not None and not time_budget > 0:
         raise FmuBuilderError(f"time budget {time_budget:g} s: give a positive number of seconds or none")
+    if jobs is None:
+        jobs = min(2, cores())
+    elif not isinstance(jobs, int) or jobs < 1:
+        raise FmuBuilderError(f"jobs must be a whole number of processes >= 1, got {jobs}")
     info = read_model_info(model_fmu)
     roles = _assign_roles(info, train_csv, train_start, validation_csv, validation_start, test_csv, test_start)
     work = Path(tempfile.mkdtemp(prefix="fmubuilder-hybridize-"))
@@ -191,7 +199,7 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
                 raise FmuBuilderError("the diagnosis found an effect but could not trace it to a state derivative; "
                                       "see the diagnosis in the report folder")
             context = _Context(model_fmu, info, roles, scoring, work, say, budget, seed, time_budget, started,
-                               progress=progress, ann_on_term=ann_on_term)
+                               progress=progress, ann_on_term=ann_on_term, jobs=jobs)
             candidates_started = time.perf_counter()
             candidates = _build_candidates(context, diagnosis)
             training = context.training
@@ -322,9 +330,42 @@ class _Context:
     progress: bool = True
     input_choice: dict | None = None              # how the ANN's channels and inputs were chosen
     ann_on_term: bool = True                      # also train an ANN that starts from the fitted term
+    jobs: int = 1                                 # processes: 2 trains the NeuralFMU beside the rest
 
 
 def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
+    """The fitted term, the calibrations, the NeuralFMU and the ANN on the term. The NeuralFMU
+    depends on none of the others: with a second core it trains in a second process meanwhile."""
+    channels, inputs, channel_inputs = _ann_channels_and_inputs(ctx, diagnosis)
+    aliases = {name: c for channel in channels for name, c in _aliases_of(ctx, channel).items()}
+    settings = _training_settings(ctx.roles.train[0].samples(), diagnosis, ctx.budget)
+    beside = ctx.jobs > 1 and can_run_beside()
+    ctx.say(f"[2/5] training a NeuralFMU: ANN on {_wiring(channels, inputs, channel_inputs)} "
+            f"({ctx.budget} loss evaluations){', in a second process' if beside else ''} ...")
+    with SideProcess("training the NeuralFMU", _neural_training, (ctx, beside, channels, inputs, aliases, settings),
+                     {"channel_inputs": channel_inputs}, in_caller=not beside) as neural:
+        candidates = _term_and_calibrations(ctx, diagnosis)
+        fitted = next((c.details["fitted_term"] for c in candidates if c.name == "fitted term"),
+                      diagnosis.fitted_term)     # refined: the ANN on the term starts from it
+        from .term_started import NAME, term_start
+        # the ANN on the term reads the inputs chosen for the term's derivative, when it is one of the ANN's
+        own_inputs = dict(zip(channels, channel_inputs)).get((fitted or {}).get("channel"), inputs)
+        start = term_start(fitted, own_inputs) if ctx.ann_on_term else None
+        on_term = []
+        if start is not None:
+            ctx.say(f"[3/5] training an ANN on top of the fitted term: {start.channel} with inputs "
+                    f"{', '.join(start.inputs)} ({ctx.budget} loss evaluations) ...")
+            on_term.append(_neural_candidate(ctx, [start.channel], start.inputs, _aliases_of(ctx, start.channel),
+                                             settings, name=NAME, base_terms=start.terms))
+        if beside:
+            ctx.say("      waiting for the NeuralFMU's training in the second process ...")
+        candidate, ctx.training, said = neural.result()
+    for line in said:
+        ctx.say(line)
+    return [*candidates, candidate, *on_term]
+
+
+def _term_and_calibrations(ctx: _Context, diagnosis) -> list[Candidate]:
     candidates = []
     fitted = diagnosis.fitted_term
     if fitted and fitted.get("offered"):
@@ -334,24 +375,20 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
         term = _fitted_term_candidate(ctx, diagnosis, _aliases_of(ctx, fitted["channel"]), noise)
         if term is not None:
             candidates.append(term)
-            fitted = term.details["fitted_term"]      # refined: the ANN on the term starts from it
-    candidates += _calibrated_candidates(ctx)
-    channels, inputs, channel_inputs = _ann_channels_and_inputs(ctx, diagnosis)
-    aliases = {name: c for channel in channels for name, c in _aliases_of(ctx, channel).items()}
-    ctx.say(f"[3/5] training a NeuralFMU: ANN on {_wiring(channels, inputs, channel_inputs)} "
-            f"({ctx.budget} loss evaluations) ...")
-    settings = _training_settings(ctx.roles.train[0].samples(), diagnosis, ctx.budget)
-    candidates.append(_neural_candidate(ctx, channels, inputs, aliases, settings, channel_inputs=channel_inputs))
-    from .term_started import NAME, term_start
-    # the ANN on the term reads the inputs chosen for the term's derivative, when it is one of the ANN's
-    own_inputs = dict(zip(channels, channel_inputs)).get((fitted or {}).get("channel"), inputs)
-    start = term_start(fitted, own_inputs) if ctx.ann_on_term else None
-    if start is not None:
-        ctx.say(f"      training an ANN on top of the fitted term: {start.channel} with inputs "
-                f"{', '.join(start.inputs)} ({ctx.budget} loss evaluations) ...")
-        candidates.append(_neural_candidate(ctx, [start.channel], start.inputs, _aliases_of(ctx, start.channel),
-                                            settings, name=NAME, base_terms=start.terms))
-    return candidates
+    return candidates + _calibrated_candidates(ctx)
+
+
+def _neural_training(ctx: _Context, beside: bool, *args, **kwargs) -> tuple[Candidate, dict, list[str]]:
+    """The NeuralFMU candidate, what its training did (ctx.training) and what it had to say. In a
+    second process it keeps its messages for the caller and shows no progress bars, which would
+    cross the caller's. Its scores' runs are keyed by id(data): the forked process's data objects
+    are the caller's, at the same addresses."""
+    said = []
+    if beside:
+        ctx = replace(ctx, say=said.append, progress=False)
+        set_progress_enabled(False)     # this process's bars only
+    candidate = _neural_candidate(ctx, *args, **kwargs)
+    return candidate, ctx.training, said
 
 
 def _candidate(ctx: _Context, name: str, description: str, fmu: Path, folder: Path, details: dict) -> Candidate:

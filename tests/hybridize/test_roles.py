@@ -18,6 +18,7 @@ import pytest
 from fmubuilder import synth
 from fmubuilder.build import example_fmu
 from fmubuilder.fmi import read_model_info
+from fmubuilder.fmi.side_process import can_run_beside
 from fmubuilder.hybridize import hybridize
 from fmubuilder.cli.hybridize import add_hybridize_parser
 from fmubuilder.hybridize.workflow import VALIDATION_SHARE, Scores, _assign_roles, _select
@@ -122,9 +123,10 @@ def strip_wall_times(report: dict) -> dict:
     return report
 
 
-def run_small(files, folder):
+def run_small(files, folder, **options):
+    options = {"ann_on_term": False, "progress": False, **options}
     return hybridize(example_fmu("dc_drive"), files["train"], files["test"], folder / "hybrid.fmu",
-                     folder / "report", budget=2, time_budget=600.0, ann_on_term=False, progress=False)
+                     folder / "report", budget=2, time_budget=600.0, **options)
 
 
 @pytest.fixture
@@ -155,6 +157,19 @@ def test_the_same_command_gives_the_same_numbers_on_a_busy_machine(files, tmp_pa
     assert all(np.isfinite(m["test_relative_mse"]) for m in busy["models"])   # chosen or not
     markdown = (tmp_path / "busy" / "report" / "report.md").read_text()
     assert "touched once" in markdown and "validation score (chooses)" in markdown
+
+
+@pytest.mark.skipif(not can_run_beside(), reason="no second process on this platform")
+def test_the_neuralfmu_trained_in_a_second_process_gives_the_same_numbers(files, tmp_path, capsys):
+    """jobs=2 trains the NeuralFMU beside the fitted term, the calibration and the ANN on the term;
+    jobs=1 one after the other."""
+    beside = run_small(files, tmp_path / "beside", jobs=2, ann_on_term=True, progress=True).report
+    assert "in a second process" in capsys.readouterr().out
+    after = run_small(files, tmp_path / "after", jobs=1, ann_on_term=True, progress=True).report
+    assert "in a second process" not in capsys.readouterr().out
+    assert [m["name"] for m in beside["models"]] == ["fitted term", "calibrated viscous_friction", "neural",
+                                                     "neural on the fitted term"]
+    assert strip_wall_times(beside) == strip_wall_times(after)
 
 
 def test_a_time_cap_that_cuts_the_training_short_is_reported(files, tmp_path):
