@@ -62,6 +62,8 @@ class Candidate:
     score: float               # explained variance, every signal weighted alike (decides the channel)
     shape_score: float         # explained variance, signals weighted by precision (ranks the inputs)
     coefficient: float         # least-squares coefficient of the form
+    basis: str                 # the form as a term (base_term.py): basis of (variable - center)
+    center: float
     equivalent: list[str] = field(default_factory=list)   # forms giving the same response
 
 
@@ -300,7 +302,7 @@ def _trace_window(diagnosis, info, data, runner, nominal, noise, variables, dead
     diagnosis.inputs = list(dict.fromkeys(t.variable for t in trials_by_channel[best]))
     diagnosis.ambiguous_channels = [channel_name[c] for c in order[1:]
                                     if 1.0 - best_score[c] < AMBIGUOUS * (1.0 - best_score[best])]
-    diagnosis.candidates = [_candidate(info, t) for c in order for t in trials_by_channel[c]]
+    diagnosis.candidates = [candidate_of(info, t) for c in order for t in trials_by_channel[c]]
     fitted = tracer.fit_term(trials_by_channel[best])
     if fitted is None:
         return None
@@ -326,11 +328,12 @@ def _judge_term(diagnosis: Diagnosis, data: MeasuredData, tests, fitted_run: Mod
     term["offered"] = bool(removed >= TERM_MIN_EXPLAINED)
 
 
-def _candidate(info, trial) -> Candidate:
+def candidate_of(info, trial) -> Candidate:
+    """A trial of the trace as a ranked candidate of the diagnosis."""
     return Candidate(channel=info.derivatives[trial.channel].name, inputs=[trial.variable],
                      form=form_text(trial.variable, trial.basis, trial.center), score=trial.score,
-                     shape_score=trial.shape_score, coefficient=trial.coefficient,
-                     equivalent=list(trial.equivalent))
+                     shape_score=trial.shape_score, coefficient=trial.coefficient, basis=trial.basis,
+                     center=float(trial.center), equivalent=list(trial.equivalent))
 
 
 def _fitted_dict(info, fitted: TracedTerm) -> dict:

@@ -73,16 +73,8 @@ def label_of(terms: list[dict]) -> str:
 
 def term_of(candidate) -> dict:
     """A diagnosis candidate (one form of one variable, e.g. '(v - 128)*|v - 128|') as a base term."""
-    import re
-    from ..diagnose.runs import form_text
-    variable = candidate.inputs[0]
-    shift = re.search(re.escape(variable) + r" ([-+]) ([0-9.]+(?:e[-+]?[0-9]+)?)", candidate.form)
-    center = 0.0 if shift is None else float(shift.group(2)) * (1.0 if shift.group(1) == "-" else -1.0)
-    for basis in ("w", "|w|", "w*|w|", "w^2"):
-        if form_text(variable, basis, center) == candidate.form:
-            return {"variable": variable, "basis": basis, "center": center,
-                    "coefficient": float(candidate.coefficient), "form": candidate.form}
-    raise FmuBuilderError(f"cannot read the form {candidate.form!r} of {variable}")
+    return {"variable": candidate.inputs[0], "basis": candidate.basis, "center": candidate.center,
+            "coefficient": float(candidate.coefficient), "form": candidate.form}
 
 
 class TermObjective:

@@ -47,6 +47,7 @@ class NumpyTopology:
             return
         # A base term (base_term.py) is added to the network's output, through the ANN gate.
         self._base = topology.base.numpy_kernel() if topology.base is not None else None
+        self._base_at = topology.base.point_kernel() if topology.base is not None else None
         self._base_gate = topology.gate_ann.detach().numpy().copy()
         with torch.no_grad():
             for layer in topology.folded():   # the torch topology's own fold, as numpy arrays
@@ -80,7 +81,7 @@ class NumpyTopology:
         sources = (x, der, variables)
         for j, (kind, index) in enumerate(self._gather):
             z[j] = sources[kind][index]
-        base = 0.0 if self._base is None else self._base_gate[0] * self._base(z)
+        base = 0.0 if self._base_at is None else self._base_gate[0] * self._base_at(z)
         dot, add = np.dot, np.add
         for W, b, act, out in self._hidden:
             dot(W, z, out=out)

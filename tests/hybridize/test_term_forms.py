@@ -3,13 +3,15 @@ forms read back from the diagnosis' text, the choice's rule, and a pair of forms
 simulation against the coefficients in the truth's C source."""
 import math
 
+import numpy as np
 import pytest
 
 from fmubuilder import synth
 from fmubuilder.build import example_fmu
 from fmubuilder.data import load_data
-from fmubuilder.diagnose.diagnosis import Candidate
+from fmubuilder.diagnose.diagnosis import candidate_of
 from fmubuilder.diagnose.runs import form_text
+from fmubuilder.diagnose.trace import Trial
 from fmubuilder.examples_zoo import SENSOR_NOISE
 from fmubuilder.fmi import read_model_info
 from fmubuilder.hybridize.evaluate import Scoring
@@ -22,13 +24,16 @@ EXTRA_DRAG_LINEAR, EXTRA_DRAG_QUADRATIC = 1.5, 0.06
 
 @pytest.mark.parametrize("center", [0.0, 128.0, -2.5, 1.25e-7])
 @pytest.mark.parametrize("basis", ["w", "|w|", "w*|w|", "w^2"])
-def test_a_candidates_form_text_reads_back_as_its_term(basis, center):
-    form = form_text("motor_torque_limit", basis, center)
-    candidate = Candidate(channel="der(speed)", inputs=["motor_torque_limit"], form=form, score=0.5,
-                          shape_score=0.5, coefficient=-3.0)
-    term = term_of(candidate)
-    assert (term["basis"], term["center"], term["coefficient"]) == (basis, pytest.approx(center, rel=1e-5), -3.0)
-    assert form_text(term["variable"], term["basis"], term["center"]) == form
+def test_a_diagnosis_candidate_becomes_its_trials_term_with_the_exact_center(basis, center):
+    """The center is the trial's own number, not the 6 digits of the form's text."""
+    info = read_model_info(example_fmu("vldm"))
+    channel = next(k for k, d in enumerate(info.derivatives) if d.name == "der(speed)")
+    center += math.pi * 1e-9        # digits the text does not show
+    trial = Trial(channel=channel, variable="motor_torque_limit", basis=basis, center=center,
+                  by_signal=np.zeros(1), by_precision=np.zeros(1), score=0.5, shape_score=0.5, coefficient=-3.0)
+    term = term_of(candidate_of(info, trial))
+    assert term == {"variable": "motor_torque_limit", "basis": basis, "center": center, "coefficient": -3.0,
+                    "form": form_text("motor_torque_limit", basis, center)}
 
 
 def fit(label, coefficients, score):

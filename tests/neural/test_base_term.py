@@ -37,8 +37,11 @@ def test_the_untrained_hybrid_is_the_term(model):
     with torch.no_grad():
         torch_result = model.topology(torch.from_numpy(x), torch.from_numpy(der)).numpy()
     np.testing.assert_allclose(torch_result[:, 1], expected, rtol=1e-13, atol=1e-13)
-    numpy_result = NumpyTopology(model.topology).rows(x, der.copy(), np.zeros((len(x), 0)))
+    kernel = NumpyTopology(model.topology)
+    numpy_result = kernel.rows(x, der.copy(), np.zeros((len(x), 0)))
     np.testing.assert_allclose(numpy_result[:, 1], expected, rtol=1e-13, atol=1e-13)
+    one_point = [kernel(x[row], der[row].copy(), np.zeros(0))[1] for row in range(len(x))]  # the engine's path
+    np.testing.assert_allclose(one_point, expected, rtol=1e-13, atol=1e-13)
     assert not model.topology.is_neutral()
 
 
