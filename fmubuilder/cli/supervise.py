@@ -228,6 +228,7 @@ def _running(pid: int) -> bool:
     except (OSError, IndexError):
         return True     # no /proc: taken as alive
 
+
 def _stop_helper() -> None:
     if HELPER is not None and HELPER[PID_SLOT]:
         _send(HELPER[PID_SLOT], signal.SIGKILL)

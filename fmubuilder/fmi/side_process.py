@@ -7,8 +7,8 @@ return value, or its exception, comes back pickled through a pipe when the calle
 The helper leaves its FMI breadcrumbs on a page of its own (breadcrumb.py), which the command
 line's supervisor watches as it watches the worker's: a call that never returns stops both, and
 a helper that crashes inside the FMU's binary is reported by `result()` with the call it was in.
-One helper at a time; where none can run (one core, no fork, no helper page) the work runs in
-the caller when started.
+One helper at a time; where none can run (no fork, no helper page, one already running), or the
+caller asks for it (in_caller), the work runs in the caller when started.
 """
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from ..errors import FmuBuilderError
 from . import breadcrumb
 from .breadcrumb import HELPER, PID_SLOT
 
-_running: SideProcess | None = None
+_active: SideProcess | None = None     # the helper running now
 
 
 def cores() -> int:
@@ -33,7 +33,7 @@ def cores() -> int:
 
 
 def can_run_beside() -> bool:
-    return hasattr(os, "fork") and breadcrumb.has_helper_page() and _running is None
+    return hasattr(os, "fork") and breadcrumb.has_helper_page() and _active is None
 
 
 class SideProcess:
@@ -52,7 +52,7 @@ class SideProcess:
             self._start(function, args, kwargs or {})
 
     def _start(self, function, args, kwargs) -> None:
-        global _running
+        global _active
         read, write = os.pipe()
         sys.stdout.flush()
         sys.stderr.flush()
@@ -63,7 +63,7 @@ class SideProcess:
         os.close(write)
         self.pid, self._pipe = pid, read
         HELPER[PID_SLOT] = pid
-        _running = self
+        _active = self
 
     def result(self):
         """The work's return value; its exception re-raised here."""
@@ -73,7 +73,7 @@ class SideProcess:
         raise value
 
     def _collect(self) -> tuple[bool, object]:
-        global _running
+        global _active
         try:
             payload = _read_all(self._pipe)
             _, status = os.waitpid(self.pid, 0)
@@ -83,7 +83,7 @@ class SideProcess:
         finally:
             os.close(self._pipe)
             self.pid = None
-            _running = None
+            _active = None
             HELPER[PID_SLOT] = 0
             breadcrumb.reset_helper()
 

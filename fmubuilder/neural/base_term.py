@@ -58,9 +58,11 @@ class FittedTerm(nn.Module):
     def point_kernel(self):
         """The same function at one point, u [n_in] -> a float, in Python floats: the engine calls it
         at every stage of every step, where numpy's overhead per call (4.5 us) is most of the cost.
-        Summed as numpy_kernel sums: per basis, then the bases in order."""
+        Summed per basis, then the bases in order, as numpy_kernel sums (the same to the bit when
+        each basis has one term)."""
         used = [[(int(self.select[:, k].argmax()), float(self.center[k]), float(self.weights[b, k, 0]))
-                 for k in range(self.center.numel()) if float(self.weights[b, k, 0]) != 0.0] for b in range(len(BASES))]
+                 for k in range(self.center.numel()) if float(self.weights[b, k, 0]) != 0.0]
+                for b in range(len(BASES))]
         bias = float(self.bias[0])
         w_terms, abs_terms, signed_square_terms, square_terms = used
 
