@@ -12,6 +12,7 @@ caller asks for it (in_caller), the work runs in the caller when started.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import pickle
 import signal
@@ -74,6 +75,7 @@ class SideProcess:
 
     def _collect(self) -> tuple[bool, object]:
         global _active
+        status = None
         try:
             payload = _read_all(self._pipe)
             _, status = os.waitpid(self.pid, 0)
@@ -81,6 +83,10 @@ class SideProcess:
                 return pickle.loads(payload)
             return False, FmuBuilderError(self._ended(status))
         finally:
+            if status is None:      # interrupted while waiting: the helper must not outlive it
+                with contextlib.suppress(ProcessLookupError, ChildProcessError):
+                    os.kill(self.pid, signal.SIGKILL)
+                    os.waitpid(self.pid, 0)
             os.close(self._pipe)
             self.pid = None
             _active = None

@@ -6,6 +6,7 @@ The misbehaving FMUs are the bouncing ball whose binary crashes or hangs in fmi2
 t = 0.5 s (tests/fmi/crashing/crash_model.c).
 """
 import os
+import signal
 import subprocess
 import sys
 import textwrap
@@ -76,6 +77,25 @@ def test_leaving_the_block_early_stops_the_helper():
             pid = side.pid
             raise RuntimeError("the caller failed")
     assert not running(pid)
+
+
+def interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def test_an_interrupt_while_waiting_for_the_result_stops_the_helper():
+    previous = signal.signal(signal.SIGALRM, interrupt)
+    try:
+        side = SideProcess("sleeping", time.sleep, (600,))
+        pid = side.pid
+        signal.alarm(1)
+        with pytest.raises(KeyboardInterrupt):
+            side.result()
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+    assert not running(pid)
+    assert SideProcess("squaring", pid_and_square, (3,)).result()[1] == 9     # a next helper can start
 
 
 SUPERVISED = textwrap.dedent("""
