@@ -46,21 +46,19 @@ def positive(value: float, option: str) -> float:
 
 def loss_evaluations(text: str) -> int:
     """--budget: a whole number of loss evaluations, 0 or more."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number of loss evaluations") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{value}: give 0 or more loss evaluations")
-    return value
+    return _whole_number(text, 0, "loss evaluations")
 
 
 def processes(text: str) -> int:
     """--jobs: a whole number of processes, 1 or more."""
+    return _whole_number(text, 1, "processes")
+
+
+def _whole_number(text: str, least: int, unit: str) -> int:
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number of processes") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{value}: give 1 or more processes")
+        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number of {unit}") from None
+    if value < least:
+        raise argparse.ArgumentTypeError(f"{value}: give {least} or more {unit}")
     return value
