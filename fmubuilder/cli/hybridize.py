@@ -58,8 +58,9 @@ def add_hybridize_parser(subparsers, common=None) -> None:
                    help="also train an ANN that starts from the fitted term and learns what it leaves, whenever a "
                         "term is offered (default: on; --no-ann-on-term leaves it out and saves its training)")
     p.add_argument("--jobs", "-j", type=processes, default=None, metavar="N",
-                   help="processes for the candidates: 2 trains the NeuralFMU beside the others, 1 one after the "
-                        "other; the same numbers either way (default: 2 when the machine has two cores)")
+                   help="processes for the candidates: 2 trains the NeuralFMU and calibrates beside the fitted "
+                        "term, 1 one after the other; the same numbers either way (default: 2 when the machine "
+                        "has two cores)")
     p.add_argument("--force", action="store_true",
                    help="overwrite the outputs; the old ones stay in place until the new ones are complete")
     p.set_defaults(func=cmd_hybridize, outputs=lambda args: [args.output, args.report])

@@ -159,8 +159,8 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
     old ones stay until the new ones are complete); allow_insignificant: build the candidates even
     when the diagnosis finds no significant effect; ann_on_term: also train an ANN that starts from
     the fitted term and learns what it leaves, whenever a term is offered (term_started.py); jobs:
-    processes for the candidates, 2 to train the NeuralFMU beside the others (the default with two
-    or more cores), 1 for one after the other; the numbers are the same."""
+    processes for the candidates, 2 to train the NeuralFMU and calibrate beside the fitted term (the
+    default with two or more cores), 1 for one after the other; the numbers are the same."""
     started = time.perf_counter()
     model_fmu, output_fmu, report_dir = Path(model_fmu), Path(output_fmu), Path(report_dir)
     _check_outputs(output_fmu, report_dir, force)
@@ -330,21 +330,24 @@ class _Context:
     progress: bool = True
     input_choice: dict | None = None              # how the ANN's channels and inputs were chosen
     ann_on_term: bool = True                      # also train an ANN that starts from the fitted term
-    jobs: int = 1                                 # processes: 2 trains the NeuralFMU beside the rest
+    jobs: int = 1                                 # processes: 2 builds the NeuralFMU and calibrations beside the rest
 
 
 def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
-    """The fitted term, the calibrations, the NeuralFMU and the ANN on the term. The NeuralFMU
-    depends on none of the others: with a second core it trains in a second process meanwhile."""
+    """The fitted term, the calibrations, the NeuralFMU and the ANN on the term. The NeuralFMU and
+    the calibrations depend on none of the others: with a second core they are built in a second
+    process meanwhile (the ANN on the term waits for the fitted term, so the two paths take about
+    as long on the VLDM demo)."""
     channels, inputs, channel_inputs = _ann_channels_and_inputs(ctx, diagnosis)
     aliases = {name: c for channel in channels for name, c in _aliases_of(ctx, channel).items()}
     settings = _training_settings(ctx.roles.train[0].samples(), diagnosis, ctx.budget)
     beside = ctx.jobs > 1 and can_run_beside()
     ctx.say(f"[2/5] training a NeuralFMU: ANN on {_wiring(channels, inputs, channel_inputs)} "
-            f"({ctx.budget} loss evaluations){', in a second process' if beside else ''} ...")
-    with SideProcess("training the NeuralFMU", _neural_training, (ctx, beside, channels, inputs, aliases, settings),
-                     {"channel_inputs": channel_inputs}, in_caller=not beside) as neural:
-        candidates = _term_and_calibrations(ctx, diagnosis)
+            f"({ctx.budget} loss evaluations){', and calibrating, in a second process' if beside else ''} ...")
+    with SideProcess("training the NeuralFMU and calibrating", _beside_work,
+                     (ctx, beside, channels, inputs, aliases, settings), {"channel_inputs": channel_inputs},
+                     in_caller=not beside) as helper:
+        candidates = _term_candidate(ctx, diagnosis)
         fitted = next((c.details["fitted_term"] for c in candidates if c.name == "fitted term"),
                       diagnosis.fitted_term)     # refined: the ANN on the term starts from it
         from .term_started import NAME, term_start
@@ -358,37 +361,36 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
             on_term.append(_neural_candidate(ctx, [start.channel], start.inputs, _aliases_of(ctx, start.channel),
                                              settings, name=NAME, base_terms=start.terms))
         if beside:
-            ctx.say("      waiting for the NeuralFMU's training in the second process ...")
-        candidate, ctx.training, said = neural.result()
+            ctx.say("      waiting for the NeuralFMU's training and the calibration in the second process ...")
+        calibrated, candidate, ctx.training, said = helper.result()
     for line in said:
         ctx.say(line)
-    return [*candidates, candidate, *on_term]
+    return [*candidates, *calibrated, candidate, *on_term]
 
 
-def _term_and_calibrations(ctx: _Context, diagnosis) -> list[Candidate]:
-    candidates = []
+def _term_candidate(ctx: _Context, diagnosis) -> list[Candidate]:
+    """The fitted term, when the diagnosis offers one and it simulates: a list of none or one."""
     fitted = diagnosis.fitted_term
-    if fitted and fitted.get("offered"):
-        ctx.say(f"[2/5] fitting the term: the diagnosis' {fitted['expression']}, and the forms of its leading "
-                "variables ...")
-        noise = {e.signal: e.noise for e in diagnosis.errors}
-        term = _fitted_term_candidate(ctx, diagnosis, _aliases_of(ctx, fitted["channel"]), noise)
-        if term is not None:
-            candidates.append(term)
-    return candidates + _calibrated_candidates(ctx)
+    if not (fitted and fitted.get("offered")):
+        return []
+    ctx.say(f"[2/5] fitting the term: the diagnosis' {fitted['expression']}, and the forms of its leading "
+            "variables ...")
+    noise = {e.signal: e.noise for e in diagnosis.errors}
+    term = _fitted_term_candidate(ctx, diagnosis, _aliases_of(ctx, fitted["channel"]), noise)
+    return [] if term is None else [term]
 
 
-def _neural_training(ctx: _Context, beside: bool, *args, **kwargs) -> tuple[Candidate, dict, list[str]]:
-    """The NeuralFMU candidate, what its training did (ctx.training) and what it had to say. In a
-    second process it keeps its messages for the caller and shows no progress bars, which would
-    cross the caller's. Its scores' runs are keyed by id(data): the forked process's data objects
-    are the caller's, at the same addresses."""
+def _beside_work(ctx: _Context, beside: bool, *args, **kwargs) -> tuple[list[Candidate], Candidate, dict, list[str]]:
+    """The NeuralFMU candidate and the calibrated ones, what the training did (ctx.training) and
+    what they had to say. In a second process it keeps its messages for the caller and shows no
+    progress bars, which would cross the caller's. The candidates' scores' runs are keyed by
+    id(data): the forked process's data objects are the caller's, at the same addresses."""
     said = []
     if beside:
         ctx = replace(ctx, say=said.append, progress=False)
         set_progress_enabled(False)     # this process's bars only
-    candidate = _neural_candidate(ctx, *args, **kwargs)
-    return candidate, ctx.training, said
+    neural = _neural_candidate(ctx, *args, **kwargs)
+    return _calibrated_candidates(ctx), neural, ctx.training, said
 
 
 def _candidate(ctx: _Context, name: str, description: str, fmu: Path, folder: Path, details: dict) -> Candidate:
