@@ -118,8 +118,14 @@ def _helper_main(write: int, function, args, kwargs) -> None:
     """The helper's whole life: it never returns into the caller's code."""
     code = 0
     try:
-        breadcrumb.become_helper()
-        payload = _picklable(*_outcome(function, args, kwargs))
+        try:
+            breadcrumb.become_helper()
+        except OSError as exc:      # without its own page a crash would be blamed on the caller's call
+            outcome = False, FmuBuilderError(f"the second process cannot keep its own record of FMI calls ({exc}); "
+                                             "--jobs 1 does the work in one process")
+        else:
+            outcome = _outcome(function, args, kwargs)
+        payload = _picklable(*outcome)
         view = memoryview(payload)
         while view:
             view = view[os.write(write, view):]

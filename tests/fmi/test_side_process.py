@@ -60,6 +60,15 @@ def test_an_error_in_the_helper_is_raised_by_result():
     assert "in the helper process" in raised.value.__notes__[0] and "fails_with" in raised.value.__notes__[0]
 
 
+def test_a_helper_without_its_own_crumb_page_says_so_and_does_no_work(monkeypatch):
+    def cannot_map():
+        raise OSError(12, "cannot map the helper's breadcrumb page")
+    monkeypatch.setattr(breadcrumb, "become_helper", cannot_map)     # the forked helper inherits it
+    with SideProcess("squaring", pid_and_square, (7,)) as side:
+        with pytest.raises(FmuBuilderError, match=r"cannot keep its own record of FMI calls .*--jobs 1"):
+            side.result()
+
+
 def crash_quietly(fmu):
     faulthandler.disable()      # pytest's, inherited: it would dump the helper's stack into the output
     return simulate_to_one_second(fmu)
