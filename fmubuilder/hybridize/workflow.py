@@ -336,8 +336,8 @@ class _Context:
 def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
     """The fitted term, the calibrations, the NeuralFMU and the ANN on the term. The NeuralFMU and
     the calibrations depend on none of the others: with a second core they are built in a second
-    process meanwhile (the ANN on the term waits for the fitted term, so the two paths take about
-    as long on the VLDM demo)."""
+    process meanwhile; the ANN on the term starts from the fitted term, so the two follow each other
+    in this one."""
     channels, inputs, channel_inputs = _ann_channels_and_inputs(ctx, diagnosis)
     aliases = {name: c for channel in channels for name, c in _aliases_of(ctx, channel).items()}
     settings = _training_settings(ctx.roles.train[0].samples(), diagnosis, ctx.budget)
