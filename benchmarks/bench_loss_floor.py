@@ -1,0 +1,100 @@
+"""What the data and an ANN's inputs allow on the VLDM's extra loss, without any training through the solver.
+
+The truth (examples/vldm/model.c, VLDM_TRUTH_EXTRA_LOSS) adds EXTRA_LOSS_FRACTION * |motor_torque *
+motor_speed| to the power the battery delivers, on der(energy). For each set of ANN inputs, the
+16x16 tanh ANN of `hybridize` on der(energy) is fitted without the solver to that loss at the
+truth's own values of the inputs along the training part (the first 80 % of the CADC run), then
+the declared FMU with that ANN is simulated (RK4, h = 0.01 s, through the sensor lag) over the
+whole CADC run and the WLTC class 2 test run: MSE / noise variance per signal. The truth FMU and
+the plain FMU are scored the same way. Inputs that hold the loss as a function reach the floor
+here; inputs that do not, stay above it whatever the training does.
+
+    python benchmarks/bench_loss_floor.py [--inputs "speed,der(speed)" --inputs "motor_torque,motor_speed"]
+"""
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import torch
+
+from fmubuilder.build import example_fmu
+from fmubuilder.data import load_data, read_sidecar
+from fmubuilder.examples_zoo import cached_data, vldm_data_sets
+from fmubuilder.fmi import read_model_info
+from fmubuilder.hybridize import workflow
+from fmubuilder.neural import NeuralFMU, TopologyConfig
+from fmubuilder.neural.train import data_errors, simulate_over
+from fmubuilder.neural.warm_start import fit_full_batch, scale_output_to_effect
+from fmubuilder.simulation import simulate
+
+STEP = 0.01
+EXTRA_LOSS_FRACTION = 0.10      # examples/vldm/model.c
+CHANNEL = "der(energy)"
+DEFAULT_INPUTS = ["speed,der(speed)", "motor_torque,motor_speed", "motor_power"]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--inputs", action="append", help="comma-separated ANN inputs (repeatable)")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    sets = [d for d in vldm_data_sets() if d.variant.key == "extra_loss"]
+    paths, _ = cached_data(sets)
+    train_csv = next(p for p in paths if "_train_" in p.name)
+    test_csv = next(p for p in paths if "_test_" in p.name)
+    declared, truth = example_fmu("vldm"), example_fmu(sets[0].variant.fmu)
+    info = read_model_info(declared)
+    whole, test = load_data(train_csv, info), load_data(test_csv, info)
+    split = whole.start + (1.0 - workflow.VALIDATION_SHARE) * (whole.stop - whole.start)
+    starts = read_sidecar(train_csv)["start_values"], read_sidecar(test_csv)["start_values"]
+    lag = read_sidecar(train_csv)["bench"]["lag"]
+    runs = {"whole CADC": (whole, starts[0]), "test WLTC2": (test, starts[1])}
+    names = list(whole.signals)
+    # a measured output equal to der(energy) (the power) is read from the hybrid's derivative, as hybridize reads it
+    aliases = workflow.channel_aliases(declared, info, CHANNEL, starts[0], whole.time, whole.start,
+                                       whole.start + workflow.ALIAS_SPAN)
+    print(f"(MSE / noise variance per signal: {', '.join(names)}; RK4, h = {STEP} s)")
+    print("| model | whole CADC | test WLTC2 | fit: relative error |\n|---|---|---|---|")
+    plain = NeuralFMU(declared, TopologyConfig(), start_values=starts[0])
+    print(f"| plain FMU | {' | '.join(_scores(plain, runs, lag, names, aliases, plain=True))} | - |", flush=True)
+    plain.close()
+    for inputs in [s.split(",") for s in (args.inputs or DEFAULT_INPUTS)]:
+        torch.manual_seed(0)
+        model = NeuralFMU(declared, TopologyConfig(channels=[CHANNEL], inputs=inputs, kind="residual", hidden=[16, 16]),
+                          start_values=starts[0])
+        x, target = _truth_along(truth, inputs, whole.start, split, starts[0])
+        model.topology.initialise_scaling(x.numpy(), target.numpy())
+        scale_output_to_effect(model.topology, target)
+        fit_full_batch(model.topology, x, target, iterations=1000, bounded=False, weight_decay=0.0)
+        with torch.no_grad():
+            error = float(((model.topology.correction(x) - target) ** 2).mean() / (target ** 2).mean())
+        print(f"| ANN reading {', '.join(inputs)}, fitted to the truth's loss | "
+              f"{' | '.join(_scores(model, runs, lag, names, aliases))} | {error:.2g} |", flush=True)
+        model.close()
+    truth_model = NeuralFMU(truth, TopologyConfig(), start_values=starts[0])
+    print(f"| truth FMU | {' | '.join(_scores(truth_model, runs, lag, names, aliases, plain=True))} | - |")
+    truth_model.close()
+
+
+def _truth_along(truth, inputs: list[str], start: float, stop: float, start_values: dict):
+    """The inputs' values and the truth's extra loss every 0.1 s of the truth's run over [start, stop]."""
+    recorded = list(dict.fromkeys([*inputs, "motor_torque", "motor_speed"]))
+    run = simulate(truth, start_time=start, stop_time=stop, start_values=start_values, variables=recorded,
+                   solver="rk4", step_size=STEP, output_interval=0.1)
+    x = np.stack([np.asarray(run[name], dtype=float) for name in inputs], axis=1)
+    loss = EXTRA_LOSS_FRACTION * np.abs(np.asarray(run["motor_torque"]) * np.asarray(run["motor_speed"]))
+    return torch.from_numpy(x), torch.from_numpy(loss[:, None])
+
+
+def _scores(model, runs, lag, names, aliases: dict, plain: bool = False) -> list[str]:
+    cells = []
+    for data, start_values in runs.values():
+        run = simulate_over(model, data, STEP, "rk4", start_values, plain=plain, aliases=aliases)
+        errors = data_errors(data, run, lag, aliases)
+        cells.append(", ".join(f"{errors[n]['mse'] / data.noise_variance(n):.3g}" for n in names))
+    return cells
+
+
+if __name__ == "__main__":
+    main()
