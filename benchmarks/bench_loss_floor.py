@@ -9,6 +9,11 @@ whole CADC run and the WLTC class 2 test run: MSE / noise variance per signal. T
 the plain FMU are scored the same way. Inputs that hold the loss as a function reach the floor
 here; inputs that do not, stay above it whatever the training does.
 
+Then the warm start's target, the collocation estimate of the missing term (neural/collocation.py:
+the measured power, equal to der(energy) in this model, minus the model's der(energy) in the run
+with the measured states forced), against the truth's loss at the same times; and the same
+difference taken from the plain model's own run, no state forced.
+
     python benchmarks/bench_loss_floor.py [--inputs "speed,der(speed)" --inputs "motor_torque,motor_speed"]
 """
 from __future__ import annotations
@@ -24,6 +29,7 @@ from fmubuilder.examples_zoo import cached_data, vldm_data_sets
 from fmubuilder.fmi import read_model_info
 from fmubuilder.hybridize import workflow
 from fmubuilder.neural import NeuralFMU, TopologyConfig
+from fmubuilder.neural.collocation import MAX_SAMPLES, collocation_samples, forced_channel_run, local_fit
 from fmubuilder.neural.train import data_errors, simulate_over
 from fmubuilder.neural.warm_start import fit_full_batch, scale_output_to_effect
 from fmubuilder.simulation import simulate
@@ -75,15 +81,47 @@ def main() -> None:
     truth_model = NeuralFMU(truth, TopologyConfig(), start_values=starts[0])
     print(f"| truth FMU | {' | '.join(_scores(truth_model, runs, lag, names, aliases, plain=True))} | - |")
     truth_model.close()
+    train = whole.window(whole.start, float(whole.time[np.searchsorted(whole.time, split, side="right") - 1]))
+    _estimates(declared, truth, info, train, starts[0])
 
 
-def _truth_along(truth, inputs: list[str], start: float, stop: float, start_values: dict):
-    """The inputs' values and the truth's extra loss every 0.1 s of the truth's run over [start, stop]."""
+def _estimates(declared, truth, info, train, start_values: dict) -> None:
+    """The missing term of der(energy) estimated along the measured run, against the truth's loss."""
+    model = NeuralFMU(declared, TopologyConfig(channels=[CHANNEL], inputs=["speed"], kind="residual"),
+                      start_values=start_values)
+    lag = train.sensor_lag
+    signals = train.input_signals(info)
+    _, fmu, measured, mask = collocation_samples(model, train, STEP, "rk4", workflow.COLLOCATION_WINDOW, signals, lag)
+    times = forced_channel_run(model, train, STEP, "rk4", workflow.COLLOCATION_WINDOW, signals, lag)[0]
+    times = times[::max(1, len(times) // MAX_SAMPLES)]     # the points collocation_samples keeps
+    model.close()
+    forced, keep = (measured - fmu)[:, 0], mask[:, 0]
+    run = simulate(declared, start_time=train.start, stop_time=train.stop, start_values=start_values,
+                   variables=["power"], solver="rk4", step_size=STEP, output_interval=STEP)
+    value, _, valid = local_fit(train.time, train.signals["power"], times + lag, workflow.COLLOCATION_WINDOW)
+    unforced = value - np.interp(times, run.time, np.asarray(run["power"]))
+    _, true = _truth_along(truth, [], train.start, train.stop, start_values, times)
+    true = true.numpy()[:, 0]
+    print(f"\nthe missing term of {CHANNEL} estimated along the training part ({int(keep.sum())} points; the truth's "
+          f"loss: mean {true[keep].mean():.0f} W, rms {np.sqrt(np.mean(true[keep] ** 2)):.0f} W)")
+    print("| estimate | minus the truth's loss: mean [W] | rms [W] | correlation with it |\n|---|---|---|---|")
+    for label, estimate, where in (("the warm start's: the measured states forced", forced, keep),
+                                   ("the plain model's run, nothing forced", unforced, keep & valid)):
+        error = estimate[where] - true[where]
+        print(f"| {label} | {error.mean():.3g} | {np.sqrt(np.mean(error ** 2)):.3g} | "
+              f"{np.corrcoef(estimate[where], true[where])[0, 1]:.2f} |")
+
+
+def _truth_along(truth, inputs: list[str], start: float, stop: float, start_values: dict, times=None):
+    """The inputs' values and the truth's extra loss along the truth's run over [start, stop]: every
+    0.1 s, or at `times`."""
     recorded = list(dict.fromkeys([*inputs, "motor_torque", "motor_speed"]))
     run = simulate(truth, start_time=start, stop_time=stop, start_values=start_values, variables=recorded,
-                   solver="rk4", step_size=STEP, output_interval=0.1)
-    x = np.stack([np.asarray(run[name], dtype=float) for name in inputs], axis=1)
-    loss = EXTRA_LOSS_FRACTION * np.abs(np.asarray(run["motor_torque"]) * np.asarray(run["motor_speed"]))
+                   solver="rk4", step_size=STEP, output_interval=0.1 if times is None else STEP)
+    at = run.time if times is None else times
+    values = {name: np.interp(at, run.time, np.asarray(run[name], dtype=float)) for name in recorded}
+    x = np.stack([values[name] for name in inputs], axis=1) if inputs else np.zeros((len(at), 0))
+    loss = EXTRA_LOSS_FRACTION * np.abs(values["motor_torque"] * values["motor_speed"])
     return torch.from_numpy(x), torch.from_numpy(loss[:, None])
 
 
