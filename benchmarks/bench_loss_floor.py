@@ -12,7 +12,8 @@ here; inputs that do not, stay above it whatever the training does.
 Then the warm start's target, the collocation estimate of the missing term (neural/collocation.py:
 the measured power, equal to der(energy) in this model, minus the model's der(energy) in the run
 with the measured states forced), against the truth's loss at the same times; and the same
-difference taken from the plain model's own run, no state forced.
+difference taken from the plain model's own run, no state forced. Also how far the forced run's
+speed and der(speed) lie from the truth's.
 
     python benchmarks/bench_loss_floor.py [--inputs "speed,der(speed)" --inputs "motor_torque,motor_speed"]
 """
@@ -87,11 +88,13 @@ def main() -> None:
 
 def _estimates(declared, truth, info, train, start_values: dict) -> None:
     """The missing term of der(energy) estimated along the measured run, against the truth's loss."""
-    model = NeuralFMU(declared, TopologyConfig(channels=[CHANNEL], inputs=["speed"], kind="residual"),
+    seen = ["speed", "der(speed)"]      # what the forced run makes of them
+    model = NeuralFMU(declared, TopologyConfig(channels=[CHANNEL], inputs=seen, kind="residual"),
                       start_values=start_values)
     lag = train.sensor_lag
     signals = train.input_signals(info)
-    _, fmu, measured, mask = collocation_samples(model, train, STEP, "rk4", workflow.COLLOCATION_WINDOW, signals, lag)
+    forced_values, fmu, measured, mask = collocation_samples(model, train, STEP, "rk4", workflow.COLLOCATION_WINDOW,
+                                                             signals, lag)
     times = forced_channel_run(model, train, STEP, "rk4", workflow.COLLOCATION_WINDOW, signals, lag)[0]
     times = times[::max(1, len(times) // MAX_SAMPLES)]     # the points collocation_samples keeps
     model.close()
@@ -100,8 +103,12 @@ def _estimates(declared, truth, info, train, start_values: dict) -> None:
                    variables=["power"], solver="rk4", step_size=STEP, output_interval=STEP)
     value, _, valid = local_fit(train.time, train.signals["power"], times + lag, workflow.COLLOCATION_WINDOW)
     unforced = value - np.interp(times, run.time, np.asarray(run["power"]))
-    _, true = _truth_along(truth, [], train.start, train.stop, start_values, times)
+    truth_values, true = _truth_along(truth, seen, train.start, train.stop, start_values, times)
     true = true.numpy()[:, 0]
+    for j, name in enumerate(seen):
+        off = forced_values[keep, j] - truth_values.numpy()[keep, j]
+        print(f"{name} in the forced run: {np.sqrt(np.mean(off ** 2)):.3g} rms off the truth's "
+              f"(whose rms is {np.sqrt(np.mean(truth_values.numpy()[keep, j] ** 2)):.3g})")
     print(f"\nthe missing term of {CHANNEL} estimated along the training part ({int(keep.sum())} points; the truth's "
           f"loss: mean {true[keep].mean():.0f} W, rms {np.sqrt(np.mean(true[keep] ** 2)):.0f} W)")
     print("| estimate | minus the truth's loss: mean [W] | rms [W] | correlation with it |\n|---|---|---|---|")
