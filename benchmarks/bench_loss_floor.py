@@ -30,7 +30,7 @@ from fmubuilder.examples_zoo import cached_data, vldm_data_sets
 from fmubuilder.fmi import read_model_info
 from fmubuilder.hybridize import workflow
 from fmubuilder.neural import NeuralFMU, TopologyConfig
-from fmubuilder.neural.collocation import MAX_SAMPLES, collocation_samples, forced_channel_run, local_fit
+from fmubuilder.neural.collocation import forced_channel_run, local_fit, samples_along
 from fmubuilder.neural.train import data_errors, simulate_over
 from fmubuilder.neural.warm_start import fit_full_batch, scale_output_to_effect
 from fmubuilder.simulation import simulate
@@ -93,10 +93,8 @@ def _estimates(declared, truth, info, train, start_values: dict) -> None:
                       start_values=start_values)
     lag = train.sensor_lag
     signals = train.input_signals(info)
-    forced_values, fmu, measured, mask = collocation_samples(model, train, STEP, "rk4", workflow.COLLOCATION_WINDOW,
-                                                             signals, lag)
-    times = forced_channel_run(model, train, STEP, "rk4", workflow.COLLOCATION_WINDOW, signals, lag)[0]
-    times = times[::max(1, len(times) // MAX_SAMPLES)]     # the points collocation_samples keeps
+    run = forced_channel_run(model, train, STEP, "rk4", workflow.COLLOCATION_WINDOW, signals, lag)
+    times, forced_values, fmu, measured, mask = samples_along(run, model, train, workflow.COLLOCATION_WINDOW, lag)
     model.close()
     forced, keep = (measured - fmu)[:, 0], mask[:, 0]
     run = simulate(declared, start_time=train.start, stop_time=train.stop, start_values=start_values,

@@ -32,8 +32,12 @@ def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solve
     """(ANN inputs [N, n_in], FMU channel derivatives [N, C], measured derivatives [N, C], mask [N, C])
     or None when no channel's state is measured. sensor_lag: the sensors' first-order time constant."""
     run = forced_channel_run(model, data, step, solver, window, inputs, sensor_lag)
-    if run is None:
-        return None
+    return None if run is None else samples_along(run, model, data, window, sensor_lag)[1:]
+
+
+def samples_along(run, model: NeuralFMU, data: MeasuredData, window: float, sensor_lag: float = 0.0):
+    """collocation_samples from a forced_channel_run, with the absolute times of the points kept:
+    (times [N], ANN inputs, FMU channel derivatives, measured derivatives, mask)."""
     times, ann_inputs, fmu_channels, channel_states, aliases = run
     every = max(1, len(times) // MAX_SAMPLES)
     keep = slice(0, len(times), every)
@@ -51,7 +55,7 @@ def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solve
         elif state in data.signals:
             _, slope, valid = local_fit(data.time, data.signals[state], times + sensor_lag, window)
             measured[:, j], mask[:, j] = slope, valid & smooth
-    return ann_inputs, fmu_channels, measured, mask
+    return times, ann_inputs, fmu_channels, measured, mask
 
 
 def integral_samples(model: NeuralFMU, data: MeasuredData, step: float, solver: str, inputs,
