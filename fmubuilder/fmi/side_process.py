@@ -79,7 +79,9 @@ class SideProcess:
         try:
             payload = _read_all(self._pipe)
             _, status = os.waitpid(self.pid, 0)
-            if payload:
+            # only a helper that ended by itself sent all of it: one killed while it wrote (stopped
+            # by stop() with a result larger than the pipe holds) left a part that does not unpickle
+            if payload and os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0:
                 return pickle.loads(payload)
             return False, FmuBuilderError(self._ended(status))
         finally:

@@ -94,6 +94,19 @@ def test_leaving_the_block_early_stops_the_helper():
     assert not running(pid)
 
 
+def a_megabyte():
+    return bytes(1 << 20)       # more than a pipe holds: the helper waits in its write for the caller
+
+
+def test_leaving_early_while_the_helper_waits_to_send_a_large_result_keeps_the_callers_exception():
+    with pytest.raises(KeyboardInterrupt):
+        with SideProcess("sending", a_megabyte) as side:
+            pid = side.pid
+            time.sleep(0.5)
+            raise KeyboardInterrupt
+    assert not running(pid)
+
+
 def interrupt(signum, frame):
     raise KeyboardInterrupt
 
