@@ -174,8 +174,10 @@ class _Supervisor:
         return self.worker.check_hang(self.call_timeout) or (self.helper and self.helper.check_hang(self.call_timeout))
 
     def _kill(self) -> None:
-        _stop_helper()
+        # the worker first: killed after its helper, it may still run long enough to see the helper
+        # gone and start reporting that (a traceback line beside the supervisor's one line)
         _send(self.pid, signal.SIGKILL)
+        _stop_helper()
         with contextlib.suppress(ChildProcessError):
             os.waitpid(self.pid, 0)
 
