@@ -28,10 +28,11 @@ ROUGHNESS_LIMIT = 2.0
 
 
 def collocation_samples(model: NeuralFMU, data: MeasuredData, step: float, solver: str, window: float, inputs,
-                        sensor_lag: float = 0.0):
+                        sensor_lag: float = 0.0, force: bool = True):
     """(ANN inputs [N, n_in], FMU channel derivatives [N, C], measured derivatives [N, C], mask [N, C])
-    or None when no channel's state is measured. sensor_lag: the sensors' first-order time constant."""
-    run = forced_channel_run(model, data, step, solver, window, inputs, sensor_lag)
+    or None when no channel's state is measured. sensor_lag: the sensors' first-order time constant.
+    force=False: along the plain run instead (see forced_channel_run)."""
+    run = forced_channel_run(model, data, step, solver, window, inputs, sensor_lag, force)
     return None if run is None else samples_along(run, model, data, window, sensor_lag)[1:]
 
 
@@ -59,7 +60,7 @@ def samples_along(run, model: NeuralFMU, data: MeasuredData, window: float, sens
 
 
 def integral_samples(model: NeuralFMU, data: MeasuredData, step: float, solver: str, inputs,
-                     sensor_lag: float = 0.0, span: float = 0.5):
+                     sensor_lag: float = 0.0, span: float = 0.5, force: bool = True):
     """The weak-form counterpart of collocation_samples: over windows [a, b] of `span` seconds,
     x(b) - x(a) = integral of (FMU derivative + missing term) dt, with no window left out (the state
     is continuous where its derivative jumps, at a friction's sign change or a load step).
@@ -72,8 +73,8 @@ def integral_samples(model: NeuralFMU, data: MeasuredData, step: float, solver: 
     not to local lines: a line through a load step smears the current over the line's span, and
     the integral of the FMU's derivative over a window near the step with it (on the DC drive's
     Coulomb data the target's rms error over 0.5 s windows was 2.34 with 0.5 s lines, 0.74 with
-    the samples, against a friction of rms 4.8 rad/s^2)."""
-    run = forced_channel_run(model, data, step, solver, 0.0, inputs, sensor_lag)
+    the samples, against a friction of rms 4.8 rad/s^2). force=False: along the plain run instead."""
+    run = forced_channel_run(model, data, step, solver, 0.0, inputs, sensor_lag, force)
     if run is None:
         return None
     times, ann_inputs, fmu_channels, channel_states, _ = run
@@ -147,18 +148,21 @@ def _interpolated(time, values):
 
 
 def forced_channel_run(model: NeuralFMU, data: MeasuredData, step: float, solver: str, window: float, inputs,
-                       sensor_lag: float = 0.0):
+                       sensor_lag: float = 0.0, force: bool = True):
     """The forced run (forced_run: the measured states set to their local lines through +-window/2,
     or with window 0 to the samples interpolated linearly, read a sensor lag later) on its whole
     grid: (absolute times [N], ANN inputs [N, n_in], FMU channel derivatives [N, C], the channels'
-    state names), or None when no channel's state is measured."""
+    state names, for each channel the measured output equal to its derivative or None), or None
+    when no channel's state is measured. force=False: the plain run, nothing forced, the same
+    record (where a controller reacts to the forced noise more than to the effect, the model's own
+    run is the better reference; see warm_start.ESTIMATES)."""
     config = model.config
     state_names = model.state_names()
     derivative_names = [v.name for v in model.info.derivatives]
     channel_states = [state_names[derivative_names.index(c)] for c in config.channels]
     if not any(s in data.signals for s in channel_states):
         return None
-    forced = [s for s in state_names if s in data.signals]
+    forced = [s for s in state_names if s in data.signals] if force else []
     if window > 0:
         fits = [local_fitter(data.time, data.signals[s], window) for s in forced]
     else:

@@ -67,8 +67,8 @@ def test_an_estimate_blind_to_the_effect_is_replaced_by_a_fit_through_the_simula
     from fmubuilder.neural import warm_start as module
     estimate = module.collocation_targets
 
-    def blind(trainer):
-        x, target = estimate(trainer)
+    def blind(trainer, force=True):
+        x, target = estimate(trainer, force)
         noise = torch.randn(target.shape, generator=torch.Generator().manual_seed(0), dtype=target.dtype)
         return x, target.std() * noise
     monkeypatch.setattr(module, "collocation_targets", blind)
@@ -142,21 +142,24 @@ def test_the_warm_start_keeps_the_weight_decay_whose_fit_simulates_best(dc_drive
         loss, result = first_loss(dc_drive_fmu, coulomb_data, warm_start=True)
         result.model.close()
         report = result.metrics["warm_start"]
-        losses = {trial["decays"][0]: trial["loss"] for trial in report["trials"]}
-        assert report["kept"] and report["loss_after"] == min(losses.values())
+        trials = report["trials"]
+        assert len(trials) == len(order) * len(module.ESTIMATES)        # one channel: no splicing
+        assert report["kept"] and report["loss_after"] == min(trial["loss"] for trial in trials)
         assert loss == pytest.approx(report["loss_after"], rel=1e-9)
-        kept[order] = report["weight_decay"], loss
-        assert len(report["trials"]) == len(order)       # one channel: no splicing
-    assert len({(tuple(decays), loss) for decays, loss in kept.values()}) == 1
-    assert kept[module.WEIGHT_DECAYS][0] == [min(losses)] and losses[min(losses)] < 0.8 * losses[max(losses)]
+        kept[order] = report["estimate"], report["weight_decay"], loss
+        forced = {trial["decays"][0]: trial["loss"] for trial in trials if trial["estimates"] == ["forced"]}
+    assert len({(tuple(estimate), tuple(decays), loss) for estimate, decays, loss in kept.values()}) == 1
+    # the forced estimate: the plain run's current misses the friction the controller compensates
+    assert kept[module.WEIGHT_DECAYS][:2] == (["forced"], [min(forced)])
+    assert forced[min(forced)] < 0.8 * forced[max(forced)]
 
 
 def test_a_spliced_warm_start_takes_each_channel_s_block_from_its_own_fit(dc_drive_fmu):
-    """With a sub-network per channel, the parameters spliced from two fits give each channel the
-    correction of the fit it was taken from, exactly."""
+    """With a sub-network per channel, the parameters and output scales spliced from two fits give
+    each channel the correction of the fit it was taken from, exactly."""
     from fmubuilder.fmi import read_model_info
     from fmubuilder.neural.topology import Topology, TopologyConfig
-    from fmubuilder.neural.warm_start import _spliced
+    from fmubuilder.neural.warm_start import _Fit, _spliced
     config = TopologyConfig(channels=["der(speed)", "der(energy)"], inputs=["speed", "current"], hidden=[4, 3],
                             kind="gates", channel_inputs=[["speed"], ["current", "speed"]])
     topology = Topology(config, read_model_info(dc_drive_fmu), [])     # gates: no layer starts at zero
@@ -167,13 +170,13 @@ def test_a_spliced_warm_start_takes_each_channel_s_block_from_its_own_fit(dc_dri
         with torch.no_grad():
             for p, block in zip(topology.ann.parameters(), blocks):
                 p.copy_(torch.randn_like(p) * block)      # keep the zeros between the channels' blocks
+            topology.post_scale.copy_(torch.rand_like(topology.post_scale) + 0.5)
             corrections[decay] = topology.correction(x)
-        fits[decay] = [p.detach().clone() for p in topology.ann.parameters()]
+        fits[decay] = _Fit([p.detach().clone() for p in topology.ann.parameters()],
+                           topology.post_scale.detach().clone())
     assert (corrections[1e-4] - corrections[1e-6]).abs().min() > 0      # the fits differ in both channels
-    spliced = _spliced(fits, [1e-6, 1e-4], topology.row_channels())
+    _spliced(fits, [1e-6, 1e-4], topology.row_channels()).apply(topology)
     with torch.no_grad():
-        for p, value in zip(topology.ann.parameters(), spliced):
-            p.copy_(value)
         mixed = topology.correction(x)
     torch.testing.assert_close(mixed[:, 0], corrections[1e-6][:, 0], rtol=0, atol=0)
     torch.testing.assert_close(mixed[:, 1], corrections[1e-4][:, 1], rtol=0, atol=0)
