@@ -83,6 +83,42 @@ def test_an_estimate_blind_to_the_effect_is_replaced_by_a_fit_through_the_simula
     assert warm < 1.05 * truth_term < 0.6
 
 
+def test_where_the_forced_estimate_is_blind_the_plain_run_s_estimate_is_kept(dc_drive_fmu, monkeypatch):
+    """A loss in der(energy) (the truth's 0.01 |speed * current|) does not move the speed or the
+    current: the plain model's run follows the measured one, and the measured power minus the plain
+    run's is the loss. With the forced run's estimate replaced by noise (as a controller set off by
+    the forced noise makes it, on the VLDM), the plain run's fit is the one kept."""
+    from fmubuilder.neural import warm_start as module
+    estimate = module.collocation_targets
+
+    def forced_blind(trainer, force=True):
+        x, target = estimate(trainer, force)
+        if not force:
+            return x, target
+        noise = torch.randn(target.shape, generator=torch.Generator().manual_seed(0), dtype=target.dtype)
+        return x, target.std() * noise
+    monkeypatch.setattr(module, "collocation_targets", forced_blind)
+    truth = simulate(example_fmu("dc_drive_truth_speed_current_loss"), stop_time=10.0, solver="rk4",
+                     step_size=0.0005, output_interval=0.01, variables=["speed", "current", "power", "energy"])
+    rng = np.random.default_rng(2)
+    noise = {"speed": 0.5, "current": 0.05, "power": 2.0, "energy": 2.0}
+    data = MeasuredData(truth.time, {k: truth[k] + s * rng.standard_normal(truth.time.size) for k, s in noise.items()},
+                        source="dc_drive speed_current_loss")
+    result = train_neural_fmu(dc_drive_fmu, data, targets=["der(energy)"], inputs=["current", "speed"],
+                              topology="residual", hidden=[8], epochs=1, element_length=2.0, step_size=0.002,
+                              progress=False, ccpt_window=0.2, warm_start=True)
+    try:
+        report = result.metrics["warm_start"]
+        forced = [t["loss"] for t in report["trials"] if t["estimates"] == ["forced"]]
+        assert report["estimate"] == ["plain"] and report["loss_after"] < 0.85 * min(forced)
+        at = torch.tensor([[2.5, 150.0], [6.5, 150.0], [5.6, 60.0]], dtype=torch.float64)    # held in the data
+        with torch.no_grad():
+            learned = result.model.topology.correction(at)[:, 0].numpy()
+        np.testing.assert_allclose(learned, 0.01 * (at[:, 0] * at[:, 1]).abs().numpy(), rtol=0.25)
+    finally:
+        result.model.close()
+
+
 @pytest.mark.parametrize("coefficient", [1.0, 0.5])
 def test_an_ann_started_from_a_term_never_ends_worse_on_validation(dc_drive_fmu, windage_data, coefficient):
     """The ANN adds to a fitted windage term (exact, or half of it) and trains with a step size that
