@@ -5,9 +5,10 @@ fmubuilder/examples_zoo.py) `hybridize` runs as a user would run it: diagnosis, 
 the NeuralFMU as candidates, the choice on the held-out late share of the training run. Printed per
 case and measured signal: the test MSE (the separate test run, held out of everything) divided by
 the noise variance of the measured value, for the truth FMU (the model that made the data), the
-plain FMU, the fitted term, the NeuralFMU and the ANN on the fitted term. 1 is the noise floor: the truth column shows that
-the scoring (`Scoring.checked`, the same for every column) reaches it, so the other columns measure
-the models, not the integrator. The noise variance is the generator's (the sidecar's bench: the
+plain FMU, the best calibrated parameter (of the calibrated candidates, the one with the lowest
+validation score), the fitted term, the NeuralFMU and the ANN on the fitted term. 1 is the noise
+floor: the truth column shows that the scoring (`Scoring.checked`, the same for every column)
+reaches it, so the other columns measure the models, not the integrator. The noise variance is the generator's (the sidecar's bench: the
 sensor's standard deviation squared over the number of runs averaged); a cell is "-" when the
 candidate was not built (no significant effect, no term). The seconds are the case's wall time
 (the whole hybridize call; with --truth-only the step check and the truth's run).
@@ -99,9 +100,9 @@ def main() -> None:
     print(f"\nTest MSE / noise variance of the measured value (1 = noise floor), {args.budget} loss evaluations "
           f"({optimizer}, at least {workflow.MIN_ELEMENTS} elements, warm start target {workflow.WARM_START_TARGET}"
           + (f" over {workflow.INTEGRAL_WINDOW:g} s" if workflow.WARM_START_TARGET == "integral" else "") + "):\n")
-    print("| case | signal | truth FMU | plain FMU | fitted term | NeuralFMU | ANN on the term | chosen "
+    print("| case | signal | truth FMU | plain FMU | calibrated | fitted term | NeuralFMU | ANN on the term | chosen "
           "| NeuralFMU channels and inputs | seconds |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for row in rows:
         print("| " + " | ".join(row) + " |")
 
@@ -143,6 +144,9 @@ def _data(example: str, variant: str) -> tuple[Path, Path]:
 def _rows(case: str, truth: dict, report: dict | None, sidecar: dict, seconds: float) -> list[list[str]]:
     bench = sidecar["bench"]
     models = {m["name"]: m for m in report["models"]} if report else {}
+    calibrated = [name for name in models if name.startswith("calibrated ")]
+    if calibrated:
+        models["calibrated"] = models[min(calibrated, key=lambda name: report["selection"]["scores"][name])]
     neural = models.get("neural")
     described = "-"
     if neural:
@@ -157,11 +161,11 @@ def _rows(case: str, truth: dict, report: dict | None, sidecar: dict, seconds: f
         if report:
             plain = report["errors"]["test"]["before"][signal]["mse"]
             cells.append(_ratio(plain, floor))
-            for name in ("fitted term", "neural", "neural on the fitted term"):
+            for name in ("calibrated", "fitted term", "neural", "neural on the fitted term"):
                 model = models.get(name)
                 cells.append(_ratio(plain / model["test_mse_factor"][signal], floor) if model else "-")
         else:
-            cells += ["-"] * 4
+            cells += ["-"] * 5
         chosen = (report["chosen"] or "none") if report else "-"
         rows.append([case, signal, *cells, chosen, described, f"{seconds:.0f}"])
     return rows

@@ -9,7 +9,7 @@ from fmubuilder import synth
 from fmubuilder.build import example_fmu
 from fmubuilder.data import load_data
 from fmubuilder.examples_zoo import SENSOR_NOISE
-from fmubuilder.neural.collocation import collocation_samples
+from fmubuilder.neural.collocation import forced_channel_run, samples_along
 from fmubuilder.neural.model import NeuralFMU
 from fmubuilder.neural.topology import TopologyConfig
 from fmubuilder.simulation import simulate
@@ -42,12 +42,9 @@ def test_the_energy_estimate_follows_the_loss_not_the_integrators_drift(dc_drive
         data = load_data(path, model.info)
         if not power:
             del data.signals["power"]
-        inputs, fmu_channels, measured, mask = collocation_samples(
-            model, data, 0.01, "rk4", 0.5, data.input_signals(model.info), data.sensor_lag or 0.0)
-        # the forced run's grid: the sample times the estimate stands for (collocation_samples keeps all)
-        from fmubuilder.neural.collocation import forced_channel_run
-        times = forced_channel_run(model, data, 0.01, "rk4", 0.5, data.input_signals(model.info),
-                                   data.sensor_lag or 0.0)[0]
+        lag = data.sensor_lag or 0.0
+        run = forced_channel_run(model, data, 0.01, "rk4", 0.5, data.input_signals(model.info), lag)
+        times, inputs, fmu_channels, measured, mask = samples_along(run, model, data, 0.5, lag)
     finally:
         model.close()
     truth = simulate(truth_fmu, start_time=data.start, stop_time=data.stop, variables=["speed", "current"],
