@@ -234,6 +234,20 @@ def _cell(text: str) -> str:
     return str(text).replace("|", "\\|")
 
 
+def _warm_start_note(warm: dict) -> str:
+    """What the warm start (neural/warm_start.py) kept, and the training loss it started from."""
+    if not warm.get("samples"):
+        return "no warm start (no channel's state measured)"
+    estimates = warm.get("estimate") or []
+    parts = [f"fitted to the {' / '.join(dict.fromkeys(estimates))} run's estimate"] if estimates else []
+    through = warm.get("through_simulation")
+    if through and through["kept"]:
+        parts.append("last layer through the simulation")
+    if not warm["kept"]:
+        return f"warm start not kept ({len(warm.get('trials', []))} fits tried)"
+    return f"warm start: {', then '.join(parts)}, training loss {warm['loss_before']:.4g} -> {warm['loss_after']:.4g}"
+
+
 def _candidate_note(model: dict, training: dict | None) -> str:
     """Why a row looks the way it does."""
     notes, training = [], training or {}
@@ -246,6 +260,8 @@ def _candidate_note(model: dict, training: dict | None) -> str:
                          if training.get("cut_short_by_time_budget") else "no training was asked for")
         elif training.get("cut_short_by_time_budget"):
             notes.append("cut short by the wall-clock cap")
+        if model.get("warm_start"):
+            notes.append(_warm_start_note(model["warm_start"]))
         refined = model.get("last_layer")
         if refined and refined["kept"]:
             notes.append(f"last layer refined through the simulation: training loss {refined['loss_before']:.4g} -> "

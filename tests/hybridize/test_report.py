@@ -233,6 +233,16 @@ def test_candidate_notes_say_how_each_kind_was_made():
     unrefined_ann = _candidate_note({"name": "neural", "loss_evaluations": 5, **scores,
                                      "last_layer": {**last_layer, "kept": False}}, {"budget": 5})
     assert "last layer's refinement not kept (37 sims)" in unrefined_ann and "->" not in unrefined_ann
+    warm = {"samples": 900, "kept": True, "estimate": ["plain"], "loss_before": 111e3, "loss_after": 31.3,
+            "trials": [{}] * 4, "through_simulation": None}
+    warmed = _candidate_note({"name": "neural", "loss_evaluations": 5, "warm_start": warm, **scores}, {"budget": 5})
+    assert "warm start: fitted to the plain run's estimate, training loss 1.11e+05 -> 31.3" in warmed
+    through = {**warm, "estimate": None, "through_simulation": {"kept": True}}
+    assert "warm start: last layer through the simulation, training loss" in _candidate_note(
+        {"name": "neural", "loss_evaluations": 5, "warm_start": through, **scores}, {"budget": 5})
+    cold = _candidate_note({"name": "neural", "loss_evaluations": 5, "warm_start": {**warm, "kept": False}, **scores},
+                           {"budget": 5})
+    assert "warm start not kept (4 fits tried)" in cold
 
 
 def test_the_summary_names_what_each_kind_of_candidate_ships():
