@@ -208,64 +208,90 @@ def warm_start(trainer) -> dict:
     if first is None:
         return {"samples": 0, "fit_error": math.nan, "kept": False}
     topology = trainer.model.topology
-    parameters = list(topology.ann.parameters())
-    channels = len(topology.config.channels)
-    loss_before = _loss_from_own_starts(trainer)
-    unfitted = _Fit(_copy(parameters), topology.post_scale.detach().clone())
-    fitted, trials, samples = {}, [], {}
-    best = {"loss": loss_before, "fits": None, "fit_error": math.nan}
-
-    def simulate(keys: list[tuple[str, float]], error: float) -> None:
-        nonlocal best
-        trials.append({"estimates": [k[0] for k in keys], "decays": [k[1] for k in keys], "fits": keys,
-                       "fit_error": error, "loss": _loss_from_own_starts(trainer)})
-        if trials[-1]["loss"] < best["loss"]:
-            best = trials[-1]
-
+    search = _Search(trainer)
+    samples = {}
     for estimate in ESTIMATES:
         samples[estimate] = first if estimate == "forced" else targets(trainer, force=False)
         x, target, average = samples[estimate] if integral else (*samples[estimate], None)
-        unfitted.apply(topology)
+        search.unfitted.apply(topology)
         scale_output_to_effect(topology, target)
         for decay in WEIGHT_DECAYS:
-            _restore(parameters, unfitted.parameters)
+            search.unfitted.apply(topology, post_scale=False)
             error = fit_full_batch(topology, x, target, trainer.settings.warm_start_iterations, weight_decay=decay,
                                    average=average)
-            fitted[estimate, decay] = _Fit(_copy(parameters), topology.post_scale.detach().clone())
-            simulate([(estimate, decay)] * channels, error)
-    owners = topology.row_channels()
-    if owners is not None and best["fits"] is not None:
-        for channel in range(channels):
-            for key in fitted:
-                if key != best["fits"][channel]:
-                    keys = [*best["fits"][:channel], key, *best["fits"][channel + 1:]]
-                    _spliced(fitted, keys, owners).apply(topology)
-                    simulate(keys, math.nan)
-    kept = best["fits"] is not None
-    if trials[-1] is not best:
-        # nothing kept: the ANN at zero, its output scaled to the first estimate's effect
-        unchanged = _Fit(unfitted.parameters, fitted[ESTIMATES[0], WEIGHT_DECAYS[0]].post_scale)
-        (_spliced(fitted, best["fits"], owners) if kept else unchanged).apply(topology)
-        _loss_from_own_starts(trainer)      # the element starts back at the kept parameters
+            search.try_fit((estimate, decay), error)
+    search.splice_channels()
+    search.keep_best()
+    best = search.best
     through = _through_simulation(trainer, best["loss"])
     # simulations without gradient: a run per estimate (and the plain run the forced one's unmeasured
     # states follow), a capture and a loss before and per trial, and one more each when the last
     # trial is not the one kept
     unmeasured = bool(unmeasured_integrators(trainer.model.info, trainer.data.signals))
-    simulations = 1 + len(ESTIMATES) + 2 * len(trials) + 2 * (trials[-1] is not best) + unmeasured
+    simulations = len(ESTIMATES) + 2 + 2 * len(search.trials) + 2 * search.restored + unmeasured
     loss_after = best["loss"]
     if through is not None:
         simulations += through["simulations"]
         loss_after = through["loss"] if through["kept"] else loss_after
-    chosen = best if kept else trials[0]
+    kept = best["fits"] is not None
+    chosen = best if kept else search.trials[0]
     estimate = chosen["estimates"][0] if len(set(chosen["estimates"])) == 1 else None
     return {"samples": int(samples[estimate or "forced"][1].shape[0]), "target": trainer.settings.warm_start_target,
-            "fit_error": chosen["fit_error"], "loss_before": loss_before, "loss_fits": best["loss"],
+            "fit_error": chosen["fit_error"], "loss_before": search.loss_before, "loss_fits": best["loss"],
             "loss_after": loss_after,
             "kept": kept or bool(through and through["kept"]), "estimate": best["estimates"] if kept else None,
             "weight_decay": best["decays"] if kept else None,
-            "trials": [{k: v for k, v in t.items() if k != "fits"} for t in trials],
+            "trials": [{k: v for k, v in t.items() if k != "fits"} for t in search.trials],
             "through_simulation": through, "simulations": simulations}
+
+
+class _Search:
+    """The warm start's fits, each simulated: the training loss of every trial (a fit, or channels
+    spliced from several) and the best one."""
+
+    def __init__(self, trainer):
+        self.trainer, self.topology = trainer, trainer.model.topology
+        self.unfitted = _Fit.of(self.topology)
+        self.loss_before = _loss_from_own_starts(trainer)
+        self.fitted: dict[tuple[str, float], _Fit] = {}
+        self.trials: list[dict] = []
+        self.best = {"loss": self.loss_before, "fits": None, "fit_error": math.nan}
+        self.restored = False
+
+    def try_fit(self, key: tuple[str, float], error: float) -> None:
+        """The topology's current parameters, the fit to estimate key[0] with decay key[1], simulated."""
+        self.fitted[key] = _Fit.of(self.topology)
+        self._simulate([key] * len(self.topology.config.channels), error)
+
+    def splice_channels(self) -> None:
+        """With a sub-network per channel, each channel tries the other fits' blocks in turn."""
+        owners = self.topology.row_channels()
+        if owners is None or self.best["fits"] is None:
+            return
+        for channel in range(len(self.topology.config.channels)):
+            for key in self.fitted:
+                if key != self.best["fits"][channel]:
+                    keys = [*self.best["fits"][:channel], key, *self.best["fits"][channel + 1:]]
+                    _spliced(self.fitted, keys, owners).apply(self.topology)
+                    self._simulate(keys, math.nan)
+
+    def keep_best(self) -> None:
+        """The best trial's parameters back in place, the element starts with them; nothing kept:
+        the ANN at zero, its output scaled to the first estimate's effect."""
+        if self.trials[-1] is self.best:
+            return
+        if self.best["fits"] is not None:
+            _spliced(self.fitted, self.best["fits"], self.topology.row_channels()).apply(self.topology)
+        else:
+            _Fit(self.unfitted.parameters, self.fitted[ESTIMATES[0], WEIGHT_DECAYS[0]].post_scale).apply(self.topology)
+        _loss_from_own_starts(self.trainer)
+        self.restored = True
+
+    def _simulate(self, keys: list[tuple[str, float]], error: float) -> None:
+        self.trials.append({"estimates": [k[0] for k in keys], "decays": [k[1] for k in keys], "fits": keys,
+                            "fit_error": error, "loss": _loss_from_own_starts(self.trainer)})
+        if self.trials[-1]["loss"] < self.best["loss"]:
+            self.best = self.trials[-1]
 
 
 def _through_simulation(trainer, loss: float) -> dict:
@@ -299,10 +325,15 @@ class _Fit:
     def __init__(self, parameters: list[torch.Tensor], post_scale: torch.Tensor):
         self.parameters, self.post_scale = parameters, post_scale
 
-    def apply(self, topology) -> None:
+    @classmethod
+    def of(cls, topology) -> "_Fit":
+        return cls(_copy(topology.ann.parameters()), topology.post_scale.detach().clone())
+
+    def apply(self, topology, post_scale: bool = True) -> None:
         _restore(list(topology.ann.parameters()), self.parameters)
-        with torch.no_grad():
-            topology.post_scale.copy_(self.post_scale)
+        if post_scale:
+            with torch.no_grad():
+                topology.post_scale.copy_(self.post_scale)
 
 
 def _spliced(fitted: dict, keys: list, owners: list[torch.Tensor] | None) -> _Fit:
