@@ -83,6 +83,29 @@ def test_an_estimate_blind_to_the_effect_is_replaced_by_a_fit_through_the_simula
     assert warm < 1.05 * truth_term < 0.6
 
 
+def test_a_fit_that_hardly_lowers_the_loss_is_also_tried_unfitted_through_the_simulation(dc_drive_fmu, windage_data,
+                                                                                         monkeypatch):
+    """An estimate a fifth of the effect's size: its fit leaves most of the loss, so the last layer is
+    fitted through the simulation from the fit and from the unfitted ANN; the lower loss is kept, and
+    the training's first epoch measures it at the parameters kept."""
+    from fmubuilder.neural import warm_start as module
+    estimate = module.collocation_targets
+
+    def faint(trainer, force=True):
+        x, target = estimate(trainer, force)
+        return x, 0.2 * target
+    monkeypatch.setattr(module, "collocation_targets", faint)
+    loss, result = first_loss(dc_drive_fmu, windage_data, warm_start=True)
+    result.model.close()
+    report = result.metrics["warm_start"]
+    through = report["through_simulation"]
+    assert module.UNFITTED_TOO_ABOVE * report["loss_before"] < report["loss_fits"] < report["loss_before"]
+    assert report["loss_after"] == min(through["loss_from_fit"], through["loss_from_unfitted"]) < report["loss_fits"]
+    assert through["start"] == ("fit" if through["loss_from_fit"] <= through["loss_from_unfitted"] else "unfitted")
+    assert loss == pytest.approx(report["loss_after"], rel=1e-9)
+    assert (report["estimate"] is None) == (through["start"] == "unfitted")
+
+
 def test_where_the_forced_estimate_is_blind_the_plain_run_s_estimate_is_kept(dc_drive_fmu, monkeypatch):
     """A loss in der(energy) (the truth's 0.01 |speed * current|) does not move the speed or the
     current: the plain model's run follows the measured one, and the measured power minus the plain
