@@ -11,9 +11,10 @@ choices in numbers: docs/MEASUREMENTS.md, "How the training gets there").
 2. Neutral-initialisation pre-training (NIPT): the ANN fitted to leave the hybrid unchanged.
 3. Optional collocation pre-training (CCPT) of channels der(s) with s measured: the ANN fitted,
    without the solver, to the measured derivative of s minus the FMU's; the warm start
-   (warm_start.py) fits that target with L-BFGS and keeps it only if it lowers the training loss;
-   where that leaves the loss above half the plain FMU's (a controller hides the effect from the
-   measured derivative) it fits the ANN's last layer through the simulation (last_layer.py).
+   (warm_start.py) fits that target, and the same difference along the plain model's own run,
+   with L-BFGS and keeps the fit only if it lowers the training loss; then it fits the ANN's last
+   layer through the simulation (last_layer.py), which sees what the estimates miss (a controller
+   that hides the effect from the measured derivative, the estimate's noise).
 4. Training on elements (default 100 s) simulated side by side; the loss is the mean over the
    measured signals of their MSE (weighted by <signal>_std columns), the model seen through the
    sensors' lag (`sensor_lag`), divided by the plain FMU's (or, loss_scale "noise", by each signal's
