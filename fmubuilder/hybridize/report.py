@@ -238,13 +238,13 @@ def _warm_start_note(warm: dict) -> str:
     """What the warm start (neural/warm_start.py) kept, and the training loss it started from."""
     if not warm.get("samples"):
         return "no warm start (no channel's state measured)"
+    if not warm["kept"]:
+        return f"warm start not kept ({len(warm.get('trials', []))} fits tried)"
     estimates = warm.get("estimate") or []
     parts = [f"fitted to the {' / '.join(dict.fromkeys(estimates))} run's estimate"] if estimates else []
     through = warm.get("through_simulation")
     if through and through["kept"]:
         parts.append("last layer through the simulation")
-    if not warm["kept"]:
-        return f"warm start not kept ({len(warm.get('trials', []))} fits tried)"
     return f"warm start: {', then '.join(parts)}, training loss {warm['loss_before']:.4g} -> {warm['loss_after']:.4g}"
 
 
