@@ -1,8 +1,7 @@
 """The choice among the candidates, on the validation data.
 
-The rule (score, margin, publish) is the README's "The choice". The geometric mean replaced the
-arithmetic mean of MSE / MSE plain, which the signals the plain FMU already fits decide: an energy
-6 times worse moved it by 0.001, a speed 3 % better by 0.03.
+The rule (score, margin, publish) is the README's "The choice"; the score (fmubuilder/score.py) is
+the one the trainings stop on too.
 
 The margin is what the noise alone can do to the ratio of two scores: at the floor a signal's MSE
 over its noise variance, estimated from n independent pieces, has a relative spread of sqrt(2 / n);
@@ -31,29 +30,6 @@ def noise_margin(validation_times: list[np.ndarray], signals: int) -> float:
     """Factor by which an ANN candidate's score must undercut a simpler one's (> 1)."""
     blocks = sum(int(time_blocks(np.asarray(t))[-1]) + 1 for t in validation_times if np.size(t))
     return math.exp(MARGIN_SIGMAS * math.sqrt(4.0 / (max(blocks, 1) * max(signals, 1))))
-
-
-def validation_score(errors: dict, floors: dict) -> float:
-    """Geometric mean over the signals of MSE / floor (inf when a candidate ran off)."""
-    logs = []
-    for signal, floor in floors.items():
-        mse = errors[signal]["mse"]
-        if not np.isfinite(mse):
-            return float("inf")
-        logs.append(math.log(max(mse, 1e-300) / floor))
-    return math.exp(float(np.mean(logs))) if logs else 1.0
-
-
-def floors_of(plain_errors: dict, noise: dict) -> dict:
-    """Each signal's floor: its noise variance, else the plain FMU's MSE; signals with neither
-    (a plain FMU exact on noise-free data) are left out."""
-    floors = {}
-    for signal, errors in plain_errors.items():
-        floor = noise.get(signal)
-        floor = floor if floor is not None and floor > 0 else errors["mse"]
-        if floor > 0 and np.isfinite(floor):
-            floors[signal] = floor
-    return floors
 
 
 def choose(scores: dict, plain_score: float, margin: float) -> str | None:

@@ -19,7 +19,7 @@ from ..diagnose.plots import RESIDUAL, cumulative_signals, units_of
 from ..errors import FmuBuilderError
 from ..files import write_atomically
 from ..fmi import read_model_info
-from .choice import floors_of, validation_score
+from ..score import floors_of, validation_score
 from .evaluate import relative_mse
 
 ROLES = ("train", "validation", "test")

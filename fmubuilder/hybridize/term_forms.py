@@ -37,7 +37,7 @@ class FormFit:
     terms: list[dict]             # base-term dicts (base_term.py) with the fitted coefficients
     start: list[float]            # the coefficients it started from (the diagnosis')
     training_objective: float     # mean squared residual in noise units, after the fit
-    validation_score: float       # choice.validation_score on the validation parts
+    validation_score: float       # score.validation_score on the validation parts
     simulations: int
 
     def to_dict(self) -> dict:
@@ -137,7 +137,7 @@ def fit_forms(model_fmu, channel: str, forms: dict[str, list[dict]], train_runs,
               noise: dict[str, float], aliases: dict, *, show: bool | None = None) -> list[FormFit]:
     """Each form's coefficients fitted on the training runs (data, start values), then scored on the
     validation parts (whole run simulated, its window scored)."""
-    from .choice import validation_score
+    from ..score import validation_score
     from .refine_term import levenberg_marquardt, noise_level
     fits = []
     per_form = SIMULATIONS_PER_FORM + 1         # the fit's, then one over the validation parts

@@ -298,7 +298,8 @@ def score(scores: Scores, roles: Roles, scoring: Scoring, which: tuple[str, ...]
 def _select(candidates: list[Candidate], plain: Scores, validation: list[Part] = ()) -> dict:
     """The candidate chosen on the validation data (choice.py; the rule: the README's "The candidates").
     Without `validation` parts the floors are the plain model's MSE and there is no margin."""
-    from .choice import RULE, choose, floors_of, noise_margin, validation_score
+    from ..score import floors_of, validation_score
+    from .choice import RULE, choose, noise_margin
     errors = plain.errors["validation"]
     noise = {name: validation[0].data.noise_variance(name) for name in errors} if validation else {}
     floors = floors_of(errors, noise)

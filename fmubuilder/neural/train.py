@@ -47,6 +47,7 @@ from ..errors import FmuBuilderError
 from ..data import MeasuredData, first_order_lag, load_data
 from ..files import refuse_existing, write_atomically
 from ..progress import Bar
+from ..score import floors_of, validation_score
 from .io import save_neural_fmu
 from .model import NeuralFMU
 from .solve import ElementStart, simulate
@@ -297,7 +298,7 @@ class Trainer:
                  validation: Validation | None = None):
         self.model, self.data, self.settings, self.started = model, data, settings, started
         self.validation = validation
-        self._validation_plain: dict | None = None
+        self._validation_floors: dict | None = None
         self.validation_best: tuple[float, int, dict] | None = None   # (score, epoch, parameters)
         self.validation_start: float | None = None                     # the score before training
         self.step = float(settings.step_size or model.info.default_experiment.step_size or
@@ -698,20 +699,21 @@ class Trainer:
 
     # -- validation ---------------------------------------------------------------------------
     def validation_score(self) -> float:
-        """Mean over the validation data's signals of the hybrid's MSE divided by the plain FMU's,
-        on the validation window, the model seen through the sensors (1: as good as the FMU)."""
-        plain = self._validation_plain = self._validation_plain or self._validation_errors(plain=True)
-        errors = self._validation_errors(plain=False)
-        ratios = [errors[name] / plain[name] if plain[name] > 0 else 1.0 for name in plain]
-        return float(np.mean(ratios))
+        """The hybrid's score on the validation window, the model seen through the sensors: the score
+        hybridize chooses its candidate by (score.validation_score: geometric mean over the signals of
+        MSE / noise variance, the plain FMU's MSE for a signal without a spread column)."""
+        if self._validation_floors is None:
+            plain = self._validation_errors(plain=True)
+            noise = {name: self.validation.data.noise_variance(name) for name in plain}
+            self._validation_floors = floors_of(plain, noise)
+        return validation_score(self._validation_errors(plain=False), self._validation_floors)
 
     def _validation_errors(self, plain: bool) -> dict:
         part = self.validation
         aliases = self.settings.aliases
         result = simulate_over(self.model, part.data, self.step, self.settings.solver, part.start_values, plain,
                                aliases)
-        errors = data_errors(part.data.window(*part.window), result, self.sensor_lag, aliases)
-        return {name: errors[name]["mse"] for name in errors}
+        return data_errors(part.data.window(*part.window), result, self.sensor_lag, aliases)
 
     def _track_validation(self, epoch: int) -> float | None:
         """Score the current parameters on the validation data and keep them if they are the best."""
@@ -867,7 +869,7 @@ REWIND_TOLERANCE = 0.01
 
 def noise_scale(data: MeasuredData, plain: dict) -> dict:
     """{signal: its noise variance} (the data's spread columns), the plain FMU's MSE for a signal
-    without one (as the choice's floors, hybridize.choice.floors_of). Divided by the plain FMU's
+    without one (as the choice's floors, score.floors_of). Divided by the plain FMU's
     MSE, a signal the plain model already fits to a few times its noise weighs more than an
     integrator (an energy, a temperature) far off: on the DC drive's Stribeck friction the power,
     1.7 times its noise, made 0.049 of the loss and the temperature, 36 times, 0.0037, and the steps

@@ -8,7 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from fmubuilder.hybridize.choice import choose, floors_of, noise_margin, validation_score
+from fmubuilder.hybridize.choice import choose, noise_margin
+from fmubuilder.score import floors_of, validation_score
 from fmubuilder.hybridize.workflow import Scores, _select
 
 SIGNALS = ("speed", "current", "power", "energy", "temperature")
