@@ -12,7 +12,7 @@ PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "fmubuilder"
 # top-level module or sub-package of fmubuilder. See docs/ARCHITECTURE.md.
 RANKS = {
     "errors": 0, "_lazy": 0, "progress": 0,
-    "files": 1, "build": 1,
+    "files": 1, "build": 1, "score": 1,
     "fmi": 2,
     "simulation": 3,
     "data": 4, "inspect_fmu": 4,

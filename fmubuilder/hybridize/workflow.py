@@ -565,12 +565,13 @@ def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], ali
     # The training sees the model through the data's sensor lag (from the sidecar), at the step and
     # with the solver every model is scored with, and the outputs equal to a corrected derivative
     # through it, as the exported hybrid shows them.
-    # An ANN on a fitted term ends with its best epoch on the validation data, the start (the term)
-    # included, so it is never worse there than the term. The plain NeuralFMU keeps its lowest
-    # training loss: on the VLDM the validation score (speed and power at the noise level) picked an
-    # epoch with 7 times the test energy error.
+    # Each ANN candidate ends with its best epoch on the validation data, in the score the choice
+    # makes (score.py), the start included: an ANN on a fitted term is never worse there than the
+    # term, a NeuralFMU never worse than its warm start. (Before that score, the plain NeuralFMU kept
+    # its lowest training loss: the arithmetic mean of MSE / MSE plain, which speed and power at the
+    # noise level decided, picked an epoch with 7 times the test energy error on the VLDM.)
     held_out = ctx.roles.validation[0]
-    validation = Validation(held_out.data, held_out.window, held_out.start_values) if base_terms else None
+    validation = Validation(held_out.data, held_out.window, held_out.start_values)
     trained = train_neural_fmu(ctx.model_fmu, first.samples(), targets=channels, inputs=inputs,
                                start_values=first.start_values, topology="residual", budget=ctx.budget,
                                base_terms=base_terms, channel_inputs=channel_inputs, validation=validation,
