@@ -70,6 +70,8 @@ THROUGH_SIMULATION_TRIALS = 4
 # estimate of der(speed), which the driver's loop hides, lowered the loss 0.6 %; through the
 # simulation from that fit 2.32, from the unfitted ANN 1.60).
 UNFITTED_TOO_ABOVE = 0.5
+# Simulations without gradient in one _loss_from_own_starts: the capture of the starts and the loss.
+LOSS_SIMULATIONS = 2
 
 
 def collocation_targets(trainer, force: bool = True):
@@ -244,7 +246,8 @@ def _summary(trainer, search, samples: dict, through: dict | None) -> dict:
     # states follow), a capture and a loss before and per trial, and one more each when the last
     # trial is not the one kept
     unmeasured = bool(unmeasured_integrators(trainer.model.info, trainer.data.signals))
-    simulations = len(ESTIMATES) + 2 + 2 * len(search.trials) + 2 * search.restored + unmeasured
+    simulations = (len(ESTIMATES) + LOSS_SIMULATIONS * (1 + len(search.trials) + search.restored)
+                   + unmeasured)
     loss_after = best["loss"]
     if through is not None:
         simulations += through["simulations"]
@@ -270,13 +273,13 @@ def _unfitted_too(trainer, search, through: dict) -> dict:
     search.unfitted_start().apply(topology)
     loss = _loss_from_own_starts(trainer)
     other = _through_simulation(trainer, loss) or {"simulations": 0, "loss": loss, "kept": False}
-    simulations = through["simulations"] + 2 + other["simulations"]
+    simulations = through["simulations"] + LOSS_SIMULATIONS + other["simulations"]
     losses = {"loss_from_fit": through["loss"], "loss_from_unfitted": other["loss"]}
     if other["loss"] < through["loss"]:
         return {**other, **losses, "kept": True, "start": "unfitted", "simulations": simulations}
     from_fit.apply(topology)
     _loss_from_own_starts(trainer)      # the element starts back at the fit's parameters
-    return {**through, **losses, "start": "fit", "simulations": simulations + 2}
+    return {**through, **losses, "start": "fit", "simulations": simulations + LOSS_SIMULATIONS}
 
 
 class _Search:
@@ -347,13 +350,13 @@ def _through_simulation(trainer, loss: float) -> dict:
     done = {"simulations": refined["simulations"], "loss": loss, "kept": False}
     if refined["kept"]:
         done["loss"] = _loss_from_own_starts(trainer)
-        done["simulations"] += 1
+        done["simulations"] += LOSS_SIMULATIONS
         done["kept"] = done["loss"] < loss
     if not done["kept"]:
         _restore(parameters, start)
         if refined["kept"]:
             _loss_from_own_starts(trainer)
-            done["simulations"] += 1
+            done["simulations"] += LOSS_SIMULATIONS
     return done
 
 
