@@ -80,6 +80,56 @@ def test_module_is_left_untouched(tmp_path):
         assert torch.equal(value, before[name])
 
 
+class FarShiftedInput(torch.nn.Module):
+    """The shape of a NeuralFMU's correction on the VLDM: an input shifted by 32,087 and scaled by
+    3e-5 (its standardisation), an MLP, an output scale of 324; the outputs below 1."""
+
+    def __init__(self):
+        super().__init__()
+        torch.manual_seed(0)
+        self.mlp = torch.nn.Sequential(torch.nn.Linear(1, 16), torch.nn.Tanh(), torch.nn.Linear(16, 16),
+                                       torch.nn.Tanh(), torch.nn.Linear(16, 1)).double()
+        with torch.no_grad():
+            for layer in self.mlp[::2]:
+                layer.weight.mul_(5.0 / layer.weight.abs().max())
+        self.register_buffer("shift", torch.tensor([32087.47], dtype=torch.float64))
+        self.register_buffer("scale", torch.tensor([3.0e-5], dtype=torch.float64))
+        self.register_buffer("post", torch.tensor([324.0], dtype=torch.float64))
+        with torch.no_grad():
+            self.mlp[4].bias.sub_((self(torch.zeros(1, 1)).item() - 0.2) / 324.0)
+
+    def forward(self, x):
+        return self.post * self.mlp((x - self.shift) * self.scale)
+
+    def extended_precision(self, x: np.ndarray) -> np.ndarray:
+        """The same function in numpy's long double, layer by layer: the reference for both."""
+        weights = [(layer.weight.detach().numpy().astype(np.longdouble), layer.bias.detach().numpy().astype(np.longdouble))
+                   for layer in self.mlp[::2]]
+        h = (x.astype(np.longdouble) - np.longdouble(32087.47)) * np.longdouble(3.0e-5)
+        for i, (w, b) in enumerate(weights):
+            h = h @ w.T + b
+            h = np.tanh(h) if i < len(weights) - 1 else h
+        return h * np.longdouble(324.0)
+
+
+def test_a_network_s_own_round_off_is_no_mismatch(tmp_path):
+    """Outputs of 0.2 carry this network's float64 round-off, about 1e-12 (onnxruntime and torch
+    differ by 1e-12 to 1e-11 on its check samples, beyond CHECK_TOLERANCE alone): freeze() accepts
+    it, and both agree with the function in extended precision to that round-off."""
+    network = FarShiftedInput()
+    frozen = freeze(network, 1, tmp_path / "net.onnx")
+
+    inputs = np.random.default_rng(7).standard_normal((100, 1))
+    session = onnxruntime.InferenceSession(str(frozen.path), providers=["CPUExecutionProvider"])
+    actual = np.array([session.run(None, {"input": x[None]})[0][0] for x in inputs])
+    with torch.no_grad():
+        torch_out = network(torch.from_numpy(inputs)).numpy()
+    reference = network.extended_precision(inputs)
+    assert 0.0 < np.max(np.abs(reference)) < 1.0
+    assert np.max(np.abs(actual - reference)) < 1e-10
+    assert np.max(np.abs(torch_out - reference)) < 1e-10
+
+
 def test_written_atomically_without_leftovers(tmp_path):
     target = tmp_path / "net.onnx"
     target.write_bytes(b"old contents")
