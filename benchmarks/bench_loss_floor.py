@@ -16,6 +16,7 @@ difference taken from the plain model's own run, no state forced. Also how far t
 speed and der(speed) lie from the truth's.
 
     python benchmarks/bench_loss_floor.py [--inputs "speed,der(speed)" --inputs "motor_torque,motor_speed"]
+        [--estimates-only]
 """
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ from fmubuilder.examples_zoo import cached_data, vldm_data_sets
 from fmubuilder.fmi import read_model_info
 from fmubuilder.hybridize import workflow
 from fmubuilder.neural import NeuralFMU, TopologyConfig
-from fmubuilder.neural.collocation import forced_channel_run, local_fit, samples_along
+from fmubuilder.neural.collocation import forced_channel_run, samples_along
 from fmubuilder.neural.train import data_errors, simulate_over
 from fmubuilder.neural.warm_start import fit_full_batch, scale_output_to_effect
 from fmubuilder.simulation import simulate
@@ -44,6 +45,7 @@ DEFAULT_INPUTS = ["speed,der(speed)", "motor_torque,motor_speed", "motor_power"]
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--inputs", action="append", help="comma-separated ANN inputs (repeatable)")
+    parser.add_argument("--estimates-only", action="store_true", help="only the estimates of the missing term")
     args = parser.parse_args()
     torch.set_num_threads(1)
     sets = [d for d in vldm_data_sets() if d.variant.key == "extra_loss"]
@@ -61,6 +63,9 @@ def main() -> None:
     # a measured output equal to der(energy) (the power) is read from the hybrid's derivative, as hybridize reads it
     aliases = workflow.channel_aliases(declared, info, CHANNEL, starts[0], whole.time, whole.start,
                                        whole.start + workflow.ALIAS_SPAN)
+    if args.estimates_only:
+        _estimates(declared, truth, info, _training_part(whole, split), starts[0])
+        return
     print(f"(MSE / noise variance per signal: {', '.join(names)}; RK4, h = {STEP} s)")
     print("| model | whole CADC | test WLTC2 | fit: relative error |\n|---|---|---|---|")
     plain = NeuralFMU(declared, TopologyConfig(), start_values=starts[0])
@@ -82,8 +87,11 @@ def main() -> None:
     truth_model = NeuralFMU(truth, TopologyConfig(), start_values=starts[0])
     print(f"| truth FMU | {' | '.join(_scores(truth_model, runs, lag, names, aliases, plain=True))} | - |")
     truth_model.close()
-    train = whole.window(whole.start, float(whole.time[np.searchsorted(whole.time, split, side="right") - 1]))
-    _estimates(declared, truth, info, train, starts[0])
+    _estimates(declared, truth, info, _training_part(whole, split), starts[0])
+
+
+def _training_part(whole, split: float):
+    return whole.window(whole.start, float(whole.time[np.searchsorted(whole.time, split, side="right") - 1]))
 
 
 def _estimates(declared, truth, info, train, start_values: dict) -> None:
@@ -93,14 +101,15 @@ def _estimates(declared, truth, info, train, start_values: dict) -> None:
                       start_values=start_values)
     lag = train.sensor_lag
     signals = train.input_signals(info)
-    run = forced_channel_run(model, train, STEP, "rk4", workflow.COLLOCATION_WINDOW, signals, lag)
-    times, forced_values, fmu, measured, mask = samples_along(run, model, train, workflow.COLLOCATION_WINDOW, lag)
+    estimates = {}      # the warm start's two: along the forced run and along the plain run
+    for force in (True, False):
+        run = forced_channel_run(model, train, STEP, "rk4", workflow.COLLOCATION_WINDOW, signals, lag, force)
+        times, values, fmu, measured, mask = samples_along(run, model, train, workflow.COLLOCATION_WINDOW, lag)
+        estimates[force] = (times, values, (measured - fmu)[:, 0], mask[:, 0])
     model.close()
-    forced, keep = (measured - fmu)[:, 0], mask[:, 0]
-    run = simulate(declared, start_time=train.start, stop_time=train.stop, start_values=start_values,
-                   variables=["power"], solver="rk4", step_size=STEP, output_interval=STEP)
-    value, _, valid = local_fit(train.time, train.signals["power"], times + lag, workflow.COLLOCATION_WINDOW)
-    unforced = value - np.interp(times, run.time, np.asarray(run["power"]))
+    times, forced_values, forced, keep = estimates[True]
+    plain_times, _, unforced, valid = estimates[False]
+    assert np.array_equal(times, plain_times), "both runs are sampled on the data's grid"
     truth_values, true = _truth_along(truth, seen, train.start, train.stop, start_values, times)
     true = true.numpy()[:, 0]
     for j, name in enumerate(seen):
@@ -110,8 +119,8 @@ def _estimates(declared, truth, info, train, start_values: dict) -> None:
     print(f"\nthe missing term of {CHANNEL} estimated along the training part ({int(keep.sum())} points; the truth's "
           f"loss: mean {true[keep].mean():.0f} W, rms {np.sqrt(np.mean(true[keep] ** 2)):.0f} W)")
     print("| estimate | minus the truth's loss: mean [W] | rms [W] | correlation with it |\n|---|---|---|---|")
-    for label, estimate, where in (("the warm start's: the measured states forced", forced, keep),
-                                   ("the plain model's run, nothing forced", unforced, keep & valid)):
+    for label, estimate, where in (("along the run with the measured states forced", forced, keep),
+                                   ("along the plain model's own run, nothing forced", unforced, valid)):
         error = estimate[where] - true[where]
         print(f"| {label} | {error.mean():.3g} | {np.sqrt(np.mean(error ** 2)):.3g} | "
               f"{np.corrcoef(estimate[where], true[where])[0, 1]:.2f} |")
