@@ -88,25 +88,36 @@ def test_an_estimate_blind_to_the_effect_is_replaced_by_a_fit_through_the_simula
     assert warm < 1.05 * truth_term < 0.6
 
 
+@pytest.mark.parametrize("handicap", [1.0, 100.0])
 def test_a_fit_that_hardly_lowers_the_loss_is_also_tried_unfitted_through_the_simulation(dc_drive_fmu, windage_data,
-                                                                                         monkeypatch):
+                                                                                         monkeypatch, handicap):
     """An estimate a fifth of the effect's size: its fit leaves most of the loss, so the last layer is
     fitted through the simulation from the fit and from the unfitted ANN; the lower loss is kept, and
-    the training's first epoch measures it at the parameters kept."""
+    the training's first epoch measures it at the parameters kept. On these data the fit's start
+    wins; with its loss reported `handicap` times too high the unfitted start must be kept, and the
+    first epoch must then measure the unfitted path's parameters."""
     from fmubuilder.neural import warm_start as module
-    estimate = module.collocation_targets
+    estimate, through_simulation = module.collocation_targets, module._through_simulation
+    paths = []
 
     def faint(trainer, force=True):
         x, target = estimate(trainer, force)
         return x, 0.2 * target
+
+    def handicapped(trainer, loss):
+        done = through_simulation(trainer, loss)
+        paths.append(done)
+        return {**done, "loss": done["loss"] * handicap} if len(paths) == 1 else done
     monkeypatch.setattr(module, "collocation_targets", faint)
+    monkeypatch.setattr(module, "_through_simulation", handicapped)
     loss, result = first_loss(dc_drive_fmu, windage_data, warm_start=True)
     result.model.close()
     report = result.metrics["warm_start"]
     through = report["through_simulation"]
     assert module.UNFITTED_TOO_ABOVE * report["loss_before"] < report["loss_fits"] < report["loss_before"]
+    assert len(paths) == 2 and through["loss_from_unfitted"] == paths[1]["loss"]
     assert report["loss_after"] == min(through["loss_from_fit"], through["loss_from_unfitted"]) < report["loss_fits"]
-    assert through["start"] == ("fit" if through["loss_from_fit"] <= through["loss_from_unfitted"] else "unfitted")
+    assert through["start"] == ("fit" if handicap == 1.0 else "unfitted")
     assert loss == pytest.approx(report["loss_after"], rel=1e-9)
     assert (report["estimate"] is None) == (through["start"] == "unfitted")
 
