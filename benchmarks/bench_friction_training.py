@@ -17,7 +17,7 @@ its terms printed in noise variances; `relative`: of MSE / the plain FMU's MSE, 
 and for runs of several elements; `log`: of log(MSE / the plain FMU's MSE), Trainer.batch_loss
 replaced for this run),
 `--validation` (end at the best score on the held-out late 20 % of the run,
-Trainer.validation_score, as the ANN on the fitted term does, instead of the lowest loss).
+Trainer.validation_score, as hybridize's ANN candidates do, instead of the lowest loss).
 
     python benchmarks/bench_friction_training.py [--cases stribeck,coulomb] [--budget N] [--elements N]
                                                  [--loss noise|relative|log] [--validation]

@@ -248,6 +248,21 @@ def _warm_start_note(warm: dict) -> str:
     return f"warm start: {', then '.join(parts)}, training loss {warm['loss_before']:.4g} -> {warm['loss_after']:.4g}"
 
 
+def _stop_note(checkpoint: dict, steps: int | None) -> str:
+    """Which parameters the training ended with: those of its best validation score."""
+    stage = checkpoint.get("best_stage")
+    if stage == "start":
+        return "ended at its start (nothing it learned scored better on the validation data)"
+    if stage == "warm start":
+        return "ended at its warm start (no training step scored better on the validation data)"
+    if stage == "epoch":
+        of = f" of {steps}" if steps else ""
+        return f"ended after step {checkpoint['best_epoch']}{of}, its best on the validation data"
+    if stage == "last layer":
+        return "ended after the last layer's refinement, its best on the validation data"
+    return "ended at its best validation score"        # a report from before the stages were recorded
+
+
 def _candidate_note(model: dict, training: dict | None) -> str:
     """Why a row looks the way it does."""
     notes, training = [], training or {}
@@ -268,6 +283,8 @@ def _candidate_note(model: dict, training: dict | None) -> str:
                          f"{refined['loss_after']:.4g} ({refined['simulations']} sims)")
         elif refined:
             notes.append(f"last layer's refinement not kept ({refined['simulations']} sims)")
+        if model.get("validation_checkpoint"):
+            notes.append(_stop_note(model["validation_checkpoint"], model.get("steps")))
     elif model.get("calibrated"):
         notes.append(f"calibrated by Gauss-Newton on `{model.get('fitted_on', 'the training data')}` in "
                      f"{model.get('simulations', '?')} simulations, no training")

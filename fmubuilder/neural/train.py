@@ -299,7 +299,7 @@ class Trainer:
         self.model, self.data, self.settings, self.started = model, data, settings, started
         self.validation = validation
         self._validation_floors: dict | None = None
-        self.validation_best: tuple[float, int, dict] | None = None   # (score, epoch, parameters)
+        self.validation_best: tuple[float, int, dict, str] | None = None   # (score, epoch, parameters, stage)
         self.validation_start: float | None = None                     # the score before training
         self.step = float(settings.step_size or model.info.default_experiment.step_size or
                           (data.stop - data.start) / max(10 * data.time.size, 1000))
@@ -345,7 +345,7 @@ class Trainer:
         self.element_duration = min(self.settings.element_length, self.data.stop - self.data.start)
         self.reference = self._reference(starts)
         self.model.topology.initialise_scaling(*self._scaling_samples())
-        self._track_validation(0)      # the start: the plain FMU, or the base term alone
+        self._track_validation(0, "start")      # the plain FMU, or the base term alone
         if self.settings.nipt_iterations and self.model.topology.has_ann and self.model.config.kind == "gates":
             neutral_pretraining(self.model, *self._scaling_samples(), iterations=self.settings.nipt_iterations)
         if self.settings.ccpt_iterations and self.model.topology.has_ann:
@@ -353,7 +353,7 @@ class Trainer:
         if self.settings.warm_start and self.model.topology.has_ann:
             from .warm_start import warm_start
             self.warm_start = warm_start(self)
-            self._track_validation(0)
+            self._track_validation(0, "warm start")
         if not self.model.topology.is_neutral():
             self._capture_starts(plain=False)
 
@@ -527,7 +527,7 @@ class Trainer:
         from .last_layer import refine_last_layer
         self.last_layer = refine_last_layer(self, self.settings.last_layer_simulations)
         if self.last_layer is not None and self.validation is not None:
-            self.last_layer["validation"] = self._track_validation(self.epochs_done + 1)
+            self.last_layer["validation"] = self._track_validation(self.epochs_done + 1, "last layer")
             self.last_layer["kept"] &= self.validation_best[1] == self.epochs_done + 1
             self.restore_best()
 
@@ -715,22 +715,24 @@ class Trainer:
                                aliases)
         return data_errors(part.data.window(*part.window), result, self.sensor_lag, aliases)
 
-    def _track_validation(self, epoch: int) -> float | None:
-        """Score the current parameters on the validation data and keep them if they are the best."""
+    def _track_validation(self, epoch: int, stage: str = "epoch") -> float | None:
+        """Score the current parameters on the validation data and keep them if they are the best;
+        `stage`: what produced them ("start", "warm start", "epoch", "last layer")."""
         if self.validation is None:
             return None
         score = self.validation_score()
         if self.validation_start is None:
             self.validation_start = score
         if self.validation_best is None or score < self.validation_best[0]:
-            self.validation_best = (score, epoch, _copy_state(self.model.topology))
+            self.validation_best = (score, epoch, _copy_state(self.model.topology), stage)
         return score
 
     def validation_summary(self) -> dict | None:
         if self.validation_best is None:
             return None
         return {"start_score": self.validation_start, "best_score": self.validation_best[0],
-                "best_epoch": self.validation_best[1], "window": list(self.validation.window)}
+                "best_epoch": self.validation_best[1], "best_stage": self.validation_best[3],
+                "window": list(self.validation.window)}
 
     def _batch_size(self) -> int:
         return 1 if self.settings.order == "sequential" else self.settings.batch_size or len(self.elements)

@@ -243,6 +243,13 @@ def test_candidate_notes_say_how_each_kind_was_made():
     cold = _candidate_note({"name": "neural", "loss_evaluations": 5, "warm_start": {**warm, "kept": False}, **scores},
                            {"budget": 5})
     assert "warm start not kept (4 fits tried)" in cold
+    stopped = {stage: _candidate_note({"name": "neural", "loss_evaluations": 5, "steps": 4, **scores,
+                                       "validation_checkpoint": {"best_stage": stage, "best_epoch": 3}}, {"budget": 5})
+               for stage in ("start", "warm start", "epoch", "last layer")}
+    assert "ended at its start (nothing it learned scored better on the validation data)" in stopped["start"]
+    assert "ended at its warm start" in stopped["warm start"]
+    assert "ended after step 3 of 4, its best on the validation data" in stopped["epoch"]
+    assert "ended after the last layer's refinement" in stopped["last layer"]
 
 
 def test_the_summary_names_what_each_kind_of_candidate_ships():

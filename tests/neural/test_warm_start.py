@@ -177,6 +177,10 @@ def test_an_ann_started_from_a_term_never_ends_worse_on_validation(dc_drive_fmu,
         summary = result.metrics["validation"]
         start = summary["start_score"]
         assert summary["best_score"] <= start and summary["best_score"] == min([start, *history])
+        if summary["best_score"] == start:
+            assert summary["best_stage"] == "start"
+        else:
+            assert summary["best_stage"] == "epoch" and history[summary["best_epoch"] - 1] == summary["best_score"]
         # The model returned is the best one: recomputed independently, and no worse than the term alone.
         trained = result.model
         best = trained.topology.state_dict()
