@@ -1,7 +1,9 @@
 """The score every choice on held-out data makes: the candidate chosen by `hybridize`
 (hybridize/choice.py) and the parameters a training ends with (neural/train.py, Trainer's
 validation). One score for both, so that a training stopped on it is never worse, in the measure
-that chooses, than where it started (an ANN on a fitted term: than the term).
+that chooses, than where it started (an ANN on a fitted term: than the term), up to how each side
+simulates the model (the training its NeuralFMU, the choice the exported FMU; on the VLDM they
+differ by up to 17 % near the floor, docs/MEASUREMENTS.md).
 
 The geometric mean replaced the arithmetic mean of MSE / MSE plain, which the signals the plain FMU
 already fits decide: an energy 6 times worse moved it by 0.001, a speed 3 % better by 0.03.
