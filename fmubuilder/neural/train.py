@@ -298,6 +298,7 @@ class Trainer:
                  validation: Validation | None = None):
         self.model, self.data, self.settings, self.started = model, data, settings, started
         self.validation = validation
+        self._validation_plain: dict | None = None     # the plain FMU's errors on the validation window
         self._validation_floors: dict | None = None
         self.validation_best: tuple[float, int, dict, str] | None = None   # (score, epoch, parameters, stage)
         self.validation_start: float | None = None                     # the score before training
@@ -702,11 +703,14 @@ class Trainer:
         """The hybrid's score on the validation window, the model seen through the sensors: the score
         hybridize chooses its candidate by (score.validation_score: geometric mean over the signals of
         MSE / noise variance, the plain FMU's MSE for a signal without a spread column)."""
-        if self._validation_floors is None:
-            plain = self._validation_errors(plain=True)
-            noise = {name: self.validation.data.noise_variance(name) for name in plain}
-            self._validation_floors = floors_of(plain, noise)
-        return validation_score(self._validation_errors(plain=False), self._validation_floors)
+        if self._validation_plain is None:
+            self._validation_plain = self._validation_errors(plain=True)
+            noise = {name: self.validation.data.noise_variance(name) for name in self._validation_plain}
+            self._validation_floors = floors_of(self._validation_plain, noise)
+        # a neutral hybrid (a NeuralFMU's start) is the plain FMU: its run is the one just scored
+        neutral = self.model.topology.is_neutral()
+        errors = self._validation_plain if neutral else self._validation_errors(plain=False)
+        return validation_score(errors, self._validation_floors)
 
     def _validation_errors(self, plain: bool) -> dict:
         part = self.validation
