@@ -153,8 +153,10 @@ class NeuralFmuSystem(FmuSystem):
 
 def simulate_hybrid(model: NeuralFMU, *, start_time: float, stop_time: float, variables: Sequence[str],
                     solver: str = "euler", step_size: float | None = None, output_interval: float | None = None,
-                    inputs: InputSignals | None = None, rtol: float = 1e-6) -> SimulationResult:
-    """Forward simulation of a NeuralFMU with fmubuilder's engine (numpy, no gradients)."""
+                    inputs: InputSignals | None = None, rtol: float = 1e-6,
+                    record_events: bool = False) -> SimulationResult:
+    """Forward simulation of a NeuralFMU with fmubuilder's engine (numpy, no gradients);
+    record_events adds rows just before and after each event."""
     if not stop_time > start_time:
         raise FmuBuilderError(f"stop time {stop_time:g} is not after start time {start_time:g}")
     adaptive = solver == "dopri5"
@@ -166,6 +168,6 @@ def simulate_hybrid(model: NeuralFMU, *, start_time: float, stop_time: float, va
     try:
         interval = output_interval or step_size or (stop_time - start_time) / 500
         return run(system, integrator, start_time=start_time, stop_time=stop_time,
-                   output_times=output_grid(start_time, stop_time, interval))
+                   output_times=output_grid(start_time, stop_time, interval), record_events=record_events)
     finally:
         system.close()

@@ -48,6 +48,7 @@ from ..data import MeasuredData, first_order_lag, load_data
 from ..files import refuse_existing, write_atomically
 from ..progress import Bar
 from ..score import floors_of, validation_score
+from ..simulation.results import sample_settled
 from .io import save_neural_fmu
 from .model import NeuralFMU
 from .solve import ElementStart, simulate
@@ -251,17 +252,19 @@ def data_errors(data: MeasuredData, result, sensor_lag: float = 0.0, aliases: di
 def predicted_at_samples(data: MeasuredData, result, name: str, sensor_lag: float = 0.0,
                          aliases: dict | None = None) -> np.ndarray:
     """What the sensor of signal `name` shows at the data's samples: the engine result's value (or
-    the derivative it is an alias of) through the sensors' first-order lag."""
-    simulated = result[(aliases or {}).get(name, name)]
-    return np.interp(data.time, result.time, first_order_lag(result.time, simulated, sensor_lag))
+    the derivative it is an alias of) through the sensors' first-order lag, the settled value at an
+    event's time (as the choice's scoring reads it: hybridize.evaluate)."""
+    simulated = np.asarray(result[(aliases or {}).get(name, name)], dtype=float)
+    return sample_settled(result.time, first_order_lag(result.time, simulated, sensor_lag), data.time)
 
 
 def simulate_over(model: NeuralFMU, data: MeasuredData, step: float, solver: str = "euler",
                   start_values: dict | None = None, plain: bool = False, aliases: dict | None = None):
     """Engine result (with its statistics) of the hybrid, or with plain of the FMU alone, over the
-    data's span, recording the measured signals (and the derivatives `aliases` reads them from);
-    measured states start where the data's first samples put them (measured_initial_states), the
-    data's inputs drive the FMU."""
+    data's span, recording the measured signals (and the derivatives `aliases` reads them from)
+    every step and on both sides of every event (a sample between two steps must not interpolate
+    across a jump); measured states start where the data's first samples put them
+    (measured_initial_states), the data's inputs drive the FMU."""
     original = model.start_values
     model.start_values = {**original, **measured_initial_states(model, data), **(start_values or {})}
     try:
@@ -269,7 +272,7 @@ def simulate_over(model: NeuralFMU, data: MeasuredData, step: float, solver: str
             variables = list(dict.fromkeys([*data.signals, *(aliases or {}).values()]))
             return simulate_hybrid(model, start_time=data.start, stop_time=data.stop, variables=variables,
                                    solver=solver, step_size=step, output_interval=step,
-                                   inputs=data.input_signals(model.info))
+                                   inputs=data.input_signals(model.info), record_events=True)
     finally:
         model.start_values = original
 
