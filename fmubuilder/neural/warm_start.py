@@ -271,9 +271,12 @@ def _unfitted_too(trainer, search, through: dict) -> dict:
     topology = trainer.model.topology
     from_fit = _Fit.of(topology)
     search.unfitted_start().apply(topology)
-    loss = _loss_from_own_starts(trainer)
+    # its output scale acts on the unfitted last layer (zero): the hybrid is the one before the
+    # fits, whose loss the search measured; only the element starts need capturing again
+    trainer._capture_starts(plain=topology.is_neutral())
+    loss = search.loss_before
     other = _through_simulation(trainer, loss) or {"simulations": 0, "loss": loss, "kept": False}
-    simulations = through["simulations"] + LOSS_SIMULATIONS + other["simulations"]
+    simulations = through["simulations"] + 1 + other["simulations"]
     losses = {"loss_from_fit": through["loss"], "loss_from_unfitted": other["loss"]}
     if other["loss"] < through["loss"]:
         return {**other, **losses, "kept": True, "start": "unfitted", "simulations": simulations}

@@ -104,7 +104,10 @@ def test_a_fit_that_hardly_lowers_the_loss_is_also_tried_unfitted_through_the_si
         x, target = estimate(trainer, force)
         return x, 0.2 * target
 
+    starts = []
+
     def handicapped(trainer, loss):
+        starts.append((loss, module._loss_from_own_starts(trainer)))     # as given, as measured here
         done = through_simulation(trainer, loss)
         paths.append(done)
         return {**done, "loss": done["loss"] * handicap} if len(paths) == 1 else done
@@ -116,6 +119,8 @@ def test_a_fit_that_hardly_lowers_the_loss_is_also_tried_unfitted_through_the_si
     through = report["through_simulation"]
     assert module.UNFITTED_TOO_ABOVE * report["loss_before"] < report["loss_fits"] < report["loss_before"]
     assert len(paths) == 2 and through["loss_from_unfitted"] == paths[1]["loss"]
+    # the unfitted start's loss is the one before the fits, not measured again
+    assert starts[1][0] == report["loss_before"] and starts[1][1] == pytest.approx(starts[1][0], rel=1e-12)
     assert report["loss_after"] == min(through["loss_from_fit"], through["loss_from_unfitted"]) < report["loss_fits"]
     assert through["start"] == ("fit" if handicap == 1.0 else "unfitted")
     assert loss == pytest.approx(report["loss_after"], rel=1e-9)
