@@ -2,8 +2,9 @@
 (hybridize/choice.py) and the parameters a training ends with (neural/train.py, Trainer's
 validation). One score for both, so that a training stopped on it is never worse, in the measure
 that chooses, than where it started (an ANN on a fitted term: than the term), up to how each side
-simulates the model (the training its NeuralFMU, the choice the exported FMU; on the VLDM they
-differ by up to 17 % near the floor, docs/MEASUREMENTS.md).
+simulates the model (the training its NeuralFMU, the choice the exported FMU). Both read their
+engine runs alike: recorded on both sides of every event, the settled value at a sample
+(docs/MEASUREMENTS.md, "One score for the choice and the training's stop").
 
 The geometric mean replaced the arithmetic mean of MSE / MSE plain, which the signals the plain FMU
 already fits decide: an energy 6 times worse moved it by 0.001, a speed 3 % better by 0.03.

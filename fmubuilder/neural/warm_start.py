@@ -276,7 +276,7 @@ def _unfitted_too(trainer, search, through: dict) -> dict:
     trainer._capture_starts(plain=topology.is_neutral())
     loss = search.loss_before
     other = _through_simulation(trainer, loss) or {"simulations": 0, "loss": loss, "kept": False}
-    simulations = through["simulations"] + 1 + other["simulations"]
+    simulations = through["simulations"] + 1 + other["simulations"]     # 1: the capture
     losses = {"loss_from_fit": through["loss"], "loss_from_unfitted": other["loss"]}
     if other["loss"] < through["loss"]:
         return {**other, **losses, "kept": True, "start": "unfitted", "simulations": simulations}
