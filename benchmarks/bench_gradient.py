@@ -22,7 +22,6 @@ import torch
 
 from fmubuilder.build import example_fmu
 from fmubuilder.neural import NeuralFMU, TopologyConfig, simulate
-from fmubuilder.neural.solve import ElementStart
 from fmubuilder.neural.train import network_parameters
 
 # Per example: (channel, ANN inputs, recorded signals, start values).

@@ -53,7 +53,6 @@ def test_the_refinement_finds_a_known_last_layer_again(plant_fmu, truth, element
         before = trainer.engine_differences()["w"]
         done = refine_last_layer(trainer, 40)
         after = trainer.engine_differences()["w"]
-        layer = model.topology.ann[-1]
         assert done["kept"] and done["simulations"] <= 40 and done["unknowns"] == 7
         assert done["loss_after"] < 1e-6 * done["loss_before"]
         # the data are the truth's simulation: its error falls by three orders of magnitude, and the

@@ -3,7 +3,6 @@ loaded copy of its library per instance: a NeuralFMU's batch still runs several 
 and trains exactly as the same FMU without the declaration."""
 import re
 
-import numpy as np
 import pytest
 
 from fmubuilder.errors import FmuBuilderError
