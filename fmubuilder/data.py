@@ -217,6 +217,14 @@ def first_order_lag(time: np.ndarray, signal: np.ndarray, tau: float) -> np.ndar
     return out
 
 
+def sensor_reading(time: np.ndarray, values: np.ndarray, at: np.ndarray, tau: float) -> np.ndarray:
+    """What a sensor with a first-order lag `tau` shows at the times `at` of a run recorded at `time`
+    (both sides of an event recorded): the lagged values, linear between records, the settled one
+    at an event's time (simulation.results.sample_settled)."""
+    from .simulation.results import sample_settled
+    return sample_settled(time, first_order_lag(time, np.asarray(values, dtype=float), tau), at)
+
+
 def _intercept(t: np.ndarray, y: np.ndarray, noise_variance: float | None = None) -> tuple[float, float]:
     """Value at t = 0 of the least-squares line through (t, y) and its standard error, widened for
     residuals correlated from sample to sample (a filtered sensor's noise): by sqrt((1 + r) / (1 - r))

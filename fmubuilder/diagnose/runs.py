@@ -24,7 +24,7 @@ from ..simulation.engine import output_grid, run
 from ..simulation.results import sample_settled
 from ..simulation.solvers import make_solver
 from ..simulation.system import FmuSystem
-from ..data import first_order_lag
+from ..data import sensor_reading
 
 TIME = "time"  # pseudo-variable: a term in the time since the start of the window
 
@@ -192,8 +192,7 @@ class ModelRunner:
             values = values + self._aliased_terms(name, terms, result)
             sampled[name] = sample_settled(result.time, values, self.data_time)
             if name in self.measured:
-                lagged = first_order_lag(result.time, values, self.sensor_lag) if self.sensor_lag > 0 else values
-                predicted[name] = sample_settled(result.time, lagged, self.data_time)
+                predicted[name] = sensor_reading(result.time, values, self.data_time, self.sensor_lag)
         wall = wallclock.perf_counter() - started
         self.runs += 1
         self.total_wall_time += wall

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..data import MeasuredData, first_order_lag, load_data
+from ..data import MeasuredData, load_data, sensor_reading
 from ..errors import FmuBuilderError
 
 # Scoring.checked's step search (see there).
@@ -105,12 +105,8 @@ def read_data(path: Path, info) -> MeasuredData:
 
 def evaluate(fmu_path: Path, data: MeasuredData, start_values: dict, scoring: Scoring) -> Evaluation:
     """Simulate the FMU over the data's span and compare it, seen through the sensors, with the data."""
-    from ..simulation.results import sample_settled
     result = simulate_over(fmu_path, data, start_values, data.names, scoring)
-    predicted = {}
-    for name in data.names:
-        seen = first_order_lag(result.time, np.asarray(result[name], dtype=float), data.sensor_lag)
-        predicted[name] = sample_settled(result.time, seen, data.time)
+    predicted = {name: sensor_reading(result.time, result[name], data.time, data.sensor_lag) for name in data.names}
     with np.errstate(all="ignore"):
         errors = {name: signal_errors(data.signals[name], predicted[name]) for name in data.names}
     return Evaluation(errors, data.time, predicted)

@@ -44,11 +44,10 @@ import numpy as np
 import torch
 
 from ..errors import FmuBuilderError
-from ..data import MeasuredData, first_order_lag, load_data
+from ..data import MeasuredData, load_data, sensor_reading
 from ..files import refuse_existing, write_atomically
 from ..progress import Bar
 from ..score import floors_of, validation_score
-from ..simulation.results import sample_settled
 from .io import save_neural_fmu
 from .model import NeuralFMU
 from .solve import ElementStart, simulate
@@ -254,8 +253,7 @@ def predicted_at_samples(data: MeasuredData, result, name: str, sensor_lag: floa
     """What the sensor of signal `name` shows at the data's samples: the engine result's value (or
     the derivative it is an alias of) through the sensors' first-order lag, the settled value at an
     event's time (as the choice's scoring reads it: hybridize.evaluate)."""
-    simulated = np.asarray(result[(aliases or {}).get(name, name)], dtype=float)
-    return sample_settled(result.time, first_order_lag(result.time, simulated, sensor_lag), data.time)
+    return sensor_reading(result.time, result[(aliases or {}).get(name, name)], data.time, sensor_lag)
 
 
 def simulate_over(model: NeuralFMU, data: MeasuredData, step: float, solver: str = "euler",
