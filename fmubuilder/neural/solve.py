@@ -132,6 +132,12 @@ class Trajectory:
     final_starts: list[ElementStart] | None = None
     captured: dict[int, list[ElementStart]] = field(default_factory=dict)
     stats: dict = field(default_factory=dict)
+    # With RK4, what a sensor needs besides the grid: `before[k, b, j]`, the value at grid point k + 1
+    # before the events there (`values` holds the one after them, the start of the next step), and
+    # `inner`, the steps of the grid intervals an event cuts: (k, b, [(start, end, value at the
+    # start, value at the end before its events), ...]), times from t0[b] (see neural/sensor.py).
+    before: torch.Tensor | None = None
+    inner: list = field(default_factory=list)
 
     def signal(self, name: str) -> torch.Tensor:
         """[T, B] values of one recorded variable."""
@@ -289,6 +295,7 @@ class _Run:
         self.counts = {"steps": 0, "time_events": 0, "state_events": 0, "step_events": 0}
         self.step_events = not self.info.capabilities.completed_integrator_step_not_needed
         self.t_grad = {}   # element -> its time, a located event time that carries a gradient
+        self.segments = None   # with RK4, the steps of the current grid interval (_keep_segment)
         if forcing is not None and self.grad:
             raise FmuBuilderError("forced states are for simulations without gradients; use torch.no_grad()")
         self.forcing = forcing
@@ -436,15 +443,21 @@ class _Run:
         return self.topology.mix(self.ann, x, out), out
 
     def step(self, rows, t: np.ndarray, x: torch.Tensor, h, c):
-        """One step for `rows` from (t, x) over h (numpy [R] or tensor [R, 1]); returns (x_new, dx1, out1)."""
+        """One step for `rows` from (t, x) over h (numpy [R] or tensor [R, 1]); returns (x_new, dx1,
+        out1, the last stage's (dx, out) at t + h: RK4's fourth, None for Euler)."""
         if isinstance(h, torch.Tensor):
             h_np, h_t = h.detach().numpy()[:, 0], h
         else:
             h_np, h_t = h, torch.from_numpy(h[:, None])
         dx1, out1 = self.rhs(rows, t, x, c)
         if not self.rk4:
-            return x + h_t * dx1, dx1, out1
-        return rk4_step(lambda t, x: self.rhs(rows, t, x, c)[0], t, x, dx1, h_t, h_np), dx1, out1
+            return x + h_t * dx1, dx1, out1, None
+        stages = []
+
+        def f(t, x):
+            stages.append(self.rhs(rows, t, x, c))
+            return stages[-1][0]
+        return rk4_step(f, t, x, dx1, h_t, h_np), dx1, out1, stages[-1]
 
     # -- main loop: the engine's event sequence, per element ----------------------------------
     def run(self) -> Trajectory:
@@ -465,13 +478,16 @@ class _Run:
             t0, duration = float(self.t0[b]), float(self.grid[-1])     # the element's experiment, as the engine's
             self.elements.append(EventSequence(t0, float(self.first_events[b]), z, self.counts,
                                                time_scale(t0, t0 + duration), index=b))
-        records, captured = [], {}
+        records, captured, before, inner = [], {}, [], []
         x, dd, c, _ = self._walk(self.t0, x, dd, c, record=False)   # the time events due at the start
         for k in range(self.K):
             if k in self.capture:
                 captured[k] = self._save_states(x, self.grid[k])
+            self.segments = [] if self.rk4 else None
             x, dd, c, record = self._walk(self.t0 + self.grid[k + 1], x, dd, c)
             records.append(record)
+            if self.rk4:
+                before.append(self._interval_ends(k, record, inner))
         tau = self.grid[self.K]
         if self.K in self.capture:
             captured[self.K] = self._save_states(x, tau)
@@ -483,7 +499,8 @@ class _Run:
         if self.event_grad:
             stats["event_sensitivity"] = self.sens.stats()
         values = torch.stack(records) if records else torch.zeros(0, self.B, 0)
-        return Trajectory(self.grid.copy(), self.t0, self.record_names, values, x, final_starts, captured, stats)
+        return Trajectory(self.grid.copy(), self.t0, self.record_names, values, x, final_starts, captured, stats,
+                          torch.stack(before) if before else None, inner)
 
     def _times(self) -> np.ndarray:
         return np.array([element.t for element in self.elements])
@@ -533,7 +550,7 @@ class _Run:
         for b in asking:
             end[position[b]] = requests[b][1]
         x_rows, c_rows = (x, c) if every else (x[rows], None if c is None else c[rows])
-        x_new, dx1, out1 = self.step(rows, t, x_rows, self._step_lengths(rows, end), c_rows)
+        x_new, dx1, out1, last = self.step(rows, t, x_rows, self._step_lengths(rows, end), c_rows)
         if self.forcing is not None:
             x_new = self._forced(end, x_new)
         self.counts["steps"] += 1
@@ -546,7 +563,39 @@ class _Run:
             index = torch.tensor(list(self.cuts))
             x_new = x_new.index_put((index,), torch.stack(list(self.cuts.values())))
         x = x_new if len(rows) == self.B else x.index_put((torch.tensor(rows),), x_new)
-        return x, self._record(x_rows, dx1, out1) if every else None
+        first = self._record(x_rows, dx1, out1) if every or self.segments is not None else None
+        if self.segments is not None:
+            self._keep_segment(rows, t, end, first, x_new, dx1, out1, last)
+        return x, first if every else None
+
+    def _keep_segment(self, rows, t, planned_end, first, x_end, dx1, out1, last) -> None:
+        """The records of a step at its start (after the events there) and at its end (before the
+        events there: the last stage's derivatives and outputs, at the located time of a state event
+        that cut the step linear between its first stage and the last)."""
+        ended = np.array([self.elements[b].t for b in rows])
+        planned = planned_end - t
+        theta = torch.from_numpy(np.where(planned > 0.0, (ended - t) / np.where(planned > 0.0, planned, 1.0), 1.0))[:, None]
+        dx_end = dx1 + theta * (last[0] - dx1)
+        out_end = out1 + theta * (last[1] - out1)
+        self.segments.append((list(rows), t, ended, first, self._record(x_end, dx_end, out_end)))
+
+    def _interval_ends(self, k: int, first_stage: torch.Tensor, inner: list) -> torch.Tensor:
+        """[B, C] each element's records at grid point k + 1 before its events (the end of its last
+        step of the interval; an element standing still: its record at k); the intervals an event
+        cut into several steps go into `inner` (see Trajectory)."""
+        if len(self.segments) == 1:
+            rows, t, ended, _, end = self.segments[0]
+            if len(rows) == self.B and bool(np.all(ended > t)):
+                return end
+        steps = {b: [] for b in self.rows}
+        for rows, t, ended, start, end in self.segments:
+            for i, b in enumerate(rows):
+                if ended[i] > t[i]:          # a step of length zero (a gradient's carrier) records nothing
+                    steps[b].append((float(t[i] - self.t0[b]), float(ended[i] - self.t0[b]), start[i], end[i]))
+        for b, kept in steps.items():
+            if len(kept) > 1:
+                inner.append((k, b, kept))
+        return torch.stack([kept[-1][3] if kept else first_stage[b] for b, kept in steps.items()])
 
     def _step_lengths(self, rows, end: np.ndarray):
         """end - t per row: numpy, or a tensor [R, 1] where a located event time carries a gradient."""

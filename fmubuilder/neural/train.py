@@ -50,6 +50,7 @@ from ..progress import Bar
 from ..score import floors_of, validation_score
 from .io import save_neural_fmu
 from .model import NeuralFMU
+from .sensor import sensor_grid
 from .solve import ElementStart, simulate
 from .system import simulate_hybrid
 from .topology import TopologyConfig
@@ -775,17 +776,16 @@ class Trainer:
         return {name: (residual ** 2).mean() for name, residual in self._residuals(trajectory, batch).items()}
 
     def _residuals(self, trajectory, batch: list["_Element"]) -> dict:
-        """{signal: (prediction - data) * sqrt(weight) at the batch's data points} (tensors)."""
+        """{signal: (prediction - data) * sqrt(weight) at the batch's data points} (tensors): the run
+        as its sensors show it at the samples (neural/sensor.py), as the choice's scoring reads it."""
         residuals = {}
         for j, name in enumerate(self.loss_signals):
             shown = torch.tensor([element.sensor_start[name] for element in batch], dtype=trajectory.values.dtype)
-            values = self._through_sensor(trajectory.values[:, :, j], shown)
+            sensor = sensor_grid(trajectory, j, self.sensor_lag, shown)
             pieces = []
             for b, element in enumerate(batch):
                 k0, frac, target, weight = element.targets[name]
-                column = values[:, b]
-                predicted = column[k0] * (1.0 - frac) + column[k0 + 1] * frac
-                pieces.append(weight.sqrt() * (predicted - target))
+                pieces.append(weight.sqrt() * (sensor.read(b, k0, frac) - target))
             residuals[name] = torch.cat(pieces)
         return residuals
 
@@ -806,23 +806,6 @@ class Trainer:
             trajectory = simulate(self.model, self.element_duration, self.step, starts=[e.start for e in self.elements],
                                   record=self.recorded, solver=self.settings.solver, inputs=self.inputs)
             return self._residuals(trajectory, self.elements)
-
-    def _through_sensor(self, values: torch.Tensor, shown: torch.Tensor | None = None) -> torch.Tensor:
-        """[K+1, B] simulated values seen through the sensors' first-order lag. The sensor starts
-        each element showing `shown` [B] (what the data show there), or settled at the element's
-        first value (as `synth` does at the start of a run): the difference decays with the lag.
-        Settled starts made every element of a ramp or a heating begin with an error the size of
-        the lag times the slope, which on the DC drive outweighed the missing term."""
-        lag = self.settings.sensor_lag or 0.0
-        if lag <= 0.0:
-            return values
-        weights = torch.from_numpy(sensor_kernel(self.step, lag))
-        padded = torch.cat([values[:1].expand(len(weights) - 1, -1), values], dim=0)
-        lagged = torch.nn.functional.conv1d(padded.T.unsqueeze(1), weights.flip(0).view(1, 1, -1)).squeeze(1).T
-        if shown is None:
-            return lagged
-        decay = torch.exp(-self.step * torch.arange(values.shape[0], dtype=values.dtype) / lag)
-        return lagged + decay[:, None] * (shown - values[0])[None, :]
 
     # -- checkpoints --------------------------------------------------------------------------
     def _save_checkpoint(self, path: Path, optimizer, scheduler, epoch: int) -> None:
@@ -898,19 +881,6 @@ def plan_elements(start: float, stop: float, length: float, step: float) -> list
     count = int(math.floor(span / length + 1e-9))
     steps_per_element = int(round(length / step))
     return [start + k * steps_per_element * step for k in range(count)]
-
-
-def sensor_kernel(step: float, lag: float, tolerance: float = 1e-12) -> np.ndarray:
-    """Weights w[m] of u[k - m] in the output y[k] of `lag * dy/dt = u - y` for an input linear
-    between grid points `step` apart (data.first_order_lag's discretisation), cut where the memory
-    falls below `tolerance` and rescaled to a static gain of 1."""
-    a = math.exp(-step / lag)
-    c = 1.0 - lag / step * -math.expm1(-step / lag)     # weight of the current input
-    p = (1.0 - a) - c                                   # weight of the previous input
-    taps = int(math.ceil(math.log(tolerance) / math.log(a))) + 1
-    m = np.arange(1, taps)
-    weights = np.concatenate([[c], p * a ** (m - 1) + c * a ** m])
-    return weights / weights.sum()
 
 
 def network_parameters(topology, parameters) -> list:

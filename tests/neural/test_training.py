@@ -109,44 +109,6 @@ def test_sequential_elements_with_carry_over(plant_fmu):
     result.model.close()
 
 
-def test_sensor_lag_of_the_loss_matches_the_analytic_ramp_response():
-    """The loss sees the simulated signals through the sensors' first-order lag: for a ramp u = t
-    from a settled start the output is t - lag (1 - exp(-t/lag)), exactly, on any grid."""
-    import torch
-    from fmubuilder.neural.train import Trainer, TrainSettings
-
-    class Grid:
-        step = 0.01
-        settings = TrainSettings(sensor_lag=0.1)
-
-    t = np.arange(0.0, 3.0, Grid.step)
-    ramp = np.stack([t, 3.0 * t], axis=1)
-    seen = Trainer._through_sensor(Grid(), torch.from_numpy(ramp)).numpy()
-    analytic = t - 0.1 * (1.0 - np.exp(-t / 0.1))
-    np.testing.assert_allclose(seen[:, 0], analytic, atol=1e-10)
-    np.testing.assert_allclose(seen[:, 1], 3.0 * analytic, atol=1e-10)
-
-
-def test_a_sensor_entering_an_element_mid_ramp_lags_as_it_did_before():
-    """An element starting mid-ramp (u = t, under way long before): its sensor shows t0 - lag at the
-    start and t - lag after, exactly; a sensor assumed settled at the start would err by lag * slope."""
-    import torch
-    from fmubuilder.neural.train import Trainer, TrainSettings
-
-    class Grid:
-        step = 0.01
-        settings = TrainSettings(sensor_lag=0.1)
-
-    t = np.arange(2.0, 5.0, Grid.step)
-    ramp = torch.from_numpy(np.stack([t, -2.0 * t], axis=1))
-    shown = torch.tensor([2.0 - 0.1, -2.0 * (2.0 - 0.1)], dtype=torch.float64)
-    seen = Trainer._through_sensor(Grid(), ramp, shown).numpy()
-    np.testing.assert_allclose(seen[:, 0], t - 0.1, atol=1e-10)
-    np.testing.assert_allclose(seen[:, 1], -2.0 * (t - 0.1), atol=1e-10)
-    settled = Trainer._through_sensor(Grid(), ramp).numpy()
-    assert abs(settled[0, 0] - (t[0] - 0.1)) == pytest.approx(0.1)
-
-
 def test_losses_are_relative_to_the_plain_fmu(plant_fmu):
     """With loss_scale="reference" every signal's MSE is divided by the plain FMU's on the same
     elements, so the first epoch of a residual hybrid (which starts as the plain FMU) has loss 1."""

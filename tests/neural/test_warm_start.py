@@ -154,7 +154,11 @@ def test_where_the_forced_estimate_is_blind_the_plain_run_s_estimate_is_kept(dc_
     try:
         report = result.metrics["warm_start"]
         forced = [t["loss"] for t in report["trials"] if t["estimates"] == ["forced"]]
-        assert report["estimate"] == ["plain"] and report["loss_fits"] < 0.85 * min(forced)
+        best_fit = min(report["trials"], key=lambda trial: trial["loss"])
+        assert best_fit["estimates"] == ["plain"] and report["loss_fits"] == best_fit["loss"] < 0.85 * min(forced)
+        # the through-simulation then ends from the fit or from the unfitted ANN, whichever is lower:
+        # here they end within 1e-5 of each other, and the last layer is fitted alike from both
+        assert report["loss_after"] < report["loss_fits"]
         at = torch.tensor([[2.5, 150.0], [6.5, 150.0], [5.6, 60.0]], dtype=torch.float64)    # held in the data
         with torch.no_grad():
             learned = result.model.topology.correction(at)[:, 0].numpy()
