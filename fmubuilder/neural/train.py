@@ -161,7 +161,7 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
                    "loss": trainer.history[-1]["loss"] if trainer.history else None,
                    "settings": asdict(settings), "element_start_replays": dict(model.replays),
                    "loss_evaluations": trainer.loss_evaluations, "warm_start": trainer.warm_start,
-                   "last_layer": trainer.last_layer,
+                   "last_layer": trainer.last_layer, "free_start_offsets": trainer.free_offsets,
                    "validation": trainer.validation_summary()}
         if test_data is not None:
             test = test_data if isinstance(test_data, MeasuredData) else load_data(test_data, model.info)
@@ -277,17 +277,25 @@ def simulate_over(model: NeuralFMU, data: MeasuredData, step: float, solver: str
 
 
 def measured_initial_states(model: NeuralFMU, data: MeasuredData, t0: float | None = None,
-                            model_values: dict | None = None, sensor_lag: float = 0.0) -> dict:
+                            model_values: dict | None = None, sensor_lag: float = 0.0,
+                            model_runs: dict | None = None) -> dict:
     """Values of the measured continuous states to start at t0 (default: the data's start) with: the
     model's own value (its start value, or `model_values` along a run) where the first samples of
     data agree with it, else a line fitted through them (see MeasuredData.start_estimate). A sensor
     with a first-order lag shows a smoothly moving state `sensor_lag` late: the samples from
-    t0 + sensor_lag tell the state at t0."""
+    t0 + sensor_lag tell the state at t0. `model_runs` ({state: (times, values)} of the run
+    `model_values` lie on) give the course the samples are compared with."""
     t0 = data.start if t0 is None else t0
     own = model_values if model_values is not None else {
         s: model.start_values.get(s, model.info.variable(s).start) for s in model.state_names()}
     at = min(t0 + sensor_lag, float(data.time[-1]))
-    return {s: data.start_estimate(s, at, own.get(s)) for s in model.state_names() if s in data.signals}
+
+    def course(state: str):
+        if not model_runs or state not in model_runs:
+            return None
+        times, values = model_runs[state]
+        return lambda t: np.interp(np.asarray(t) - sensor_lag, times, values)
+    return {s: data.start_estimate(s, at, own.get(s), course(s)) for s in model.state_names() if s in data.signals}
 
 
 # ------------------------------------------------------------------------------------------
@@ -320,6 +328,7 @@ class Trainer:
         self.loss_evaluations = 0   # forward and backward passes through the solver, over a batch
         self.cut_short = False     # the time budget ended the training before its epochs
         self.elements: list[_Element] = []
+        self.free_offsets: list[str] = []   # states whose element starts the loss fits (see _free_offsets)
         self.reference = None
         self.warm_start: dict | None = None   # what the warm start did (see warm_start.py)
         self.last_layer: dict | None = None   # what the last layer's refinement did (see last_layer.py)
@@ -367,8 +376,43 @@ class Trainer:
         for index, element_start in enumerate(self._captured):
             self.elements.append(_Element(index, element_start, self._targets(element_start.t0),
                                           self._sensor_start(element_start.t0)))
+        self.free_offsets = self._free_offsets()
         self.scale = self._reference_scale()
         return ref
+
+    def _free_offsets(self) -> list[str]:
+        """Measured states in the loss that nothing else depends on (an energy integrating a power).
+        An element starts such a state where a line through a few noisy samples puts it, and on the
+        VLDM that line is off by several times the noise where the power changes (the energy's
+        curvature): the whole element then carries the offset, which the loss charged to the model
+        (the truth's own training loss on the energy 10.7 times the noise variance). The loss takes
+        the offset out instead, the least-squares start of the element (_residuals). Found by
+        simulating the first element's first second again with the state shifted: every other state,
+        derivative and loss signal must come out exactly equal."""
+        candidates = [s for s in self._measured_states()
+                      if s in self.loss_signals and s not in self.model.config.inputs]
+        first = self.elements[0].start if self.elements else None
+        if not candidates or first is None or first.fmu_state is None or first.states is None:
+            return []
+        names = self.model.state_names()
+        watched = list(dict.fromkeys(names + [v.name for v in self.model.info.derivatives] + self.recorded))
+        duration = min(1.0, self.element_duration)
+
+        def run(shifted: str | None) -> torch.Tensor:
+            states = dict(first.states)
+            if shifted is not None:
+                states[shifted] = states.get(shifted, 0.0) + max(1.0, abs(states.get(shifted, 0.0))) * 1e-3
+            start = ElementStart(first.t0, first.fmu_state, first.next_event_time, states)
+            with torch.no_grad(), self.model.topology.ann_off():
+                return simulate(self.model, duration, self.step, starts=[start], record=watched,
+                                solver=self.settings.solver, inputs=self.inputs).values[:, 0, :]
+        base = run(None)
+        free = []
+        for state in candidates:
+            others = [j for j, name in enumerate(watched) if name != state]
+            if torch.equal(run(state)[:, others], base[:, others]):
+                free.append(state)
+        return free
 
     def _reference_scale(self) -> dict:
         """Per-signal divisor of the MSE in the loss: the plain FMU's MSE on the elements, floored at
@@ -400,7 +444,9 @@ class Trainer:
             run = simulate(model, data.stop - data.start, self.step, starts=[first], record=recorded,
                            solver=self.settings.solver, inputs=self.inputs, capture=grid_index)
         measured = self._measured_states()
-        self._captured = [self._with_measured_states(run.captured[k][0], {s: float(run.numpy(s)[k, 0]) for s in measured})
+        courses = {s: (data.start + run.times, run.numpy(s)[:, 0]) for s in measured}
+        self._captured = [self._with_measured_states(run.captured[k][0], {s: float(run.numpy(s)[k, 0]) for s in measured},
+                                                     courses)
                           for k in grid_index]
         for element, start in zip(self.elements, self._captured):
             element.start = start
@@ -409,11 +455,11 @@ class Trainer:
     def _measured_states(self) -> list[str]:
         return [s for s in self.model.state_names() if s in self.data.signals]
 
-    def _with_measured_states(self, start: ElementStart, along_run: dict) -> ElementStart:
-        """The element starts at the measured states, or at the run's (`along_run`) where the data
-        agree with them."""
+    def _with_measured_states(self, start: ElementStart, along_run: dict, courses: dict | None = None) -> ElementStart:
+        """The element starts at the measured states, or at the run's (`along_run`; `courses`: the
+        run's course over the data, see measured_initial_states) where the data agree with them."""
         start.states = measured_initial_states(self.model, self.data, start.t0, along_run,
-                                               sensor_lag=self.sensor_lag)
+                                               sensor_lag=self.sensor_lag, model_runs=courses)
         return start
 
     def _scaling_samples(self) -> tuple[np.ndarray, np.ndarray]:
@@ -785,9 +831,24 @@ class Trainer:
             pieces = []
             for b, element in enumerate(batch):
                 k0, frac, target, weight = element.targets[name]
-                pieces.append(weight.sqrt() * (sensor.read(b, k0, frac) - target))
+                residual = weight.sqrt() * (sensor.read(b, k0, frac) - target)
+                if self.recorded[j] in self.free_offsets:
+                    residual = self._without_start_offset(residual, weight, k0, frac)
+                pieces.append(residual)
             residuals[name] = torch.cat(pieces)
         return residuals
+
+    def _without_start_offset(self, residual: torch.Tensor, weight: torch.Tensor, k0, frac) -> torch.Tensor:
+        """The residuals of a state nothing else depends on, its element started at its least-squares
+        start (see _free_offsets): a start shifted by d shifts the sensor by d (1 - exp(-t / lag)),
+        the sensor's own start being what the data show."""
+        lag = self.sensor_lag
+        elapsed = (k0.to(residual.dtype) + frac) * self.step
+        basis = weight.sqrt() * (-torch.expm1(-elapsed / lag) if lag > 0.0 else torch.ones_like(elapsed))
+        norm = float((basis * basis).sum())
+        if norm <= 0.0:
+            return residual
+        return residual - basis * ((basis * residual).sum() / norm)
 
     def scaled_residuals(self) -> torch.Tensor:
         """All elements' residuals in one vector whose squared sum is the loss (batch_loss of all
