@@ -7,8 +7,8 @@ with RK4 the run records each grid point after its events (`values`) and before 
 and the steps of an interval that an event cuts (`inner`). Read from the grid points after their
 events alone, a signal that a sampled controller moves in steps (the VLDM's power jumps at every
 10 ms tick while the car accelerates) was taken for a ramp from one step to the next, half a step
-early: on the truth's own run the training's loss read 1.47 times the noise variance on the power
-where the scoring reads 1.06.
+early: on the extra resistance's truth the training's loss read 1.49 times the noise variance on
+the power where the scoring reads 1.06 (docs/MEASUREMENTS.md, "The training's loss at the truth").
 """
 from __future__ import annotations
 
