@@ -382,13 +382,14 @@ class Trainer:
 
     def _free_offsets(self) -> list[str]:
         """Measured states in the loss that nothing else depends on (an energy integrating a power).
-        An element starts such a state where a line through a few noisy samples puts it, and on the
-        VLDM that line is off by several times the noise where the power changes (the energy's
-        curvature): the whole element then carries the offset, which the loss charged to the model
-        (the truth's own training loss on the energy 10.7 times the noise variance). The loss takes
-        the offset out instead, the least-squares start of the element (_residuals). Found by
-        simulating the first element's first second again with the state shifted: every other state,
-        derivative and loss signal must come out exactly equal."""
+        An element starts such a state where a few noisy samples put it (on the VLDM a line through
+        them missed by several times the noise where the power changes), and the whole element then
+        carries the offset, which the loss charged to the model (the truth's own training loss on the
+        energy 10.7 times the noise variance). The loss takes the offset out instead, the
+        least-squares start of the element (_residuals). Found by simulating the first element's
+        first second again with the state shifted, the ANN switched off (so it may not read the state;
+        a base term reads ANN inputs only): every other state, derivative and loss signal must come
+        out exactly equal."""
         candidates = [s for s in self._measured_states()
                       if s in self.loss_signals and s not in self.model.config.inputs]
         first = self.elements[0].start if self.elements else None
