@@ -8,9 +8,14 @@ term's input variables every few samples):
     truth(t)   = f_truth(x(t), t)[c] - f_declared(x(t), t)[c]   derivatives of channel c at the same
                                                             state, inputs and time
 
-The truth is the FMU the data's sidecar names (`truth_model`, checked by its sha256, with the
-sidecar's `truth` parameters); it is found only when it is one of the bundled examples. Without it
-the plot shows the learned term alone.
+With a truth, both are drawn along the declared run as each FMU follows it: every state set to
+the run's after every step (neural/collocation.forced_run), the inputs and the declared FMU's
+derivative from the declared FMU's such run, the truth's from its own. A sampled controller then
+updates at its ticks from the same states in both. Set to a state at single points instead, an FMU
+keeps its discrete states where they started (the VLDM's driver: a throttle of 0, no motor torque,
+and no extra loss drawn where the truth adds 0.77 kW rms). The followed runs can miss a state event
+the run had (a relay whose switch, inside a step, undoes its own crossing by the step's end): the
+two FMUs then miss it alike, and inputs, learned and true effect stay at the same points.
 """
 from __future__ import annotations
 
@@ -24,7 +29,7 @@ from ..errors import FmuBuilderError
 from ..export.network import OnnxNetwork
 from ..export.spec import HybridSpec
 from ..files import file_sha256
-from ..fmi import Fmu, read_model_info
+from ..fmi import read_model_info
 from .evaluate import Scoring, simulate_over
 
 # Points of the declared FMU's run at which the effects are evaluated.
@@ -45,25 +50,61 @@ def effect_of(spec_path: Path, declared_fmu: Path, data, start_values: dict, sco
     """The learned (and, if known, true) effect along the declared FMU's run over `data`, simulated
     as every model is scored (`scoring`)."""
     spec = HybridSpec.load(spec_path)
-    info_states = [s.name for s in read_model_info(declared_fmu).states]
-    interval = max(scoring.step, (data.stop - data.start) / EFFECT_POINTS)
-    run = simulate_over(declared_fmu, data, start_values, dict.fromkeys([*spec.inputs, *info_states]), scoring,
-                        output_interval=interval, record_events=False)
     channel = spec.channels[0]
-    network = OnnxNetwork(spec.onnx)
-    inputs = {name: np.asarray(run[name], dtype=float) for name in spec.inputs}
-    learned = spec.p_ann[0] * np.array([network(row)[0] for row in np.column_stack(list(inputs.values()))])
-    effect = Effect(channel, spec.term, inputs, learned)
+    inputs, truth = None, None
     try:
-        truth_fmu, parameters, effect.truth_source = _truth_model(data)
+        truth_fmu, parameters, truth_source = _truth_model(data)
         if truth_fmu is not None:
-            states = np.column_stack([np.asarray(run[name], dtype=float) for name in info_states])
-            # f_truth - f_declared of the channel at the same times, states and inputs
-            effect.truth = (_derivatives(truth_fmu, channel, run.time, states, data, {**start_values, **parameters})
-                            - _derivatives(declared_fmu, channel, run.time, states, data, start_values))
+            inputs, truth = followed_effect(truth_fmu, declared_fmu, spec.inputs, channel, data, start_values,
+                                            parameters, scoring)
     except FmuBuilderError as exc:
-        effect.truth, effect.truth_source = None, f"the truth could not be evaluated ({exc})"
-    return effect
+        truth_source = f"the truth could not be evaluated ({exc})"
+    if inputs is None:
+        interval = max(scoring.step, (data.stop - data.start) / EFFECT_POINTS)
+        run = simulate_over(declared_fmu, data, start_values, spec.inputs, scoring, output_interval=interval,
+                            record_events=False)
+        inputs = {name: np.asarray(run[name], dtype=float) for name in spec.inputs}
+    network = OnnxNetwork(spec.onnx)
+    learned = spec.p_ann[0] * np.array([network(row)[0] for row in np.column_stack(list(inputs.values()))])
+    return Effect(channel, spec.term, inputs, learned, truth, truth_source)
+
+
+def followed_effect(truth_fmu: Path, declared_fmu: Path, inputs: list[str], channel: str, data, start_values: dict,
+                    parameters: dict, scoring: Scoring) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """({input: values}, f_truth - f_declared of `channel`) at about EFFECT_POINTS points of the
+    declared FMU's run over `data`, both FMUs following it (the module docstring); the truth starts
+    with its `parameters` on top of `start_values`."""
+    states = [s.name for s in read_model_info(declared_fmu).states]
+    if [s.name for s in read_model_info(truth_fmu).states] != states:
+        raise FmuBuilderError("its continuous states are not the declared FMU's")
+    run = simulate_over(declared_fmu, data, start_values, states, scoring, record_events=False)
+    grid = np.asarray(run.time, dtype=float)
+    columns = [np.asarray(run[name], dtype=float) for name in states]
+
+    def along_run(t):
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        return np.stack([np.interp(t, grid, column) for column in columns], axis=1)
+    declared = _following(declared_fmu, data, start_values, scoring, states, along_run, [*inputs, channel])
+    truth = _following(truth_fmu, data, {**start_values, **parameters}, scoring, states, along_run, [channel])
+    points = slice(None, None, max(1, len(truth[channel]) // EFFECT_POINTS))
+    return ({name: declared[name][points] for name in inputs},
+            truth[channel][points] - declared[channel][points])
+
+
+def _following(fmu_path: Path, data, start_values: dict, scoring: Scoring, states: list[str], along_run,
+               record: list[str]) -> dict[str, np.ndarray]:
+    """{name: values on the scoring grid} of the FMU run over `data` with every state set to
+    along_run(t) after every step."""
+    from ..neural import NeuralFMU, TopologyConfig
+    from ..neural.collocation import forced_run
+    model = NeuralFMU(fmu_path, TopologyConfig(), start_values=start_values)
+    try:
+        solver = scoring.solver if scoring.solver in ("euler", "rk4") else "rk4"   # the states are set every step
+        trajectory = forced_run(model, data, scoring.step, solver, states, along_run, list(dict.fromkeys(record)),
+                                data.input_signals(model.info))
+        return {name: trajectory.numpy(name)[:, 0] for name in record}
+    finally:
+        model.close()
 
 
 def _truth_model(data) -> tuple[Path | None, dict, str]:
@@ -85,28 +126,3 @@ def _truth_model(data) -> tuple[Path | None, dict, str]:
 
 def _listed(values: dict) -> str:
     return ", ".join(f"{k} = {v:g}" if isinstance(v, (int, float)) else f"{k} = {v}" for k, v in values.items())
-
-
-def _derivatives(fmu_path: Path, channel: str, time: np.ndarray, states: np.ndarray, data,
-                 start_values: dict) -> np.ndarray:
-    from ..simulation.events import event_mode
-    with Fmu(fmu_path) as fmu:
-        index = fmu.info.state_index(channel)
-        instance = fmu.instantiate("effect")
-        try:
-            instance.setup_experiment(float(time[0]))
-            instance.set(start_values)
-            instance.enter_initialization_mode()
-            instance.exit_initialization_mode()
-            event_mode(instance, entered=True, resume_on_terminate=True)
-            inputs = {name: np.interp(time, data.time, values) for name, values in (data.inputs or {}).items()}
-            out = np.empty(time.size)
-            for k, t in enumerate(time):
-                instance.set_time(float(t))
-                if inputs:
-                    instance.set({name: float(values[k]) for name, values in inputs.items()})
-                instance.set_continuous_states(states[k])
-                out[k] = instance.get_derivatives()[index]
-            return out
-        finally:
-            instance.free()

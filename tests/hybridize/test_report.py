@@ -4,7 +4,9 @@ learned drawn against its inputs and against the truth that made the data.
 
 References: units from fmpy's reading of the modelDescription; the learned network evaluated by
 torch (the report runs its ONNX export with onnxruntime); the true windage term from the C source
-of examples/dc_drive (WINDAGE = 3e-6 N.m.s2/rad2, inertia 0.01 kg.m2).
+of examples/dc_drive (WINDAGE = 3e-6 N.m.s2/rad2, inertia 0.01 kg.m2); the VLDM's extra loss from
+examples/vldm/model.c (10 % of |motor_torque * motor_speed| in the power demand, clamped to the
+battery's limits).
 """
 import base64
 import re
@@ -17,13 +19,13 @@ from fmpy import read_model_description
 
 from fmubuilder import synth
 from fmubuilder.build import example_fmu
-from fmubuilder.data import load_data
+from fmubuilder.data import MeasuredData, load_data
 from fmubuilder.diagnose.plots import cumulative_signals, pyplot, robust_ylim
 from fmubuilder.export import freeze
 from fmubuilder.export.spec import HybridSpec
 from fmubuilder.fmi import read_model_info
 from fmubuilder.hybridize import hybridize
-from fmubuilder.hybridize.effect import effect_of
+from fmubuilder.hybridize.effect import effect_of, followed_effect
 from fmubuilder.hybridize.evaluate import Scoring
 from fmubuilder.hybridize.plots import plot_effect
 from fmubuilder.hybridize.report import _candidate_note
@@ -184,6 +186,22 @@ def test_the_effect_of_a_network_against_the_truth(files, tmp_path):
     np.testing.assert_allclose(effect.truth, -WINDAGE_PER_INERTIA * speed * np.abs(speed), rtol=1e-6, atol=1e-9)
     path = plot_effect(tmp_path / "effect.png", effect, {"speed": "rad/s", "der(speed)": "rad/s2"}, "network")
     assert path.read_bytes().startswith(PNG)
+
+
+def test_the_true_effect_behind_a_sampled_controller():
+    """The VLDM's driver sets the throttle at its 100 Hz ticks: the truth's extra loss, 10 % of the
+    motor's mechanical power, shows only where the followed runs update the throttle as the run did
+    (at single points an FMU keeps the throttle it started with: 0, no loss drawn)."""
+    declared, truth = example_fmu("vldm"), example_fmu("vldm_truth_extra_loss")
+    info = read_model_info(declared)
+    window = MeasuredData(time=np.array([0.0, 40.0]), signals={"speed": np.zeros(2)})   # its span alone matters
+    names = ["motor_torque", "motor_speed", "power_demand"]
+    inputs, effect = followed_effect(truth, declared, names, "der(energy)", window, {}, {}, Scoring("rk4", 0.01))
+    limits = [float(info.variable(name).start) for name in ("min_power", "max_power")]
+    loss = 0.1 * np.abs(inputs["motor_torque"] * inputs["motor_speed"])
+    expected = np.clip(inputs["power_demand"] + loss, *limits) - np.clip(inputs["power_demand"], *limits)
+    assert effect.size >= 500 and np.sqrt(np.mean(expected ** 2)) > 100.0      # W: the car drives
+    np.testing.assert_allclose(effect, expected, rtol=1e-9, atol=1e-6)
 
 
 def test_one_spike_does_not_set_the_y_range_and_the_plot_says_so():
