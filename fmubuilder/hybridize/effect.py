@@ -1,10 +1,12 @@
 """The effect a hybrid adds, drawn against its inputs: what the chosen candidate learned and, where
-the data were made by a known "truth" model, what the truth adds.
+the data were made by a known "truth" model, what the truth adds; one Effect per corrected
+derivative, against the inputs its output reads (probed on the network: a sub-network per
+derivative reads only its own).
 
 Both are evaluated along one run of the declared FMU over the training data (its states and the
 term's input variables every few samples):
 
-    learned(t) = p_ann * net(u(t))                          the exported network or fitted term
+    learned(t) = p_ann[c] * net(u(t))[c]                    the exported network or fitted term
     truth(t)   = f_truth(x(t), t)[c] - f_declared(x(t), t)[c]   derivatives of channel c at the same
                                                             state, inputs and time
 
@@ -34,6 +36,10 @@ from .evaluate import Scoring, simulate_over
 
 # Points of the declared FMU's run at which the effects are evaluated.
 EFFECT_POINTS = 600
+# An output reads an input when moving the input by this share of its range moves the output by more
+# than READS_ABOVE of the output's largest value at some point.
+PROBE_SHIFT = 1e-3
+READS_ABOVE = 1e-9
 
 
 @dataclass
@@ -46,34 +52,53 @@ class Effect:
     truth_source: str = ""                # where the truth came from, or why there is none
 
 
-def effect_of(spec_path: Path, declared_fmu: Path, data, start_values: dict, scoring: Scoring) -> Effect:
-    """The learned (and, if known, true) effect along the declared FMU's run over `data`, simulated
-    as every model is scored (`scoring`)."""
+def effects_of(spec_path: Path, declared_fmu: Path, data, start_values: dict, scoring: Scoring) -> list[Effect]:
+    """The learned (and, if known, true) effect on each of the hybrid's channels along the declared
+    FMU's run over `data`, simulated as every model is scored (`scoring`)."""
     spec = HybridSpec.load(spec_path)
-    channel = spec.channels[0]
-    inputs, truth = None, None
+    points, truth = None, None
     try:
         truth_fmu, parameters, truth_source = _truth_model(data)
         if truth_fmu is not None:
-            inputs, truth = followed_effect(truth_fmu, declared_fmu, spec.inputs, channel, data, start_values,
+            points, truth = followed_effect(truth_fmu, declared_fmu, spec.inputs, spec.channels, data, start_values,
                                             parameters, scoring)
     except FmuBuilderError as exc:
         truth_source = f"the truth could not be evaluated ({exc})"
-    if inputs is None:
+    if points is None:
         interval = max(scoring.step, (data.stop - data.start) / EFFECT_POINTS)
         run = simulate_over(declared_fmu, data, start_values, spec.inputs, scoring, output_interval=interval,
                             record_events=False)
-        inputs = {name: np.asarray(run[name], dtype=float) for name in spec.inputs}
+        points = {name: np.asarray(run[name], dtype=float) for name in spec.inputs}
     network = OnnxNetwork(spec.onnx)
-    learned = spec.p_ann[0] * np.array([network(row)[0] for row in np.column_stack(list(inputs.values()))])
-    return Effect(channel, spec.term, inputs, learned, truth, truth_source)
+    rows = np.column_stack([points[name] for name in spec.inputs])
+    learned = np.array([network(row) for row in rows]) * np.asarray(spec.p_ann)
+    reads = inputs_read(network, rows)
+    return [Effect(channel, spec.term, {name: points[name] for i, name in enumerate(spec.inputs) if reads[j, i]},
+                   learned[:, j], None if truth is None else truth[:, j], truth_source)
+            for j, channel in enumerate(spec.channels)]
 
 
-def followed_effect(truth_fmu: Path, declared_fmu: Path, inputs: list[str], channel: str, data, start_values: dict,
-                    parameters: dict, scoring: Scoring) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """({input: values}, f_truth - f_declared of `channel`) at about EFFECT_POINTS points of the
-    declared FMU's run over `data`, both FMUs following it (the module docstring); the truth starts
-    with its `parameters` on top of `start_values`."""
+def inputs_read(network, rows: np.ndarray) -> np.ndarray:
+    """[outputs, inputs] whether each output of `network` moves with each input at the points `rows`
+    [N, inputs]; an output that moves with none is shown against all."""
+    base = np.array([network(row) for row in rows])
+    size = np.maximum(np.abs(base).max(axis=0), np.finfo(float).tiny)
+    reads = np.zeros((base.shape[1], rows.shape[1]), dtype=bool)
+    for i in range(rows.shape[1]):
+        shifted = rows.copy()
+        column = rows[:, i]
+        shifted[:, i] += PROBE_SHIFT * (np.ptp(column) or max(abs(float(column.mean())), 1.0))
+        moved = np.abs(np.array([network(row) for row in shifted]) - base).max(axis=0)
+        reads[:, i] = moved > READS_ABOVE * size
+    reads[~reads.any(axis=1)] = True
+    return reads
+
+
+def followed_effect(truth_fmu: Path, declared_fmu: Path, inputs: list[str], channels: list[str], data,
+                    start_values: dict, parameters: dict, scoring: Scoring) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """({input: values}, [points, channels] f_truth - f_declared) at about EFFECT_POINTS points of
+    the declared FMU's run over `data`, both FMUs following it (the module docstring); the truth
+    starts with its `parameters` on top of `start_values`."""
     states = [s.name for s in read_model_info(declared_fmu).states]
     if [s.name for s in read_model_info(truth_fmu).states] != states:
         raise FmuBuilderError("its continuous states are not the declared FMU's")
@@ -84,11 +109,11 @@ def followed_effect(truth_fmu: Path, declared_fmu: Path, inputs: list[str], chan
     def along_run(t):
         t = np.atleast_1d(np.asarray(t, dtype=float))
         return np.stack([np.interp(t, grid, column) for column in columns], axis=1)
-    declared = _following(declared_fmu, data, start_values, scoring, states, along_run, [*inputs, channel])
-    truth = _following(truth_fmu, data, {**start_values, **parameters}, scoring, states, along_run, [channel])
-    points = slice(None, None, max(1, len(truth[channel]) // EFFECT_POINTS))
+    declared = _following(declared_fmu, data, start_values, scoring, states, along_run, [*inputs, *channels])
+    truth = _following(truth_fmu, data, {**start_values, **parameters}, scoring, states, along_run, channels)
+    points = slice(None, None, max(1, len(grid) // EFFECT_POINTS))
     return ({name: declared[name][points] for name in inputs},
-            truth[channel][points] - declared[channel][points])
+            np.stack([truth[c][points] - declared[c][points] for c in channels], axis=1))
 
 
 def _following(fmu_path: Path, data, start_values: dict, scoring: Scoring, states: list[str], along_run,

@@ -52,33 +52,40 @@ def plot_signals(path: Path, data, before, after, hybrid_label: str | None, unit
     return save_figure(plt, fig, path, title)
 
 
-def plot_effect(path: Path, effect, units: dict, title: str) -> Path:
-    """The learned correction of the channel against each of its inputs, and the truth's where known."""
+def plot_effects(path: Path, effects: list, units: dict, title: str) -> Path:
+    """Each channel's learned correction (a row per channel) against each input it reads, and the
+    truth's where known."""
     plt = pyplot()
-    names = list(effect.inputs)
-    fig, axes = plt.subplots(1, len(names), figsize=(6.5 * len(names), 4.2), squeeze=False)
-    channel_unit = units.get(effect.channel)
-    for ax, name in zip(axes[0], names):
-        x = effect.inputs[name]
-        order = np.argsort(x, kind="stable")
-        shown = [effect.learned]
-        if effect.truth is not None:
-            ax.scatter(x, effect.truth, s=28, color=COLOURS["truth"], alpha=0.35, lw=0, zorder=2,
-                       label=f"true effect ({effect.truth_source})")
-            shown.append(effect.truth)
-        learned_label = f"learned {effect.kind}"
-        if len(names) == 1:
-            ax.plot(x[order], effect.learned[order], color=COLOURS["hybrid"], lw=1.4, ls="--", zorder=3,
-                    label=learned_label)
-        else:   # the term depends on the others too: its values along the run, not a curve
-            ax.scatter(x, effect.learned, s=6, color=COLOURS["hybrid"], zorder=3, label=learned_label)
-        ax.axhline(0.0, color="0.3", lw=0.5)
-        robust_ylim(ax, *shown)
-        ax.set_xlabel(f"{label(name, units.get(name))} (declared FMU over the training run)", fontsize=9)
-        ax.set_ylabel(f"added to {label(effect.channel, channel_unit)}", fontsize=9)
-        ax.grid(alpha=0.3)
-        ax.legend(loc="best", fontsize=8)
-        if effect.truth is None:
-            ax.text(0.01, 0.02, f"no true effect drawn: {effect.truth_source}", transform=ax.transAxes,
-                    fontsize=7, color="0.35")
+    columns = max(len(effect.inputs) for effect in effects)
+    fig, axes = plt.subplots(len(effects), columns, figsize=(6.5 * columns, 4.2 * len(effects)), squeeze=False)
+    for row, effect in zip(axes, effects):
+        for ax, name in zip(row, effect.inputs):
+            _draw_effect(ax, effect, name, units)
+        for ax in row[len(effect.inputs):]:
+            ax.set_visible(False)
     return save_figure(plt, fig, path, title)
+
+
+def _draw_effect(ax, effect, name: str, units: dict) -> None:
+    x = effect.inputs[name]
+    shown = [effect.learned]
+    if effect.truth is not None:
+        ax.scatter(x, effect.truth, s=28, color=COLOURS["truth"], alpha=0.35, lw=0, zorder=2,
+                   label=f"true effect ({effect.truth_source})")
+        shown.append(effect.truth)
+    learned_label = f"learned {effect.kind}"
+    if len(effect.inputs) == 1:
+        order = np.argsort(x, kind="stable")
+        ax.plot(x[order], effect.learned[order], color=COLOURS["hybrid"], lw=1.4, ls="--", zorder=3,
+                label=learned_label)
+    else:   # the term depends on the others too: its values along the run, not a curve
+        ax.scatter(x, effect.learned, s=6, color=COLOURS["hybrid"], zorder=3, label=learned_label)
+    ax.axhline(0.0, color="0.3", lw=0.5)
+    robust_ylim(ax, *shown)
+    ax.set_xlabel(f"{label(name, units.get(name))} (declared FMU over the training run)", fontsize=9)
+    ax.set_ylabel(f"added to {label(effect.channel, units.get(effect.channel))}", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+    if effect.truth is None:
+        ax.text(0.01, 0.02, f"no true effect drawn: {effect.truth_source}", transform=ax.transAxes,
+                fontsize=7, color="0.35")

@@ -385,7 +385,7 @@ PLOT_CAPTIONS = {"train.png": "training data: measured, declared FMU and hybrid"
 # -- plots ------------------------------------------------------------------------------------
 
 def _plots(folder: Path, diagnosis, plain, chosen, roles, scoring, model_fmu, units) -> tuple[list, list]:
-    from .plots import plot_effect, plot_signals
+    from .plots import plot_effects, plot_signals
     first, test = roles.train[0], roles.test
     label = f"hybrid ({chosen.name})" if chosen else None
     held_out = roles.validation[0].window if roles.held_out_of_training else None
@@ -400,16 +400,18 @@ def _plots(folder: Path, diagnosis, plain, chosen, roles, scoring, model_fmu, un
     notes = []
     if chosen is not None:
         try:
-            from .effect import effect_of
-            effect = effect_of(chosen.spec_dir / "spec.json", Path(model_fmu), first.data, first.start_values,
-                               scoring)
-            paths.append(plot_effect(folder / "effect.png", effect, {**units_of(read_model_info(model_fmu)),
-                                                                     **{k: v for k, v in units.items() if v}},
-                                     f"What the {chosen.name} adds to {effect.channel}"))
+            from .effect import effects_of
+            effects = effects_of(chosen.spec_dir / "spec.json", Path(model_fmu), first.data, first.start_values,
+                                 scoring)
+            paths.append(plot_effects(folder / "effect.png", effects, {**units_of(read_model_info(model_fmu)),
+                                                                       **{k: v for k, v in units.items() if v}},
+                                      f"What the {'NeuralFMU' if chosen.name == 'neural' else chosen.name} adds to "
+                                      f"{', '.join(e.channel for e in effects)}"))
+            source = effects[0]       # every channel's truth comes from the same model
             notes.append("The learned effect is evaluated along the declared FMU's run over the training data"
-                         + (f"; the true effect is that of {effect.truth_source}, the model that made the data "
-                            "(derivatives at the same states)." if effect.truth is not None
-                            else f"; no true effect drawn: {effect.truth_source}."))
+                         + (f"; the true effect is that of {source.truth_source}, the model that made the data "
+                            "(derivatives at the same states, each model following the declared run)."
+                            if source.truth is not None else f"; no true effect drawn: {source.truth_source}."))
         except FmuBuilderError as exc:
             notes.append(f"The learned effect could not be drawn: {exc}")
     plots = [str(p.relative_to(folder)) for p in paths] + \

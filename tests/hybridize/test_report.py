@@ -25,9 +25,10 @@ from fmubuilder.export import freeze
 from fmubuilder.export.spec import HybridSpec
 from fmubuilder.fmi import read_model_info
 from fmubuilder.hybridize import hybridize
-from fmubuilder.hybridize.effect import effect_of, followed_effect
+from fmubuilder.export.network import OnnxNetwork
+from fmubuilder.hybridize.effect import Effect, effects_of, followed_effect, inputs_read
 from fmubuilder.hybridize.evaluate import Scoring
-from fmubuilder.hybridize.plots import plot_effect
+from fmubuilder.hybridize.plots import plot_effects
 from fmubuilder.hybridize.report import _candidate_note
 
 BENCH = dict(signals=("speed", "current", "power", "temperature"),
@@ -177,14 +178,31 @@ def test_the_effect_of_a_network_against_the_truth(files, tmp_path):
     HybridSpec(original_fmu=example_fmu("dc_drive"), original_guid=info.guid, channels=["der(speed)"],
                inputs=["speed"], onnx=tmp_path / "network.onnx", p_ann=[0.5]).save(tmp_path / "spec.json")
     data = load_data(files["train"], info)
-    effect = effect_of(tmp_path / "spec.json", example_fmu("dc_drive"), data, {}, Scoring("euler", 1e-3))
+    [effect] = effects_of(tmp_path / "spec.json", example_fmu("dc_drive"), data, {}, Scoring("euler", 1e-3))
     speed = effect.inputs["speed"]
     assert effect.kind == "network" and speed.min() < 1.0 and speed.max() > 140.0
     with torch.no_grad():
         expected = 0.5 * network(torch.from_numpy(speed[:, None])).numpy().ravel()
     np.testing.assert_allclose(effect.learned, expected, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(effect.truth, -WINDAGE_PER_INERTIA * speed * np.abs(speed), rtol=1e-6, atol=1e-9)
-    path = plot_effect(tmp_path / "effect.png", effect, {"speed": "rad/s", "der(speed)": "rad/s2"}, "network")
+    path = plot_effects(tmp_path / "effect.png", [effect], {"speed": "rad/s", "der(speed)": "rad/s2"}, "network")
+    assert path.read_bytes().startswith(PNG)
+
+
+def test_each_channel_is_drawn_against_the_inputs_its_output_reads(tmp_path):
+    """Two outputs: output 0 reads input 0 alone, output 1 both (hidden units set by hand, one of
+    them reading both inputs); the probe on the ONNX network finds which."""
+    network = torch.nn.Sequential(torch.nn.Linear(2, 3), torch.nn.Tanh(), torch.nn.Linear(3, 2)).double()
+    with torch.no_grad():
+        network[0].weight.copy_(torch.tensor([[0.7, 0.0], [0.0, -0.4], [0.3, 0.5]]))
+        network[2].weight.copy_(torch.tensor([[1.5, 0.0, 0.0], [0.0, 2.0, -1.0]]))
+    freeze(network, 2, tmp_path / "network.onnx")
+    rows = np.random.default_rng(0).uniform(-2.0, 2.0, (50, 2))
+    reads = inputs_read(OnnxNetwork(tmp_path / "network.onnx"), rows)
+    np.testing.assert_array_equal(reads, [[True, False], [True, True]])
+    effects = [Effect("der(a)", "network", {"u": rows[:, 0]}, np.tanh(rows[:, 0])),
+               Effect("der(b)", "network", {"u": rows[:, 0], "v": rows[:, 1]}, rows[:, 1], rows[:, 1] * 1.1, "truth")]
+    path = plot_effects(tmp_path / "effects.png", effects, {}, "two channels")
     assert path.read_bytes().startswith(PNG)
 
 
@@ -196,7 +214,8 @@ def test_the_true_effect_behind_a_sampled_controller():
     info = read_model_info(declared)
     window = MeasuredData(time=np.array([0.0, 40.0]), signals={"speed": np.zeros(2)})   # its span alone matters
     names = ["motor_torque", "motor_speed", "power_demand"]
-    inputs, effect = followed_effect(truth, declared, names, "der(energy)", window, {}, {}, Scoring("rk4", 0.01))
+    inputs, effects = followed_effect(truth, declared, names, ["der(energy)"], window, {}, {}, Scoring("rk4", 0.01))
+    effect = effects[:, 0]
     limits = [float(info.variable(name).start) for name in ("min_power", "max_power")]
     loss = 0.1 * np.abs(inputs["motor_torque"] * inputs["motor_speed"])
     expected = np.clip(inputs["power_demand"] + loss, *limits) - np.clip(inputs["power_demand"], *limits)
