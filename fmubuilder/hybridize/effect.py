@@ -15,9 +15,8 @@ the run's after every step (neural/collocation.forced_run), the inputs and the d
 derivative from the declared FMU's such run, the truth's from its own. A sampled controller then
 updates at its ticks from the same states in both. Set to a state at single points instead, an FMU
 keeps its discrete states where they started (the VLDM's driver: a throttle of 0, no motor torque,
-and no extra loss drawn where the truth adds 0.77 kW rms). The followed runs can miss a state event
-the run had (a relay whose switch, inside a step, undoes its own crossing by the step's end): the
-two FMUs then miss it alike, and inputs, learned and true effect stay at the same points.
+and no extra loss drawn where the truth adds 0.77 kW rms). A state event inside a step is found on
+the step's own course (solve.py, indicators_at_end), as the run found it.
 """
 from __future__ import annotations
 

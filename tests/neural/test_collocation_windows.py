@@ -98,3 +98,33 @@ def test_the_output_is_scaled_to_the_estimated_effect_and_the_hybrid_stays_the_f
         assert torch.equal(topology.correction(x), torch.zeros(2, 1, dtype=torch.float64))
     finally:
         model.close()
+
+
+def test_a_run_forced_along_the_model_s_own_run_keeps_its_events():
+    """The VLDM forced to its own engine run, every state after every step: its derivatives are
+    the run's at every grid point. Its driver's relay switches inside a step, and the switch brings
+    the speed error back under the threshold by the step's end, so the forced end alone shows no
+    crossing (before the step's natural course was checked, a fifth of these points kept the
+    brake on where the run had the throttle)."""
+    from fmubuilder.data import MeasuredData
+    from fmubuilder.simulation import simulate
+    fmu = example_fmu("vldm")
+    model = NeuralFMU(fmu, TopologyConfig())
+    states = model.state_names()
+    derivatives = [f"der({s})" for s in states]
+    run = simulate(fmu, start_time=0.0, stop_time=60.0, variables=[*states, *derivatives], solver="rk4",
+                   step_size=0.01, output_interval=0.01)
+    grid = np.asarray(run.time, dtype=float)
+
+    def along_run(t):
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        return np.stack([np.interp(t, grid, np.asarray(run[s], dtype=float)) for s in states], axis=1)
+    window = MeasuredData(time=np.array([0.0, 60.0]), signals={"speed": np.zeros(2)})
+    try:
+        forced = collocation.forced_run(model, window, 0.01, "rk4", states, along_run, derivatives, None)
+    finally:
+        model.close()
+    assert forced.stats["state_events"] > 0 and np.array_equal(forced.times, grid)
+    for name in derivatives:
+        np.testing.assert_allclose(forced.numpy(name)[:, 0], np.asarray(run[name], dtype=float),
+                                   rtol=1e-9, atol=1e-9, err_msg=name)
