@@ -665,9 +665,10 @@ class _Run:
             # Forced: an indicator the step's own course crossed fires where that course crossed it, the
             # step keeping its natural end. The forced end alone can hide a crossing: the VLDM's relay
             # switches inside a step, and the switch brings the speed error back under its threshold
-            # by the end of the step the forcing copies (a fifth of a run's points in the wrong mode).
+            # by the end of the step the forcing copies (up to a fifth of a run's points in the wrong mode).
             # After such a cut the forced ends decide until a step ends without a crossing (else where
-            # the natural and the forced end straddle a threshold, the two alternate without end).
+            # the natural and the forced end lie on either side of a threshold, the two alternate
+            # without end: the VLDM's torque limit at 450.29 s of the extra loss's data).
             if b not in self.natural_cut:
                 z = self.ev.indicators(b, t, step.natural[i].detach().numpy(), self._u(b, t))
                 if crossed(element.z, z).any():
