@@ -17,6 +17,10 @@ updates at its ticks from the same states in both. Set to a state at single poin
 keeps its discrete states where they started (the VLDM's driver: a throttle of 0, no motor torque,
 and no extra loss drawn where the truth adds 0.77 kW rms). A state event inside a step is found on
 the step's own course (solve.py, indicators_at_end), as the run found it.
+
+The truth is the FMU the data's sidecar names (`truth_model`, checked by its sha256, with the
+sidecar's `truth` parameters); it is found only when it is one of the bundled examples. Without it
+the plot shows the learned term alone, along the declared FMU's own run.
 """
 from __future__ import annotations
 
