@@ -22,10 +22,10 @@ from fmubuilder.build import example_fmu
 from fmubuilder.data import MeasuredData, load_data
 from fmubuilder.diagnose.plots import cumulative_signals, pyplot, robust_ylim
 from fmubuilder.export import freeze
+from fmubuilder.export.network import OnnxNetwork
 from fmubuilder.export.spec import HybridSpec
 from fmubuilder.fmi import read_model_info
 from fmubuilder.hybridize import hybridize
-from fmubuilder.export.network import OnnxNetwork
 from fmubuilder.hybridize.effect import Effect, effects_of, followed_effect, inputs_read
 from fmubuilder.hybridize.evaluate import Scoring
 from fmubuilder.hybridize.plots import plot_effects
