@@ -10,10 +10,10 @@ term's input variables every few samples):
     truth(t)   = f_truth(x(t), t)[c] - f_declared(x(t), t)[c]   derivatives of channel c at the same
                                                             state, inputs and time
 
-With a truth, both are drawn along the declared run as each FMU follows it: every state set to
-the run's after every step (neural/collocation.forced_run), the inputs and the declared FMU's
-derivative from the declared FMU's such run, the truth's from its own. A sampled controller then
-updates at its ticks from the same states in both. Set to a state at single points instead, an FMU
+With a truth, both are drawn along the declared run: the inputs and the declared FMU's derivative
+are the run's, the truth's derivative comes from the truth following the run, every state set to
+the run's after every step (neural/collocation.forced_run). A sampled controller then updates at
+its ticks from the same states as in the run. Set to a state at single points instead, an FMU
 keeps its discrete states where they started (the VLDM's driver: a throttle of 0, no motor torque,
 and no extra loss drawn where the truth adds 0.77 kW rms). A state event inside a step is found on
 the step's own course (solve.py, indicators_at_end), as the run found it.
@@ -74,17 +74,20 @@ def effects_of(spec_path: Path, declared_fmu: Path, data, start_values: dict, sc
         points = {name: np.asarray(run[name], dtype=float) for name in spec.inputs}
     network = OnnxNetwork(spec.onnx)
     rows = np.column_stack([points[name] for name in spec.inputs])
-    learned = np.array([network(row) for row in rows]) * np.asarray(spec.p_ann)
-    reads = inputs_read(network, rows)
+    outputs = np.array([network(row) for row in rows])
+    learned = outputs * np.asarray(spec.p_ann)
+    reads = inputs_read(network, rows, outputs)
     return [Effect(channel, spec.term, {name: points[name] for i, name in enumerate(spec.inputs) if reads[j, i]},
                    learned[:, j], None if truth is None else truth[:, j], truth_source)
             for j, channel in enumerate(spec.channels)]
 
 
-def inputs_read(network, rows: np.ndarray) -> np.ndarray:
+def inputs_read(network, rows: np.ndarray, base: np.ndarray | None = None) -> np.ndarray:
     """[outputs, inputs] whether each output of `network` moves with each input at the points `rows`
-    [N, inputs]; an output that moves with none is shown against all."""
-    base = np.array([network(row) for row in rows])
+    [N, inputs] (`base`: the network's outputs there, if already known); an output that moves with
+    none is shown against all."""
+    if base is None:
+        base = np.array([network(row) for row in rows])
     size = np.maximum(np.abs(base).max(axis=0), np.finfo(float).tiny)
     reads = np.zeros((base.shape[1], rows.shape[1]), dtype=bool)
     for i in range(rows.shape[1]):
@@ -100,29 +103,32 @@ def inputs_read(network, rows: np.ndarray) -> np.ndarray:
 def followed_effect(truth_fmu: Path, declared_fmu: Path, inputs: list[str], channels: list[str], data,
                     start_values: dict, parameters: dict, scoring: Scoring) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """({input: values}, [points, channels] f_truth - f_declared) at about EFFECT_POINTS points of
-    the declared FMU's run over `data`, both FMUs following it (the module docstring); the truth
-    starts with its `parameters` on top of `start_values`."""
+    the declared FMU's run over `data`, the truth following it (the module docstring; the declared
+    FMU followed along its own run gives that run's values, so they are read from the run); the
+    truth starts with its `parameters` on top of `start_values`."""
     states = [s.name for s in read_model_info(declared_fmu).states]
     if [s.name for s in read_model_info(truth_fmu).states] != states:
         raise FmuBuilderError("its continuous states are not the declared FMU's")
-    run = simulate_over(declared_fmu, data, start_values, states, scoring, record_events=False)
+    run = simulate_over(declared_fmu, data, start_values, dict.fromkeys([*states, *inputs, *channels]), scoring,
+                        record_events=False)
     grid = np.asarray(run.time, dtype=float)
     columns = [np.asarray(run[name], dtype=float) for name in states]
 
     def along_run(t):
         t = np.atleast_1d(np.asarray(t, dtype=float))
         return np.stack([np.interp(t, grid, column) for column in columns], axis=1)
-    declared = _following(declared_fmu, data, start_values, scoring, states, along_run, [*inputs, *channels])
-    truth = _following(truth_fmu, data, {**start_values, **parameters}, scoring, states, along_run, channels)
-    points = slice(None, None, max(1, len(grid) // EFFECT_POINTS))
-    return ({name: declared[name][points] for name in inputs},
-            np.stack([truth[c][points] - declared[c][points] for c in channels], axis=1))
+    times, truth = _following(truth_fmu, data, {**start_values, **parameters}, scoring, states, along_run, channels)
+    points = np.arange(0, len(grid), max(1, len(grid) // EFFECT_POINTS))
+    at = grid[points]
+    return ({name: np.asarray(run[name], dtype=float)[points] for name in inputs},
+            np.stack([np.interp(at, times, truth[c]) - np.asarray(run[c], dtype=float)[points] for c in channels],
+                     axis=1))
 
 
 def _following(fmu_path: Path, data, start_values: dict, scoring: Scoring, states: list[str], along_run,
-               record: list[str]) -> dict[str, np.ndarray]:
-    """{name: values on the scoring grid} of the FMU run over `data` with every state set to
-    along_run(t) after every step."""
+               record: list[str]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """(the scoring grid's times, {name: values there}) of the FMU run over `data` with every state
+    set to along_run(t) after every step."""
     from ..neural import NeuralFMU, TopologyConfig
     from ..neural.collocation import forced_run
     model = NeuralFMU(fmu_path, TopologyConfig(), start_values=start_values)
@@ -130,7 +136,8 @@ def _following(fmu_path: Path, data, start_values: dict, scoring: Scoring, state
         solver = scoring.solver if scoring.solver in ("euler", "rk4") else "rk4"   # the states are set every step
         trajectory = forced_run(model, data, scoring.step, solver, states, along_run, list(dict.fromkeys(record)),
                                 data.input_signals(model.info))
-        return {name: trajectory.numpy(name)[:, 0] for name in record}
+        return data.start + np.asarray(trajectory.times, dtype=float), \
+            {name: trajectory.numpy(name)[:, 0] for name in record}
     finally:
         model.close()
 

@@ -47,8 +47,8 @@ def sensor_grid(trajectory, j: int, lag: float, shown: torch.Tensor | None = Non
     output of `lag * dy/dt = u - y` for u linear between the records (data.first_order_lag), starting
     at the run's first value, or at `shown` [B] (what the data show there), the difference decaying
     with the lag (a sensor assumed settled made every element of a ramp or a heating start with an
-    error of the lag times the slope, which on the DC drive outweighed the missing term). Without `before` (Euler) the grid points' values are read as if no event lay
-    between them."""
+    error of the lag times the slope, which on the DC drive outweighed the missing term). Without
+    `before` (Euler) the grid points' values are read as if no event lay between them."""
     post = trajectory.values[:, :, j]
     before = trajectory.before[:, :, j] if trajectory.before is not None else post[1:]
     cut = {(k, b): [(s0, s1, u0[j], u1[j]) for s0, s1, u0, u1 in steps] for k, b, steps in trajectory.inner}
