@@ -7,6 +7,9 @@ return value, or its exception, comes back pickled through a pipe when the calle
 The helper leaves its FMI breadcrumbs on a page of its own (breadcrumb.py), which the command
 line's supervisor watches as it watches the worker's: a call that never returns stops both, and
 a helper that crashes inside the FMU's binary is reported by `result()` with the call it was in.
+The helper's temporary files (the FMUs it extracts) go to a folder the caller makes and removes
+when the helper has ended, however it ended: a helper leaves by os._exit, which skips the removal
+at exit, or by a crash or a kill, which skips everything.
 One helper at a time; where none can run (no fork, no helper page, one already running), or the
 caller asks for it (in_caller), the work runs in the caller when started.
 """
@@ -15,8 +18,10 @@ from __future__ import annotations
 import contextlib
 import os
 import pickle
+import shutil
 import signal
 import sys
+import tempfile
 import traceback
 
 from ..errors import FmuBuilderError
@@ -46,6 +51,7 @@ class SideProcess:
     def __init__(self, label: str, function, args=(), kwargs=None, in_caller: bool = False):
         self.label = label
         self.pid = None
+        self._scratch = None
         self._inline = None
         if in_caller or not can_run_beside():
             self._inline = True, function(*args, **(kwargs or {}))
@@ -54,14 +60,21 @@ class SideProcess:
 
     def _start(self, function, args, kwargs) -> None:
         global _active
-        read, write = os.pipe()
+        scratch = tempfile.mkdtemp(prefix="fmubuilder-helper-")
         sys.stdout.flush()
         sys.stderr.flush()
-        pid = os.fork()
+        try:
+            read, write = os.pipe()
+            pid = os.fork()
+        except OSError:
+            shutil.rmtree(scratch, ignore_errors=True)
+            raise
         if pid == 0:
             os.close(read)
+            os.environ["TMPDIR"] = tempfile.tempdir = scratch   # for the helper and the tools it starts
             _helper_main(write, function, args, kwargs)
         os.close(write)
+        self._scratch = scratch
         self.pid, self._pipe = pid, read
         HELPER[PID_SLOT] = pid
         _active = self
@@ -90,7 +103,8 @@ class SideProcess:
                     os.kill(self.pid, signal.SIGKILL)
                     os.waitpid(self.pid, 0)
             os.close(self._pipe)
-            self.pid = None
+            shutil.rmtree(self._scratch, ignore_errors=True)
+            self.pid = self._scratch = None
             _active = None
             HELPER[PID_SLOT] = 0
             breadcrumb.reset_helper()

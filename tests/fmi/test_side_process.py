@@ -10,13 +10,16 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import textwrap
 import time
+from pathlib import Path
 
 import pytest
 
 from fmubuilder.errors import FmuBuilderError
 from fmubuilder.fmi import breadcrumb
+from fmubuilder.fmi.instance import Fmu
 from fmubuilder.fmi.side_process import SideProcess, can_run_beside
 from tests.fmi.crash_fmus import crash_fmus
 
@@ -82,8 +85,33 @@ def test_a_crash_inside_the_fmu_names_the_call_and_leaves_the_callers_crumbs_alo
     message = str(raised.value)
     assert "crashed (SIGSEGV) in fmi2GetDerivatives at t = 0.5" in message, message
     assert "(training the NeuralFMU)" in message and "report it to its vendor" in message
-    assert breadcrumb.last_call() == before
+    assert breadcrumb.last_call() == pytest.approx(before, nan_ok=True)     # (no call yet: nan)
     assert breadcrumb.last_call(helper=True) == ("", False, pytest.approx(float("nan"), nan_ok=True))
+
+
+def open_and_keep(fmu):
+    """An FMU extracted and never closed, as a cache would keep it: the removal at exit never runs."""
+    KEPT.append(Fmu(fmu))
+    return str(KEPT[-1].archive.directory)
+
+
+KEPT = []
+
+
+@pytest.mark.parametrize("ending", ["returned", "crashed in the FMU"])
+def test_the_helper_leaves_no_temporary_files(bouncing_ball_fmu, tmp_path, monkeypatch, ending):
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(temp))
+    if ending == "returned":
+        with SideProcess("keeping an FMU", open_and_keep, (bouncing_ball_fmu,)) as side:
+            extracted = Path(side.result())
+        assert extracted.is_relative_to(temp) and extracted.name.startswith("fmubuilder-bouncing_ball-")
+    else:
+        with SideProcess("crashing", crash_quietly, (crash_fmus()["segfault"],)) as side:
+            with pytest.raises(FmuBuilderError, match="SIGSEGV"):
+                side.result()
+    assert list(temp.iterdir()) == []
 
 
 def test_leaving_the_block_early_stops_the_helper():
