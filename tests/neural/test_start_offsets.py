@@ -55,3 +55,22 @@ def test_the_energys_element_starts_are_fitted_and_nothing_else():
     assert max(abs(o) for o in offsets) > 0.3 * NOISE["energy"]        # starts a noticeable offset off
     np.testing.assert_allclose(fitted, again, rtol=0, atol=1e-9 * NOISE["energy"])
     assert np.mean(fitted ** 2) < np.mean(raw ** 2)
+
+
+def test_a_state_that_acts_only_at_a_later_event_is_not_free():
+    """Dropped from 10 m, the ball's height moves nothing else until its impact, at sqrt(2 h / g) =
+    1.43 s: within the first second the velocity falls as -g t whatever the height. The impact
+    then reverses the velocity, so the height's start is no offset the loss may take out."""
+    h0, g = 10.0, 9.81
+    impact = np.sqrt(2 * h0 / g)
+    truth = simulate(example_fmu("bouncing_ball"), stop_time=3.0, solver="rk4", step_size=1e-3, output_interval=0.01,
+                     start_values={"h": h0}, variables=["h", "v"])
+    assert 1.0 < impact < 3.0 and truth["v"].max() > 0      # the impact lies past the first second, inside the data
+    data = MeasuredData(truth.time, {"h": truth["h"], "v": truth["v"]}, source="bouncing ball from 10 m")
+    config = TopologyConfig(channels=["der(v)"], inputs=["v"], hidden=[4], kind="residual")
+    with NeuralFMU(example_fmu("bouncing_ball"), config, start_values={"h": h0}) as model:
+        settings = TrainSettings(solver="rk4", step_size=0.002, element_length=3.0, epochs=0, progress=False)
+        trainer = Trainer(model, data, settings, time.perf_counter())
+        trainer.prepare()
+        assert "h" in trainer._measured_states() and "h" in trainer.loss_signals     # a candidate
+        assert trainer.free_offsets == []
