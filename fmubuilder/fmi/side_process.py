@@ -60,14 +60,18 @@ class SideProcess:
 
     def _start(self, function, args, kwargs) -> None:
         global _active
-        scratch = tempfile.mkdtemp(prefix="fmubuilder-helper-")
         sys.stdout.flush()
         sys.stderr.flush()
+        read, write = os.pipe()
+        scratch = None
         try:
-            read, write = os.pipe()
+            scratch = tempfile.mkdtemp(prefix="fmubuilder-helper-")
             pid = os.fork()
-        except OSError:
-            shutil.rmtree(scratch, ignore_errors=True)
+        except OSError:     # no process to hand them to
+            os.close(read)
+            os.close(write)
+            if scratch is not None:
+                shutil.rmtree(scratch, ignore_errors=True)
             raise
         if pid == 0:
             os.close(read)

@@ -114,6 +114,21 @@ def test_the_helper_leaves_no_temporary_files(bouncing_ball_fmu, tmp_path, monke
     assert list(temp.iterdir()) == []
 
 
+def test_a_helper_that_cannot_start_leaves_nothing_open(tmp_path, monkeypatch):
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(temp))
+    descriptors = sorted(os.listdir("/proc/self/fd"))
+
+    def no_fork():
+        raise BlockingIOError(11, "Resource temporarily unavailable")
+    monkeypatch.setattr(os, "fork", no_fork)
+    with pytest.raises(BlockingIOError):
+        SideProcess("squaring", pid_and_square, (3,))
+    assert list(temp.iterdir()) == [] and sorted(os.listdir("/proc/self/fd")) == descriptors
+    assert can_run_beside()         # no helper counts as running
+
+
 def test_leaving_the_block_early_stops_the_helper():
     with pytest.raises(RuntimeError):
         with SideProcess("sleeping", time.sleep, (600,)) as side:
