@@ -147,13 +147,11 @@ def validate_calibrated(calibrated_fmu, original_fmu, parameters: dict[str, floa
     fmubuilder's replica of fmpy's Euler loop on the original with them: the same binary and
     arithmetic, so equal to round-off.
     Returns {"passed", "max_rel_error", "rows", "table"}."""
-    import fmpy
-
     from fmubuilder.fmi import read_model_info
     from fmubuilder.fmi.instance import Fmu
     from fmubuilder.simulation import FmuSystem
 
-    from .validate import simulate_fmpy_euler
+    from .validate import simulate_fmpy_euler, simulate_with_fmpy
     info = read_model_info(original_fmu)
     start_values = dict(start_values or {})
     names = [v.name for v in info.variables.values() if v.type == "Real" and v.causality == "output"] \
@@ -162,8 +160,8 @@ def validate_calibrated(calibrated_fmu, original_fmu, parameters: dict[str, floa
     common = dict(start_time=start_time, stop_time=stop_time, output_interval=step_size, output=names)
 
     def fmpy_run(fmu, starts):
-        return fmpy.simulate_fmu(str(fmu), solver="Euler", step_size=step_size, start_values=starts,
-                                 validate=False, **common)
+        return simulate_with_fmpy(fmu, solver="Euler", step_size=step_size, start_values=starts, validate=False,
+                                  **common)
 
     calibrated = fmpy_run(calibrated_fmu, start_values)
     original = fmpy_run(original_fmu, {**start_values, **parameters})

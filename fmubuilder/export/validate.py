@@ -295,7 +295,6 @@ class _Run:
 
 
 def _fmpy_run(hybrid_fmu: Path, setup: _Setup, solver: str) -> _Run:
-    import fmpy
     start_values = {**setup.fmu_start_values, **setup.gate_start_values}
     kwargs = dict(start_time=setup.start, stop_time=setup.stop, solver=solver, output=setup.signals,
                   start_values=start_values, record_events=False, validate=False, output_interval=setup.step)
@@ -305,9 +304,19 @@ def _fmpy_run(hybrid_fmu: Path, setup: _Setup, solver: str) -> _Run:
         kwargs["relative_tolerance"] = setup.rtol
     if setup.input_data is not None:
         kwargs["input"] = _structured(setup.input_data)
-    result = fmpy.simulate_fmu(str(hybrid_fmu), **kwargs)
+    result = simulate_with_fmpy(hybrid_fmu, **kwargs)
     return _Run(np.asarray(result["time"], dtype=float),
                 {name: np.asarray(result[name], dtype=float) for name in setup.signals})
+
+
+def simulate_with_fmpy(fmu: Path, **kwargs):
+    """fmpy.simulate_fmu on the FMU extracted into a folder removed however the run ends: fmpy
+    removes its own extraction only after a run that returns (an FMU that fails a call left one
+    in the temporary folder each time)."""
+    import fmpy
+    with tempfile.TemporaryDirectory(prefix="fmubuilder-fmpy-") as folder:
+        fmpy.extract(str(fmu), unzipdir=folder)
+        return fmpy.simulate_fmu(folder, **kwargs)
 
 
 def _structured(data: dict) -> np.ndarray:

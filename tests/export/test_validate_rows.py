@@ -78,3 +78,27 @@ def test_cross_solver_tolerance_grows_with_the_restarts():
     from fmubuilder.export.validate import ADAPTIVE_TOLERANCE_FACTOR, cross_solver_tolerance
     assert cross_solver_tolerance(1e-10, 0) == pytest.approx(ADAPTIVE_TOLERANCE_FACTOR * 1e-10)
     assert cross_solver_tolerance(1e-10, 6000) / cross_solver_tolerance(1e-10, 60) == pytest.approx(10.0)
+
+
+def test_fmpy_runs_leave_no_extracted_fmu_whether_they_return_or_fail(tmp_path, monkeypatch):
+    """fmpy.simulate_fmu removes its extraction only after a run that returns; the round trip's
+    fmpy runs extract into a folder of their own, removed however the run ends."""
+    import tempfile
+
+    import fmpy
+    from fmpy.fmi1 import FMICallException
+
+    from fmubuilder.export.validate import simulate_with_fmpy
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(temp))
+    fmu = example_fmu("vldm")
+    options = dict(stop_time=2.0, solver="Euler", step_size=0.01, output=["speed", "energy"])
+    ours = simulate_with_fmpy(fmu, **options)
+    assert list(temp.iterdir()) == []
+    reference = fmpy.simulate_fmu(str(fmu), **options)     # fmpy's own extraction, removed on return
+    assert np.array_equal(ours["time"], reference["time"])
+    assert np.array_equal(ours["energy"], reference["energy"]) and np.array_equal(ours["speed"], reference["speed"])
+    with pytest.raises(FMICallException):
+        simulate_with_fmpy(fmu, stop_time=1.0, start_values={"cycle": 0})     # no such cycle: refused
+    assert list(temp.iterdir()) == []
