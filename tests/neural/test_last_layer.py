@@ -1,5 +1,7 @@
 """The last layer's refinement through the simulation (neural/last_layer.py): on data made by a
 hybrid whose last layer is known, it finds that layer again from a wrong one."""
+import sys
+
 import numpy as np
 import pytest
 import torch
@@ -99,3 +101,19 @@ def test_the_search_ends_when_converged_where_the_whole_budget_finds_no_lower_lo
     assert stopped["loss_after"] < 0.5 * stopped["loss_before"]
     assert stopped["loss_after"] <= 1.001 * known
     assert stopped["loss_after"] == pytest.approx(whole["loss_after"], rel=1e-4)
+
+
+@pytest.mark.parametrize("terminal", [False, True])
+def test_the_refinements_bar_shows_on_a_terminal_only(plant_fmu, truth, monkeypatch, capsys, terminal):
+    """A training that shows progress draws the refinement's bar as every other bar: only where
+    stderr is a terminal (a log file or a pipe gets no bar drawings)."""
+    data, state = truth
+    trainer = _trainer(plant_fmu, data)
+    trainer.settings.progress = True
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: terminal)
+    with trainer.model as model:
+        model.topology.load_state_dict({k: (v * 0.5 if k.startswith("ann.2.") else v) for k, v in state.items()})
+        capsys.readouterr()
+        assert refine_last_layer(trainer, 10) is not None
+    drawn = "refining the ANN's last layer" in capsys.readouterr().err
+    assert drawn == terminal
