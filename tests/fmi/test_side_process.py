@@ -89,13 +89,13 @@ def test_a_crash_inside_the_fmu_names_the_call_and_leaves_the_callers_crumbs_alo
     assert breadcrumb.last_call(helper=True) == ("", False, pytest.approx(float("nan"), nan_ok=True))
 
 
+KEPT = []       # the helper's FMUs kept open
+
+
 def open_and_keep(fmu):
     """An FMU extracted and never closed, as a cache would keep it: the removal at exit never runs."""
     KEPT.append(Fmu(fmu))
     return str(KEPT[-1].archive.directory)
-
-
-KEPT = []
 
 
 @pytest.mark.parametrize("ending", ["returned", "crashed in the FMU"])
