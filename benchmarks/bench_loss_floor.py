@@ -42,8 +42,7 @@ from fmubuilder.fmi import read_model_info
 from fmubuilder.hybridize import workflow
 from fmubuilder.neural import NeuralFMU, TopologyConfig
 from fmubuilder.neural.collocation import forced_channel_run, samples_along
-from fmubuilder.neural.system import simulate_hybrid
-from fmubuilder.neural.train import data_errors, measured_initial_states, simulate_over
+from fmubuilder.neural.train import data_errors, simulate_over
 from fmubuilder.neural.warm_start import WEIGHT_DECAY, fit_full_batch, scale_output_to_effect
 from fmubuilder.simulation import simulate
 
@@ -149,7 +148,10 @@ def _leaf_fits(declared, info, runs: dict, split: float, lag: float, input_sets:
     whole, start_values = runs["CADC"]
     train = _training_part(whole, split)
     recorded = sorted({name for inputs in input_sets for name in inputs} | {"energy", CHANNEL})
-    plain = {label: _plain_record(declared, data, values, recorded) for label, (data, values) in runs.items()}
+    model = NeuralFMU(declared, TopologyConfig(), start_values=start_values)
+    plain = {label: simulate_over(model, data, STEP, "rk4", values, plain=True, record=recorded)
+             for label, (data, values) in runs.items()}
+    model.close()
     print("(MSE / noise variance of power and energy; the hidden layers fitted to the plain run's estimate)")
     print("| ANN inputs | last layer | training part | validation tail | test WLTC2 |\n|---|---|---|---|---|")
     for inputs in input_sets:
@@ -173,19 +175,6 @@ def _leaf_fits(declared, info, runs: dict, split: float, lag: float, input_sets:
             cells = [_leaf_scores(whole, shown["CADC"], theta, training, shift), _leaf_scores(whole, shown["CADC"], theta, ~training),
                      _leaf_scores(runs["WLTC2"][0], shown["WLTC2"], theta)]
             print(f"| {', '.join(inputs)} | {label} | {' | '.join(cells)} |", flush=True)
-        model.close()
-
-
-def _plain_record(declared, data, start_values: dict, recorded: list[str]):
-    """The plain FMU over the data, as simulate_over runs it, recording `recorded` too."""
-    model = NeuralFMU(declared, TopologyConfig(), start_values=start_values)
-    model.start_values = {**model.start_values, **measured_initial_states(model, data), **start_values}
-    try:
-        with model.topology.ann_off(fmu_gate_one=True):
-            return simulate_hybrid(model, start_time=data.start, stop_time=data.stop, variables=recorded, solver="rk4",
-                                   step_size=STEP, output_interval=STEP, inputs=data.input_signals(model.info),
-                                   record_events=True)
-    finally:
         model.close()
 
 

@@ -5,7 +5,8 @@ its total and ETA are honest. A bar always closes: at its total, or, when the wo
 with a note that says where and why ("stopped at 3/10 batches: time budget used up").
 
 Bars show only when stderr is a terminal, unless `set_enabled` says otherwise (the CLI's
-`--quiet` turns them off; tests turn them on to read them).
+`--quiet` turns them off; tests turn them on to read them). A caller's `show=False` keeps its own
+bar off (a run without progress); `show=True` leaves it to that rule, never forces it.
 
     with progress(len(trials), "diagnosis: trials", unit="trial") as bar:
         for trial in trials:
@@ -39,7 +40,7 @@ def enabled() -> bool:
 class Bar:
     """One bar: `advance` as work completes, `stop(reason)` when it ends before its total."""
 
-    def __init__(self, total: int, description: str, unit: str, initial: int = 0, show: bool | None = None):
+    def __init__(self, total: int, description: str, unit: str, initial: int = 0, show: bool = True):
         self.total = max(int(total), 0)
         self.done = int(initial)
         self.description = description
@@ -47,7 +48,7 @@ class Bar:
         self.reason: str | None = None     # why it stopped before its total
         self.closed = False
         self._tqdm = None
-        if enabled() if show is None else show:
+        if show and enabled():
             from tqdm import tqdm
             # mininterval: redraw at most twice a second
             size = shutil.get_terminal_size((100, 24))     # tqdm draws nothing on a terminal of size 0
@@ -89,7 +90,7 @@ class Bar:
         return f"{self.done}/{self.total} {_plural(self.unit)}"
 
 
-def counted(items, description: str, unit: str = "step", total: int | None = None, show: bool | None = None):
+def counted(items, description: str, unit: str = "step", total: int | None = None, show: bool = True):
     """Iterate over `items` with a bar that counts each item when the loop's body is done with it;
     a loop left early (break, error) closes the bar with a note. `total`: for items without len()."""
     bar = Bar(len(items) if total is None else total, description, unit, show=show)
@@ -102,7 +103,7 @@ def counted(items, description: str, unit: str = "step", total: int | None = Non
 
 
 @contextlib.contextmanager
-def progress(total: int, description: str, unit: str = "step", initial: int = 0, show: bool | None = None):
+def progress(total: int, description: str, unit: str = "step", initial: int = 0, show: bool = True):
     """A Bar that closes on every way out of the block: at its total, stopped early (the block
     called `stop`), on an error ("failed") or on Ctrl-C ("interrupted")."""
     bar = Bar(total, description, unit, initial=initial, show=show)

@@ -310,16 +310,17 @@ def _fmpy_run(hybrid_fmu: Path, setup: _Setup, solver: str) -> _Run:
 
 
 def simulate_with_fmpy(fmu: Path, **kwargs):
-    """fmpy.simulate_fmu on the FMU extracted into a folder removed however the run ends: fmpy
-    removes its own extraction only after a run that returns (an FMU that fails a call left one
-    in the temporary folder each time). Extracted as far as fmpy would: what running needs."""
+    """fmpy.simulate_fmu on the FMU as fmi.archive extracts it (what running needs, capped),
+    removed however the run ends: fmpy removes its own extraction only after a run that returns
+    (an FMU that fails a call left one in the temporary folder each time)."""
     import fmpy
-    with tempfile.TemporaryDirectory(prefix="fmubuilder-fmpy-") as folder:
-        fmpy.extract(str(fmu), unzipdir=folder, include=lambda name: name.startswith(RUNNING_NEEDS))
-        return fmpy.simulate_fmu(folder, **kwargs)
 
-
-RUNNING_NEEDS = ("modelDescription.xml", "binaries/", "resources/")
+    from fmubuilder.fmi.archive import FmuArchive
+    archive = FmuArchive(fmu)
+    try:
+        return fmpy.simulate_fmu(str(archive.directory), **kwargs)
+    finally:
+        archive.close()
 
 
 def _structured(data: dict) -> np.ndarray:

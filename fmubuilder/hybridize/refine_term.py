@@ -61,7 +61,7 @@ def _finite(value: float) -> float | None:
 
 
 def refine_scales(hybrid_fmu, gates: list[str], runs: Runs, noise: dict[str, float], output_step: float, *,
-                  budget: int = MAX_SIMULATIONS, show: bool | None = None) -> Refinement:
+                  budget: int = MAX_SIMULATIONS, show: bool = True) -> Refinement:
     """Levenberg-Marquardt on the scales of a hybrid FMU's gates (start 1: the term as exported).
     noise: the noise level of each measured signal (per sample); output_step: the grid on which the
     sensor lag is applied (the scoring's step)."""

@@ -134,7 +134,7 @@ class TermObjective:
 
 
 def fit_forms(model_fmu, channel: str, forms: dict[str, list[dict]], train_runs, validation_parts, scoring,
-              noise: dict[str, float], aliases: dict, *, show: bool | None = None) -> list[FormFit]:
+              noise: dict[str, float], aliases: dict, *, show: bool = True) -> list[FormFit]:
     """Each form's coefficients fitted on the training runs (data, start values), then scored on the
     validation parts (whole run simulated, its window scored)."""
     from ..score import validation_score

@@ -484,7 +484,7 @@ def _fitted_term_candidate(ctx: _Context, diagnosis, aliases: dict[str, str],
     fitted = diagnosis.fitted_term
     runs = [(p.samples(), p.start_values) for p in ctx.roles.train]
     fits = fit_forms(ctx.model_fmu, fitted["channel"], candidate_forms(diagnosis), runs, ctx.roles.validation,
-                     ctx.scoring, noise, aliases, show=None if ctx.progress else False)
+                     ctx.scoring, noise, aliases, show=ctx.progress)
     margin = noise_margin([p.samples().time for p in ctx.roles.validation], len(ctx.roles.train[0].data.names))
     form = choose_form(fits, margin)
     if form is not None:
@@ -498,7 +498,7 @@ def _fitted_term_candidate(ctx: _Context, diagnosis, aliases: dict[str, str],
         return None
     spec, fmu = diagnosed
     refinement = refine_scales(fmu, term_gates(spec), runs, noise, ctx.scoring.step,
-                               show=None if ctx.progress else False)
+                               show=ctx.progress)
     term = fitted
     if refinement.kept:
         term = scaled_term(fitted, refinement.scales[0])

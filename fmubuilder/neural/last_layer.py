@@ -52,7 +52,7 @@ def refine_last_layer(trainer, simulations: int, label: str = "refining the ANN'
     start = problem.get()
     if simulations < start.size + 2:       # the start, a column per unknown, one trial
         return None
-    with progress(simulations, label, "simulation", show=None if trainer.settings.progress else False) as bar:
+    with progress(simulations, label, "simulation", show=trainer.settings.progress) as bar:
         problem.bar = bar
         residual = problem.residual(start)
         before = _cost(residual)

@@ -258,17 +258,18 @@ def predicted_at_samples(data: MeasuredData, result, name: str, sensor_lag: floa
 
 
 def simulate_over(model: NeuralFMU, data: MeasuredData, step: float, solver: str = "euler",
-                  start_values: dict | None = None, plain: bool = False, aliases: dict | None = None):
+                  start_values: dict | None = None, plain: bool = False, aliases: dict | None = None,
+                  record: Sequence[str] = ()):
     """Engine result (with its statistics) of the hybrid, or with plain of the FMU alone, over the
-    data's span, recording the measured signals (and the derivatives `aliases` reads them from)
-    every step and on both sides of every event (a sample between two steps must not interpolate
-    across a jump); measured states start where the data's first samples put them
+    data's span, recording the measured signals (and the derivatives `aliases` reads them from, and
+    `record`) every step and on both sides of every event (a sample between two steps must not
+    interpolate across a jump); measured states start where the data's first samples put them
     (measured_initial_states), the data's inputs drive the FMU."""
     original = model.start_values
     model.start_values = {**original, **measured_initial_states(model, data), **(start_values or {})}
     try:
         with (model.topology.ann_off(fmu_gate_one=True) if plain else contextlib.nullcontext()):
-            variables = list(dict.fromkeys([*data.signals, *(aliases or {}).values()]))
+            variables = list(dict.fromkeys([*data.signals, *(aliases or {}).values(), *record]))
             return simulate_hybrid(model, start_time=data.start, stop_time=data.stop, variables=variables,
                                    solver=solver, step_size=step, output_interval=step,
                                    inputs=data.input_signals(model.info), record_events=True)
@@ -520,7 +521,7 @@ class Trainer:
         # counted in batches or loss evaluations (known beforehand); a time budget or on_epoch may stop it early, with a note
         bar = Bar(self._planned_work(), "training", "evaluation" if settings.budget is not None else "batch",
                   initial=self.loss_evaluations if settings.budget is not None else first_epoch * batches,
-                  show=None if settings.progress else False)
+                  show=settings.progress)
         rng = np.random.default_rng(settings.seed + first_epoch)
         try:
             epoch = first_epoch
