@@ -28,8 +28,23 @@ MARGIN_SIGMAS = 2.0
 
 def noise_margin(validation_times: list[np.ndarray], signals: int) -> float:
     """Factor by which an ANN candidate's score must undercut a simpler one's (> 1)."""
+    return math.exp(MARGIN_SIGMAS * math.sqrt(2.0) * score_spread(validation_times, signals))
+
+
+def score_spread(validation_times: list[np.ndarray], signals: int) -> float:
+    """Standard deviation of the log of one score at the floor by the noise alone: sqrt(2 / (n S))."""
     blocks = sum(int(time_blocks(np.asarray(t))[-1]) + 1 for t in validation_times if np.size(t))
-    return math.exp(MARGIN_SIGMAS * math.sqrt(4.0 / (max(blocks, 1) * max(signals, 1))))
+    return math.sqrt(2.0 / (max(blocks, 1) * max(signals, 1)))
+
+
+def at_floor(errors: dict, floors: dict, validation_times: list[np.ndarray]) -> bool:
+    """Whether every signal's MSE (`errors` as score.validation_score takes them) lies within
+    MARGIN_SIGMAS of the noise's spread of its floor, the noise variance: nothing above the noise is
+    left for another candidate to learn. Signal by signal, since the geometric mean would hide one
+    signal several times its noise among others at the floor."""
+    limit = MARGIN_SIGMAS * score_spread(validation_times, 1)
+    return all(math.isfinite(errors[s]["mse"]) and errors[s]["mse"] <= floor * math.exp(limit)
+               for s, floor in floors.items())
 
 
 def choose(scores: dict, plain_score: float, margin: float) -> str | None:

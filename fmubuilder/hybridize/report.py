@@ -218,6 +218,7 @@ def _candidates_section(report: dict) -> list[str]:
                      f"{'**yes**' if m['chosen'] else 'no'} | {_candidate_note(m, report.get('training'))} |")
     lines.append(f"\nChosen on the validation data: **{selection['chosen'] or 'none (no candidate improved it)'}** "
                  f"({selection['rule']}). {report['test_note']}")
+    lines += [f"\nNot trained: {name}; {why}." for name, why in (selection.get("not_trained") or {}).items()]
     return lines
 
 

@@ -193,18 +193,18 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
         timings = {"diagnosis": time.perf_counter() - started}
         plain = score(Scores(model_fmu), roles, scoring, ("train", "validation"), "scoring the plain FMU")
         candidates: list[Candidate] = []
-        training = None
+        training, not_trained = None, {}
         if diagnosis.significant or allow_insignificant:
             if diagnosis.channel is None:
                 raise FmuBuilderError("the diagnosis found an effect but could not trace it to a state derivative; "
                                       "see the diagnosis in the report folder")
             context = _Context(model_fmu, info, roles, scoring, work, say, budget, seed, time_budget, started,
-                               progress=progress, ann_on_term=ann_on_term, jobs=jobs)
+                               progress=progress, ann_on_term=ann_on_term, jobs=jobs, plain=plain)
             candidates_started = time.perf_counter()
             candidates = _build_candidates(context, diagnosis)
-            training = context.training
+            training, not_trained = context.training, context.not_trained
             timings["candidates"] = time.perf_counter() - candidates_started
-        selection = _select(candidates, plain, roles.validation)
+        selection = {**_select(candidates, plain, roles.validation), "not_trained": not_trained}
         chosen = next((c for c in candidates if c.name == selection["chosen"]), None)
         # Everything is decided: now, and only now, the test data.
         say("      scoring every model on the test data (once, after the choice) ...")
@@ -298,18 +298,30 @@ def score(scores: Scores, roles: Roles, scoring: Scoring, which: tuple[str, ...]
 def _select(candidates: list[Candidate], plain: Scores, validation: list[Part] = ()) -> dict:
     """The candidate chosen on the validation data (choice.py; the rule: the README's "The candidates").
     Without `validation` parts the floors are the plain model's MSE and there is no margin."""
-    from ..score import floors_of, validation_score
-    from .choice import RULE, choose, noise_margin
+    from ..score import validation_score
+    from .choice import RULE, choose
     errors = plain.errors["validation"]
-    noise = {name: validation[0].data.noise_variance(name) for name in errors} if validation else {}
-    floors = floors_of(errors, noise)
-    margin = noise_margin([p.samples().time for p in validation], len(floors)) if validation else 1.0
+    floors, margin, _ = _validation_floors(plain, validation)
     scores = {c.name: validation_score(c.scores.errors["validation"], floors) for c in candidates}
     plain_score = validation_score(errors, floors)
     return {"on": "validation", "scores": scores, "chosen": choose(scores, plain_score, margin),
             "plain_score": plain_score, "margin": margin,
             "relative_to_plain": {c.name: relative_mse(errors, c.scores.errors["validation"]) for c in candidates},
             "rule": RULE.format(margin=margin, plain=plain_score)}
+
+
+def _validation_floors(plain: Scores, validation: list[Part] = ()) -> tuple[dict, float, bool]:
+    """(each signal's floor, the noise margin, whether every floor is the signal's noise variance)
+    on the validation data: the choice's scale (choice.py). Without `validation` parts the floors are
+    the plain model's MSE and there is no margin."""
+    from ..score import floors_of
+    from .choice import noise_margin
+    errors = plain.errors["validation"]
+    noise = {name: validation[0].data.noise_variance(name) for name in errors} if validation else {}
+    floors = floors_of(errors, noise)
+    margin = noise_margin([p.samples().time for p in validation], len(floors)) if validation else 1.0
+    from_noise = bool(floors) and all(floors[name] == noise.get(name) for name in floors)
+    return floors, margin, from_noise
 
 
 # -- candidates ---------------------------------------------------------------------------------
@@ -332,6 +344,8 @@ class _Context:
     input_choice: dict | None = None              # how the ANN's channels and inputs were chosen
     ann_on_term: bool = True                      # also train an ANN that starts from the fitted term
     jobs: int = 1                                 # processes: 2 builds the NeuralFMU and calibrations beside the rest
+    plain: Scores | None = None                   # the declared FMU's scores (the floors of the choice)
+    not_trained: dict = field(default_factory=dict)   # candidate -> why it was not trained
 
 
 def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
@@ -355,6 +369,12 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
         # the ANN on the term reads the inputs chosen for the term's derivative, when it is one of the ANN's
         own_inputs = dict(zip(channels, channel_inputs)).get((fitted or {}).get("channel"), inputs)
         start = term_start(fitted, own_inputs) if ctx.ann_on_term else None
+        term = next((c for c in candidates if c.name == "fitted term"), None)
+        at_floor = start is not None and term is not None and _at_noise_floor(ctx, term)
+        if at_floor:
+            ctx.not_trained[NAME] = at_floor
+            ctx.say(f"      not training an ANN on the fitted term: {at_floor}")
+            start = None
         on_term = []
         if start is not None:
             ctx.say(f"[3/5] training an ANN on top of the fitted term: {start.channel} with inputs "
@@ -367,6 +387,23 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
     for line in said:
         ctx.say(line)
     return [*candidates, *calibrated, candidate, *on_term]
+
+
+def _at_noise_floor(ctx: _Context, candidate: Candidate) -> str | None:
+    """Why no ANN is trained on top of `candidate`, or None: where every signal of it lies at the noise
+    floor on the validation data (choice.at_floor), an ANN on it has nothing above the noise left to
+    learn, and the choice could take it only for a score below the floor, which the noise alone gives.
+    Only where every signal's floor is its noise variance (else the floor is the plain model's MSE)."""
+    if ctx.plain is None or not ctx.roles.validation:
+        return None
+    from ..score import validation_score
+    from .choice import at_floor
+    floors, _, from_noise = _validation_floors(ctx.plain, ctx.roles.validation)
+    errors = candidate.scores.errors["validation"]
+    if not from_noise or not at_floor(errors, floors, [p.samples().time for p in ctx.roles.validation]):
+        return None
+    return (f"the {candidate.name} scores {validation_score(errors, floors):.3g} on the validation data, every "
+            "signal at its noise variance within the noise's spread: nothing above the noise is left to learn")
 
 
 def _term_candidate(ctx: _Context, diagnosis) -> list[Candidate]:

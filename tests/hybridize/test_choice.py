@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from fmubuilder.hybridize.choice import choose, noise_margin
+from fmubuilder.hybridize.choice import at_floor, choose, noise_margin
 from fmubuilder.score import floors_of, validation_score
 from fmubuilder.hybridize.workflow import Scores, _select
 
@@ -81,6 +81,28 @@ def test_noise_alone_rarely_moves_a_score_by_the_margin(seconds):
                 for n in (low_passed_noise(), low_passed_noise()))
         exceeded += max(a / b, b / a) > margin
     assert exceeded < 0.05 * 400
+
+
+@pytest.mark.parametrize("seconds", [12.0, 60.0])
+def test_a_model_at_the_noise_floor_is_judged_at_it_and_one_above_is_not(seconds):
+    """at_floor against simulated noise (low-passed over 0.2 s, 10 Hz, as above): a model whose
+    errors are the noise alone is at the floor in at least 97.5 % of 400 draws, one that adds a bias
+    of twice the noise's deviation to one signal of five (its MSE 5 times the noise variance, the
+    geometric mean 1.38 times) is not in any."""
+    rng = np.random.default_rng(1)
+    time = np.arange(0.0, seconds, 0.1)
+
+    def errors_of_draw(bias=0.0):
+        white = rng.standard_normal((len(SIGNALS), time.size + 20))
+        kernel = np.exp(-np.arange(20) * 0.1 / 0.2)
+        noise = np.array([np.convolve(w, kernel, mode="valid")[: time.size] for w in white])
+        noise /= np.sqrt(np.sum(kernel ** 2))
+        noise[0] += bias
+        return {s: {"mse": float(np.mean(n ** 2))} for s, n in zip(SIGNALS, noise)}
+
+    assert sum(at_floor(errors_of_draw(), FLOORS, [time]) for _ in range(400)) >= 0.975 * 400
+    assert not any(at_floor(errors_of_draw(bias=2.0), FLOORS, [time]) for _ in range(400))
+    assert not at_floor(errors(energy=float("nan")), FLOORS, [time])       # a run-off
 
 
 def test_the_margin_shrinks_as_the_validation_data_grow():
