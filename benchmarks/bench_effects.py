@@ -10,9 +10,9 @@ validation score), the fitted term, the NeuralFMU and the ANN on the fitted term
 floor: the truth column shows that the scoring (`Scoring.checked`, the same for every column)
 reaches it, so the other columns measure the models, not the integrator. The noise variance is the
 generator's (the sidecar's bench: the sensor's standard deviation squared over the number of runs
-averaged); a cell is "-" when the candidate was not built (no significant effect, no term). The
-seconds are the case's wall time (the whole hybridize call; with --truth-only the step check and
-the truth's run).
+averaged); a cell is "-" when the candidate was not built (no significant effect, no term, or a
+term at the noise floor, on which no ANN is trained). The seconds are the case's wall time (the
+whole hybridize call; with --truth-only the step check and the truth's run).
 
 The work is counted: `--budget` is the NeuralFMU's loss evaluations (each a simulation of all
 training elements with gradient; the diagnosis' work is fixed), so the numbers do not depend on how
