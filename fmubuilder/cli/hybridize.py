@@ -56,7 +56,8 @@ def add_hybridize_parser(subparsers, common=None) -> None:
                         "(it may then fit noise; the validation data still decide whether one is published)")
     p.add_argument("--ann-on-term", action=argparse.BooleanOptionalAction, default=True,
                    help="also train an ANN that starts from the fitted term and learns what it leaves, whenever a "
-                        "term is offered (default: on; --no-ann-on-term leaves it out and saves its training)")
+                        "term is offered and leaves more than the noise (default: on; --no-ann-on-term leaves it "
+                        "out and saves its training)")
     p.add_argument("--jobs", "-j", type=processes, default=None, metavar="N",
                    help="processes for the candidates: 2 trains the NeuralFMU and calibrates beside the fitted "
                         "term, 1 one after the other; the same numbers either way (default: 2 when the machine "

@@ -158,9 +158,10 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
     in seconds on the NeuralFMU's training (the work is `budget`, in loss evaluations). force: overwrite the outputs (the
     old ones stay until the new ones are complete); allow_insignificant: build the candidates even
     when the diagnosis finds no significant effect; ann_on_term: also train an ANN that starts from
-    the fitted term and learns what it leaves, whenever a term is offered (term_started.py); jobs:
-    processes for the candidates, 2 to train the NeuralFMU and calibrate beside the fitted term (the
-    default with two or more cores), 1 for one after the other; the numbers are the same."""
+    the fitted term and learns what it leaves, whenever a term is offered that leaves more than the
+    noise (term_started.py, _at_noise_floor); jobs: processes for the candidates, 2 to train the
+    NeuralFMU and calibrate beside the fitted term (the default with two or more cores), 1 for one
+    after the other; the numbers are the same."""
     started = time.perf_counter()
     model_fmu, output_fmu, report_dir = Path(model_fmu), Path(output_fmu), Path(report_dir)
     _check_outputs(output_fmu, report_dir, force)
@@ -296,8 +297,8 @@ def score(scores: Scores, roles: Roles, scoring: Scoring, which: tuple[str, ...]
 
 
 def _select(candidates: list[Candidate], plain: Scores, validation: list[Part] = ()) -> dict:
-    """The candidate chosen on the validation data (choice.py; the rule: the README's "The candidates").
-    Without `validation` parts the floors are the plain model's MSE and there is no margin."""
+    """The candidate chosen on the validation data (choice.py; the rule: the README's "The candidates"),
+    on the floors and margin of _validation_floors."""
     from ..score import validation_score
     from .choice import RULE, choose
     errors = plain.errors["validation"]
@@ -370,10 +371,10 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
         own_inputs = dict(zip(channels, channel_inputs)).get((fitted or {}).get("channel"), inputs)
         start = term_start(fitted, own_inputs) if ctx.ann_on_term else None
         term = next((c for c in candidates if c.name == "fitted term"), None)
-        at_floor = start is not None and term is not None and _at_noise_floor(ctx, term)
-        if at_floor:
-            ctx.not_trained[NAME] = at_floor
-            ctx.say(f"      not training an ANN on the fitted term: {at_floor}")
+        why_not = start is not None and term is not None and _at_noise_floor(ctx, term)
+        if why_not:
+            ctx.not_trained[NAME] = why_not
+            ctx.say(f"      not training an ANN on the fitted term: {why_not}")
             start = None
         on_term = []
         if start is not None:
