@@ -94,7 +94,7 @@ def summary(result) -> str:
                      f"{selection.get('plain_score', float('nan')):.3g}, an ANN must beat the simpler by "
                      f"x{selection.get('margin', 1.0):.3g}): {scores}")
     for name, why in report.get("selection", {}).get("not_trained", {}).items():
-        lines.append(f"  not trained: {name}: {why}")
+        lines.append(f"  not trained: {name}; {why}")
     if report["models"]:
         lines.append("  test MSE relative to the plain FMU, mean over the signals (touched once, after the choice): " +
                      ", ".join(f"{m['name']} {m['test_relative_mse']:.3g}" for m in report["models"]))

@@ -191,7 +191,7 @@ def test_no_ann_is_trained_on_a_term_at_the_noise_floor(runs, data):
     why = selection["not_trained"]["neural on the fitted term"]
     assert f"scores {selection['scores']['fitted term']:.3g} on the validation data" in why
     assert f"Not trained: neural on the fitted term; {why}." in (result.report_dir / "report.md").read_text()
-    assert f"  not trained: neural on the fitted term: {why}" in summary(result)
+    assert f"  not trained: neural on the fitted term; {why}" in summary(result)
     assert result.report["chosen"] == "fitted term"
     test_csv = data[truth][1]
     signals = BENCH["signals"]
