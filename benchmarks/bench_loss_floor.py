@@ -149,9 +149,11 @@ def _leaf_fits(declared, info, runs: dict, split: float, lag: float, input_sets:
     train = _training_part(whole, split)
     recorded = sorted({name for inputs in input_sets for name in inputs} | {"energy", CHANNEL})
     model = NeuralFMU(declared, TopologyConfig(), start_values=start_values)
-    plain = {label: simulate_over(model, data, STEP, "rk4", values, plain=True, record=recorded)
-             for label, (data, values) in runs.items()}
-    model.close()
+    try:
+        plain = {label: simulate_over(model, data, STEP, "rk4", values, plain=True, record=recorded)
+                 for label, (data, values) in runs.items()}
+    finally:
+        model.close()
     print("(MSE / noise variance of power and energy; the hidden layers fitted to the plain run's estimate)")
     print("| ANN inputs | last layer | training part | validation tail | test WLTC2 |\n|---|---|---|---|---|")
     for inputs in input_sets:

@@ -199,8 +199,8 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
             if diagnosis.channel is None:
                 raise FmuBuilderError("the diagnosis found an effect but could not trace it to a state derivative; "
                                       "see the diagnosis in the report folder")
-            context = _Context(model_fmu, info, roles, scoring, work, say, budget, seed, time_budget, started,
-                               progress=progress, ann_on_term=ann_on_term, jobs=jobs, plain=plain)
+            context = _Context(model_fmu, info, roles, scoring, work, say, budget, seed, time_budget, started, plain,
+                               progress=progress, ann_on_term=ann_on_term, jobs=jobs)
             candidates_started = time.perf_counter()
             candidates = _build_candidates(context, diagnosis)
             training, not_trained = context.training, context.not_trained
@@ -339,13 +339,13 @@ class _Context:
     seed: int
     time_budget: float | None      # wall-clock cap on the whole call, seconds
     started: float
+    plain: Scores                  # the declared FMU's scores (the floors of the choice)
     aliases: dict = field(default_factory=dict)   # channel -> {output: channel}, see channel_aliases
     training: dict | None = None                  # what the NeuralFMU's training did
     progress: bool = True
     input_choice: dict | None = None              # how the ANN's channels and inputs were chosen
     ann_on_term: bool = True                      # also train an ANN that starts from the fitted term
     jobs: int = 1                                 # processes: 2 builds the NeuralFMU and calibrations beside the rest
-    plain: Scores | None = None                   # the declared FMU's scores (the floors of the choice)
     not_trained: dict = field(default_factory=dict)   # candidate -> why it was not trained
 
 
@@ -394,9 +394,8 @@ def _at_noise_floor(ctx: _Context, candidate: Candidate) -> str | None:
     """Why no ANN is trained on top of `candidate`, or None: where every signal of it lies at the noise
     floor on the validation data (choice.at_floor), an ANN on it has nothing above the noise left to
     learn, and the choice could take it only for a score below the floor, which the noise alone gives.
-    Only where every signal's floor is its noise variance (else the floor is the plain model's MSE)."""
-    if ctx.plain is None or not ctx.roles.validation:
-        return None
+    Only where every signal's floor is its noise variance (else, and without validation data, the
+    floor is the plain model's MSE)."""
     from ..score import validation_score
     from .choice import at_floor
     floors, _, from_noise = _validation_floors(ctx.plain, ctx.roles.validation)
