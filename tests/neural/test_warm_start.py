@@ -68,7 +68,8 @@ def test_an_estimate_blind_to_the_effect_is_replaced_by_a_fit_through_the_simula
                                                                                      monkeypatch):
     """Where a controller hides the effect from the measured derivative, the collocation estimate is
     noise (here: replaced by noise of the estimate's size); its fits hardly lower the loss, and the
-    last layer fitted through the simulation takes it to the loss of the truth's own windage term."""
+    last layer fitted through the simulation from the unfitted ANN alone (warm_start.FITTED_NOISE_ABOVE)
+    takes it to the loss of the truth's own windage term."""
     from fmubuilder.neural import warm_start as module
     estimate = module.collocation_targets
 
@@ -86,6 +87,21 @@ def test_an_estimate_blind_to_the_effect_is_replaced_by_a_fit_through_the_simula
     truth_term, with_term = first_loss(dc_drive_fmu, windage_data, base_terms=exact)
     with_term.model.close()
     assert warm < 1.05 * truth_term < 0.6
+
+    # The kept fit lowered the loss a little and explains next to nothing of its estimate: the last
+    # layer is fitted from the unfitted ANN alone. Searched from both starts instead (the rule off),
+    # the fit's start ends higher, and the two searches cost more simulations.
+    through = report["through_simulation"]
+    assert report["fit_error"] > module.FITTED_NOISE_ABOVE and report["loss_fits"] < report["loss_before"]
+    assert through["start"] == "unfitted" and "loss_from_fit" not in through
+    unknowns = 8 + 1
+    assert through["simulations"] <= 1 + 1 + unknowns + module.UNFITTED_TRIALS    # the capture, the start, the columns
+    monkeypatch.setattr(module, "FITTED_NOISE_ABOVE", 1.0)
+    both_loss, both = first_loss(dc_drive_fmu, windage_data, warm_start=True)
+    both.model.close()
+    both_through = both.metrics["warm_start"]["through_simulation"]
+    assert both_through["loss_from_fit"] > through["loss"] <= both_through["loss_from_unfitted"] * (1 + 1e-9)
+    assert warm <= both_loss * (1 + 1e-9) and through["simulations"] < both_through["simulations"]
 
 
 @pytest.mark.parametrize("handicap", [1.0, 100.0])
@@ -118,6 +134,8 @@ def test_a_fit_that_hardly_lowers_the_loss_is_also_tried_unfitted_through_the_si
     report = result.metrics["warm_start"]
     through = report["through_simulation"]
     assert module.UNFITTED_TOO_ABOVE * report["loss_before"] < report["loss_fits"] < report["loss_before"]
+    # a faint estimate of the right shape, not noise: its fit explains it, and both starts are searched
+    assert report["fit_error"] < module.FITTED_NOISE_ABOVE
     assert len(paths) == 2 and through["loss_from_unfitted"] == paths[1]["loss"]
     # the unfitted start's loss is the one before the fits, not measured again
     assert starts[1][0] == report["loss_before"] and starts[1][1] == pytest.approx(starts[1][0], rel=1e-12)
