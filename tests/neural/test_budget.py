@@ -72,7 +72,7 @@ def test_lbfgs_as_hybridize_sets_it_up_lowers_the_training_loss(plant_fmu, plant
     monkeypatch.setattr(workflow, "OPTIMIZER", "lbfgs")
     # the warm start's fits alone: its last layer through the simulation would leave the training
     # little to do on this plant (the loss it reaches is within 2 % of the trained one)
-    monkeypatch.setattr(warm_start, "_through_simulation", lambda trainer, loss: None)
+    monkeypatch.setattr(warm_start, "_through_simulation", lambda trainer, loss, trials=None: None)
     diagnosis = SimpleNamespace(errors=[SimpleNamespace(signal="w", significant=True)])
     settings = workflow._training_settings(plant_train, diagnosis, budget=6)
     assert settings["optimizer"] == "lbfgs" and settings["warm_start"]
