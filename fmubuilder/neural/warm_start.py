@@ -17,8 +17,9 @@ forced run is what the ANN's integral (trapezoid rule on the run's grid, in torc
 No window is left out: the state is continuous where its derivative jumps, and a window across a
 sign change is matched by the ANN's mean over it, not assigned to one point's inputs.
 
-From the kept fit (or from zero where none lowered the loss: the estimate did not see the effect),
-the last layer is then fitted through the simulation itself (Levenberg-Marquardt, see
+From the kept fit (or from zero where none lowered the loss, or where the one kept fitted its
+estimate's noise: the estimate did not see the effect), the last layer is then fitted through the
+simulation itself (Levenberg-Marquardt, see
 last_layer.py), which sees what a controller does with the effect and what the estimate's noise
 left in the fit.
 """
@@ -74,7 +75,7 @@ UNFITTED_TOO_ABOVE = 0.5
 # (fit_error), it has fitted the estimate's noise, not a faint effect: the last layer is then fitted
 # from the unfitted ANN alone, with UNFITTED_TRIALS trials instead of both starts' 2 x 4. The demo's
 # NeuralFMU (its kept fit explains 0.2 % of the plain run's estimate), the search's loss over the
-# whole training run: from the unfitted ANN 2.04 after 4 trials, 1.045 after 12, 1.0453 after 52;
+# whole training run: from the unfitted ANN 2.04 after 4 trials, 1.046 after 12, 1.0453 after 52;
 # from the fit 2.06 after 4, 1.36 after 16, 1.21 after 40; validation score 49.2 with both starts'
 # 4 trials, 18.4 with 16 and 60 (docs/MEASUREMENTS.md, "The warm start from the unfitted ANN
 # alone"). A faint estimate of the right shape (a fifth of the effect) explains itself and keeps
