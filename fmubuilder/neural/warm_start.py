@@ -77,9 +77,10 @@ UNFITTED_TOO_ABOVE = 0.5
 # NeuralFMU (its kept fit explains 0.2 % of the plain run's estimate), the search's loss over the
 # whole training run: from the unfitted ANN 2.04 after 4 trials, 1.046 after 12, 1.0453 after 52;
 # from the fit 2.06 after 4, 1.36 after 16, 1.21 after 40; validation score 49.2 with both starts'
-# 4 trials, 18.4 with 16 and 60 (docs/MEASUREMENTS.md, "The warm start from the unfitted ANN
-# alone"). A faint estimate of the right shape (a fifth of the effect) explains itself and keeps
-# both starts: its fit's start wins there (tests/neural/test_warm_start.py).
+# 4 trials, 18.4 with 12 (the demo), 16 and 60 (docs/MEASUREMENTS.md, "The warm start from the
+# unfitted ANN alone"). A faint estimate of the right shape (a fifth of the effect) explains itself
+# and keeps both starts: its fit's start wins there (tests/neural/test_warm_start.py), as on the
+# DC drive's two effects' ANN on the term (fit error 0.03).
 FITTED_NOISE_ABOVE = 0.5
 UNFITTED_TRIALS = 12
 # Simulations without gradient in one _loss_from_own_starts: the capture of the starts and the loss.
