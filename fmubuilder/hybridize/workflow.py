@@ -364,13 +364,13 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
                      (ctx, beside, channels, inputs, aliases, settings), {"channel_inputs": channel_inputs},
                      in_caller=not beside) as helper:
         candidates = _term_candidate(ctx, diagnosis)
-        fitted = next((c.details["fitted_term"] for c in candidates if c.name == "fitted term"),
-                      diagnosis.fitted_term)     # refined: the ANN on the term starts from it
+        term = next((c for c in candidates if c.name == "fitted term"), None)
+        # refined: the ANN on the term starts from it
+        fitted = term.details["fitted_term"] if term is not None else diagnosis.fitted_term
         from .term_started import NAME, term_start
         # the ANN on the term reads the inputs chosen for the term's derivative, when it is one of the ANN's
         own_inputs = dict(zip(channels, channel_inputs)).get((fitted or {}).get("channel"), inputs)
         start = term_start(fitted, own_inputs) if ctx.ann_on_term else None
-        term = next((c for c in candidates if c.name == "fitted term"), None)
         why_not = start is not None and term is not None and _at_noise_floor(ctx, term)
         if why_not:
             ctx.not_trained[NAME] = why_not

@@ -283,20 +283,12 @@ def _unfitted_too(trainer, search, through: dict) -> dict:
     """The last layer through the simulation from the unfitted ANN as well (UNFITTED_TOO_ABOVE), the
     start with the lower training loss kept; its report, with the start ("fit" or "unfitted"), both
     starts' losses after it and both paths' simulations."""
-    topology = trainer.model.topology
-    from_fit = _Fit.of(topology)
-    search.unfitted_start().apply(topology)
-    # its output scale acts on the unfitted last layer (zero): the hybrid is the one before the
-    # fits, whose loss the search measured; only the element starts need capturing again
-    trainer._capture_starts(plain=topology.is_neutral())
-    loss = search.loss_before
-    other = _through_simulation(trainer, loss) or {"simulations": 0, "loss": loss, "kept": False}
-    simulations = through["simulations"] + 1 + other["simulations"]     # 1: the capture
+    other, from_fit = _search_from_unfitted(trainer, search, THROUGH_SIMULATION_TRIALS)
+    simulations = through["simulations"] + other["simulations"]
     losses = {"loss_from_fit": through["loss"], "loss_from_unfitted": other["loss"]}
     if other["loss"] < through["loss"]:
         return {**other, **losses, "kept": True, "start": "unfitted", "simulations": simulations}
-    from_fit.apply(topology)
-    _loss_from_own_starts(trainer)      # the element starts back at the fit's parameters
+    _back_to_fit(trainer, from_fit)
     return {**through, **losses, "start": "fit", "simulations": simulations + LOSS_SIMULATIONS}
 
 
@@ -305,19 +297,33 @@ def _unfitted_instead(trainer, search) -> dict:
     trials (the kept fit has fitted its estimate's noise: FITTED_NOISE_ABOVE); the fit back in place
     where that does not lower the training loss below the fit's. Its report as _unfitted_too's,
     without a loss from the fit."""
+    done, from_fit = _search_from_unfitted(trainer, search, UNFITTED_TRIALS)
+    done["loss_from_unfitted"] = done["loss"]
+    if done["loss"] < search.best["loss"]:
+        return {**done, "kept": True, "start": "unfitted"}
+    _back_to_fit(trainer, from_fit)
+    return {**done, "loss": search.best["loss"], "kept": False, "start": "fit",
+            "simulations": done["simulations"] + LOSS_SIMULATIONS}
+
+
+def _search_from_unfitted(trainer, search, trials: int) -> tuple[dict, _Fit]:
+    """(_through_simulation's report from the unfitted ANN with `trials` trials, its simulations
+    counting the capture of the element starts; the fit's parameters it replaced)."""
     topology = trainer.model.topology
     from_fit = _Fit.of(topology)
     search.unfitted_start().apply(topology)
-    trainer._capture_starts(plain=topology.is_neutral())     # the loss is the one before the fits
-    done = (_through_simulation(trainer, search.loss_before, UNFITTED_TRIALS)
-            or {"simulations": 0, "loss": search.loss_before, "kept": False})
-    done = {**done, "loss_from_unfitted": done["loss"], "simulations": done["simulations"] + 1}    # 1: the capture
-    if done["loss"] < search.best["loss"]:
-        return {**done, "kept": True, "start": "unfitted"}
-    from_fit.apply(topology)
+    # its output scale acts on the unfitted last layer (zero): the hybrid is the one before the
+    # fits, whose loss the search measured; only the element starts need capturing again
+    trainer._capture_starts(plain=topology.is_neutral())
+    loss = search.loss_before
+    done = _through_simulation(trainer, loss, trials) or {"simulations": 0, "loss": loss, "kept": False}
+    return {**done, "simulations": done["simulations"] + 1}, from_fit
+
+
+def _back_to_fit(trainer, from_fit: _Fit) -> None:
+    """The fit's parameters back in place, the element starts captured again with them."""
+    from_fit.apply(trainer.model.topology)
     _loss_from_own_starts(trainer)
-    return {**done, "loss": search.best["loss"], "kept": False, "start": "fit",
-            "simulations": done["simulations"] + LOSS_SIMULATIONS}
 
 
 class _Search:

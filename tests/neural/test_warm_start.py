@@ -122,9 +122,9 @@ def test_a_fit_that_hardly_lowers_the_loss_is_also_tried_unfitted_through_the_si
 
     starts = []
 
-    def handicapped(trainer, loss):
+    def handicapped(trainer, loss, trials=module.THROUGH_SIMULATION_TRIALS):
         starts.append((loss, module._loss_from_own_starts(trainer)))     # as given, as measured here
-        done = through_simulation(trainer, loss)
+        done = through_simulation(trainer, loss, trials)
         paths.append(done)
         return {**done, "loss": done["loss"] * handicap} if len(paths) == 1 else done
     monkeypatch.setattr(module, "collocation_targets", faint)
