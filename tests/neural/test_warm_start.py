@@ -89,19 +89,23 @@ def test_an_estimate_blind_to_the_effect_is_replaced_by_a_fit_through_the_simula
     assert warm < 1.05 * truth_term < 0.6
 
     # The kept fit lowered the loss a little and explains next to nothing of its estimate: the last
-    # layer is fitted from the unfitted ANN alone. Searched from both starts instead (the rule off),
-    # the fit's start ends higher, and the two searches cost more simulations.
+    # layer is fitted from the unfitted ANN alone, then once more from a fresh Jacobian. Searched from
+    # both starts instead (the rule off), the fit's start ends higher.
     through = report["through_simulation"]
     assert report["fit_error"] > module.FITTED_NOISE_ABOVE and report["loss_fits"] < report["loss_before"]
     assert through["start"] == "unfitted" and "loss_from_fit" not in through
     unknowns = 8 + 1
-    assert through["simulations"] <= 1 + 1 + unknowns + module.UNFITTED_TRIALS    # the capture, the start, the columns
+    again = through["again"]
+    assert again["loss"] <= again["loss_before"] * (1 + 1e-9) and through["loss"] == min(again["loss"], again["loss_before"])
+    # per search: the capture or the loss after it, the start, the columns, its trials
+    assert through["simulations"] <= (1 + 1 + unknowns + module.UNFITTED_TRIALS
+                                      + module.LOSS_SIMULATIONS + 1 + unknowns + module.RESTART_TRIALS)
     monkeypatch.setattr(module, "FITTED_NOISE_ABOVE", 1.0)
     both_loss, both = first_loss(dc_drive_fmu, windage_data, warm_start=True)
     both.model.close()
     both_through = both.metrics["warm_start"]["through_simulation"]
     assert both_through["loss_from_fit"] > through["loss"] <= both_through["loss_from_unfitted"] * (1 + 1e-9)
-    assert warm <= both_loss * (1 + 1e-9) and through["simulations"] < both_through["simulations"]
+    assert warm <= both_loss * (1 + 1e-9)
 
 
 @pytest.mark.parametrize("handicap", [1.0, 100.0])
