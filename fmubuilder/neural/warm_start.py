@@ -302,9 +302,8 @@ def _unfitted_too(trainer, search, through: dict) -> dict:
 def _unfitted_instead(trainer, search) -> dict:
     """The last layer through the simulation from the unfitted ANN alone, with UNFITTED_TRIALS
     trials and RESTART_TRIALS more from a fresh Jacobian (the kept fit has fitted its estimate's
-    noise: FITTED_NOISE_ABOVE); the fit back in place
-    where that does not lower the training loss below the fit's. Its report as _unfitted_too's,
-    without a loss from the fit."""
+    noise: FITTED_NOISE_ABOVE); the fit back in place where that does not lower the training loss
+    below the fit's. Its report as _unfitted_too's, without a loss from the fit."""
     done, from_fit = _search_from_unfitted(trainer, search, UNFITTED_TRIALS)
     done = _searched_again(trainer, done)
     done["loss_from_unfitted"] = done["loss"]
