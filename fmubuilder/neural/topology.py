@@ -244,12 +244,20 @@ class Topology(nn.Module):
 
     def correction(self, inputs: torch.Tensor) -> torch.Tensor:
         """r = post(ann(pre(inputs))) for raw ANN inputs [B, n_in]: the channel values [B, C]."""
+        last = self.ann[-1]
+        r = F.linear(self.hidden_units(inputs), last.weight, last.bias) * self.post_scale + self.post_shift
+        return r if self.base is None else r + self.base(inputs)
+
+    def hidden_units(self, inputs: torch.Tensor) -> torch.Tensor:
+        """The last hidden layer's outputs [B, H] for raw ANN inputs [B, n_in]: what the last Linear
+        layer combines."""
         z = (inputs - self.pre_shift) * self.pre_scale
         # The layers called directly: nn.Module dispatch costs more than these tiny products.
-        for layer in self.ann:
+        for i, layer in enumerate(self.ann):
+            if i == len(self.ann) - 1:
+                break
             z = F.linear(z, layer.weight, layer.bias) if isinstance(layer, nn.Linear) else _ACTIVATION_FN[type(layer)](z)
-        r = z * self.post_scale + self.post_shift
-        return r if self.base is None else r + self.base(inputs)
+        return z
 
     def folded(self, transposed: bool = False) -> list:
         """The ANN with the pre-processing folded into its first Linear layer and the post-processing

@@ -357,10 +357,10 @@ class Trainer:
         starts = plan_elements(self.data.start, self.data.stop, self.settings.element_length, self.step)
         self.element_duration = min(self.settings.element_length, self.data.stop - self.data.start)
         self.reference = self._reference(starts)
-        self.model.topology.initialise_scaling(*self._scaling_samples())
+        self.model.topology.initialise_scaling(*self.reference_samples())
         self._track_validation(0, "start")      # the plain FMU, or the base term alone
         if self.settings.nipt_iterations and self.model.topology.has_ann and self.model.config.kind == "gates":
-            neutral_pretraining(self.model, *self._scaling_samples(), iterations=self.settings.nipt_iterations)
+            neutral_pretraining(self.model, *self.reference_samples(), iterations=self.settings.nipt_iterations)
         if self.settings.ccpt_iterations and self.model.topology.has_ann:
             collocation_pretraining(self)
         if self.settings.warm_start and self.model.topology.has_ann:
@@ -466,7 +466,8 @@ class Trainer:
                                                sensor_lag=self.sensor_lag, model_runs=courses)
         return start
 
-    def _scaling_samples(self) -> tuple[np.ndarray, np.ndarray]:
+    def reference_samples(self) -> tuple[np.ndarray, np.ndarray]:
+        """(ANN inputs [N, n_in], channels [N, C]) along the reference run (the plain model's)."""
         def columns(names: list[str]) -> np.ndarray:
             return np.stack([self.reference.numpy(name)[:, 0] for name in names], axis=1) if names else np.zeros((0, 0))
         return columns(self.model.config.inputs), columns(self.model.config.channels)

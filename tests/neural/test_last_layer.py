@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from fmubuilder.data import MeasuredData
-from fmubuilder.neural.last_layer import refine_last_layer
+from fmubuilder.neural.last_layer import _Problem, refine_last_layer
 from fmubuilder.neural.model import NeuralFMU
 from fmubuilder.neural.topology import TopologyConfig
 from fmubuilder.neural.train import Trainer, TrainSettings, simulate_over
@@ -55,7 +55,8 @@ def test_the_refinement_finds_a_known_last_layer_again(plant_fmu, truth, element
         before = trainer.engine_differences()["w"]
         done = refine_last_layer(trainer, 40)
         after = trainer.engine_differences()["w"]
-        assert done["kept"] and done["simulations"] <= 40 and done["unknowns"] == 7
+        # 6 weights and a bias, searched along the directions their units span over the run
+        assert done["kept"] and done["simulations"] <= 40 and done["entries"] == 7 and 1 <= done["unknowns"] <= 7
         assert done["loss_after"] < 1e-6 * done["loss_before"]
         # the data are the truth's simulation: its error falls by three orders of magnitude, and the
         # correction along the measured speeds is the truth's (the layer's entries themselves are
@@ -73,8 +74,36 @@ def test_a_budget_below_one_step_leaves_the_layer(plant_fmu, truth):
     trainer = _trainer(plant_fmu, data)
     with trainer.model as model:
         before = model.topology.ann[-1].weight.detach().clone()
-        assert refine_last_layer(trainer, 8) is None        # 6 weights and a bias: 9 simulations for a step (the start, 7 columns, a trial)
+        unknowns = _Problem(trainer, model.topology).start().size
+        # a step costs the start, a column per unknown and a trial
+        assert refine_last_layer(trainer, unknowns + 1) is None
         torch.testing.assert_close(model.topology.ann[-1].weight, before, atol=0, rtol=0)
+
+
+def test_each_unknown_moves_the_output_by_one_along_the_run_and_no_two_alike(plant_fmu, truth):
+    """The search's unknowns, seen through the hybrid's own correction along the reference run:
+    a unit move of one shifts the ANN's output by a root mean square of 1, two moves' shifts are
+    orthogonal, and the shifts of the hidden units the search leaves out are below
+    DIRECTIONS_ABOVE of the largest (sum of the layer's squared entries, as the singular values)."""
+    data, state = truth
+    trainer = _trainer(plant_fmu, data)
+    with trainer.model as model:
+        topology = model.topology
+        topology.load_state_dict(state)
+        problem = _Problem(trainer, topology)
+        inputs = torch.from_numpy(trainer.reference_samples()[0])
+        with torch.no_grad():
+            start = topology.correction(inputs)[:, 0] / topology.post_scale[0]
+            shifts = []
+            for k in range(problem.start().size):
+                move = np.zeros(problem.start().size)
+                move[k] = 1.0
+                problem.set(move)
+                shifts.append((topology.correction(inputs)[:, 0] / topology.post_scale[0] - start).numpy())
+        shifts = np.stack(shifts, axis=1)
+        gram = shifts.T @ shifts / shifts.shape[0]
+        np.testing.assert_allclose(gram, np.eye(len(gram)), atol=1e-6)
+        assert 1 <= len(gram) < 7       # the 6 tanh units of one input are nearly dependent
 
 
 def test_the_search_ends_when_converged_where_the_whole_budget_finds_no_lower_loss(plant_fmu, truth, monkeypatch):
