@@ -33,6 +33,7 @@ pre_shift, pre_scale, post_scale, post_shift, gate_ann, gate_fmu.
 """
 from __future__ import annotations
 
+import itertools
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 
@@ -253,9 +254,7 @@ class Topology(nn.Module):
         layer combines."""
         z = (inputs - self.pre_shift) * self.pre_scale
         # The layers called directly: nn.Module dispatch costs more than these tiny products.
-        for i, layer in enumerate(self.ann):
-            if i == len(self.ann) - 1:
-                break
+        for layer in itertools.islice(self.ann, len(self.ann) - 1):
             z = F.linear(z, layer.weight, layer.bias) if isinstance(layer, nn.Linear) else _ACTIVATION_FN[type(layer)](z)
         return z
 

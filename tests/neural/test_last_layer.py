@@ -82,9 +82,8 @@ def test_a_budget_below_one_step_leaves_the_layer(plant_fmu, truth):
 
 def test_each_unknown_moves_the_output_by_one_along_the_run_and_no_two_alike(plant_fmu, truth):
     """The search's unknowns, seen through the hybrid's own correction along the reference run:
-    a unit move of one shifts the ANN's output by a root mean square of 1, two moves' shifts are
-    orthogonal, and the shifts of the hidden units the search leaves out are below
-    DIRECTIONS_ABOVE of the largest (sum of the layer's squared entries, as the singular values)."""
+    a unit move of one shifts the ANN's output by a root mean square of 1, and two moves' shifts
+    are orthogonal."""
     data, state = truth
     trainer = _trainer(plant_fmu, data)
     with trainer.model as model:
