@@ -134,15 +134,16 @@ def _directions(topology, inputs: np.ndarray, free: np.ndarray) -> np.ndarray:
     count, n_weights = units.shape[0], int(free.sum())
     columns, offset = [], 0
     for channel, own in enumerate(free):
+        width = int(own.sum())
         features = np.column_stack([units[:, own], np.ones(count)])
         _, singular, right = np.linalg.svd(features, full_matrices=False)
         for value, vector in zip(singular, right):
             if value > DIRECTIONS_ABOVE * singular[0]:
                 column = np.zeros(n_weights + free.shape[0])
-                column[offset:offset + own.sum()] = vector[:-1]
+                column[offset:offset + width] = vector[:-1]
                 column[n_weights + channel] = vector[-1]
                 columns.append(column * math.sqrt(count) / value)
-        offset += int(own.sum())
+        offset += width
     return np.column_stack(columns)
 
 
