@@ -313,6 +313,7 @@ class Trainer:
         self._validation_floors: dict | None = None
         self.validation_best: tuple[float, int, dict, str] | None = None   # (score, epoch, parameters, stage)
         self.validation_start: float | None = None                     # the score before training
+        self._last_scored: tuple[dict, float] | None = None             # (parameters, score) scored last
         self.step = float(settings.step_size or model.info.default_experiment.step_size or
                           (data.stop - data.start) / max(10 * data.time.size, 1000))
         self.loss_signals = list(settings.loss_signals or data.signals)
@@ -358,7 +359,7 @@ class Trainer:
         self.element_duration = min(self.settings.element_length, self.data.stop - self.data.start)
         self.reference = self._reference(starts)
         self.model.topology.initialise_scaling(*self.reference_samples())
-        self._track_validation(0, "start")      # the plain FMU, or the base term alone
+        self.track_validation(0, "start")      # the plain FMU, or the base term alone
         if self.settings.nipt_iterations and self.model.topology.has_ann and self.model.config.kind == "gates":
             neutral_pretraining(self.model, *self.reference_samples(), iterations=self.settings.nipt_iterations)
         if self.settings.ccpt_iterations and self.model.topology.has_ann:
@@ -366,7 +367,7 @@ class Trainer:
         if self.settings.warm_start and self.model.topology.has_ann:
             from .warm_start import warm_start
             self.warm_start = warm_start(self)
-            self._track_validation(0, "warm start")
+            self.track_validation(0, "warm start")
         if not self.model.topology.is_neutral():
             self._capture_starts(plain=False)
 
@@ -546,7 +547,7 @@ class Trainer:
                 self.history.append({"epoch": epoch, "loss": loss, "seconds": self.elapsed(),
                                      "lr": optimizer.param_groups[0]["lr"], "backtracked": backtracked,
                                      "loss_evaluations": self.loss_evaluations,
-                                     "validation": self._track_validation(epoch)})
+                                     "validation": self.track_validation(epoch)})
                 if checkpoint is not None:
                     self._save_checkpoint(checkpoint, optimizer, scheduler, epoch)
                 if on_epoch is not None and on_epoch(epoch, self):
@@ -574,14 +575,15 @@ class Trainer:
                 for name in self.loss_signals}
 
     def _refine_last_layer(self) -> None:
-        """Levenberg-Marquardt on the ANN's last layer (last_layer.py); with validation data its
-        result is scored there too and kept only if it is the best."""
+        """Levenberg-Marquardt on the ANN's last layer (last_layer.py); with validation data each of
+        its steps is scored there too, and one kept only if it is the best."""
         if not self.settings.last_layer_simulations or self.cut_short:
             return
         from .last_layer import refine_last_layer
-        self.last_layer = refine_last_layer(self, self.settings.last_layer_simulations)
+        self.last_layer = refine_last_layer(self, self.settings.last_layer_simulations,
+                                            stage=(self.epochs_done + 1, "last layer"))
         if self.last_layer is not None and self.validation is not None:
-            self.last_layer["validation"] = self._track_validation(self.epochs_done + 1, "last layer")
+            self.last_layer["validation"] = self.track_validation(self.epochs_done + 1, "last layer")
             self.last_layer["kept"] &= self.validation_best[1] == self.epochs_done + 1
             self.restore_best()
 
@@ -772,12 +774,19 @@ class Trainer:
                                aliases)
         return data_errors(part.data.window(*part.window), result, self.sensor_lag, aliases)
 
-    def _track_validation(self, epoch: int, stage: str = "epoch") -> float | None:
+    def track_validation(self, epoch: int, stage: str = "epoch") -> float | None:
         """Score the current parameters on the validation data and keep them if they are the best;
-        `stage`: what produced them ("start", "warm start", "epoch", "last layer")."""
+        `stage`: what produced them ("start", "warm start", "epoch", "last layer"). Parameters just
+        scored are not simulated again (the last layer's search scores its steps, and its caller
+        the point the search ended at)."""
         if self.validation is None:
             return None
-        score = self.validation_score()
+        state = _copy_state(self.model.topology)
+        if self._last_scored is not None and _same_state(self._last_scored[0], state):
+            score = self._last_scored[1]
+        else:
+            score = self.validation_score()
+            self._last_scored = (state, score)
         if self.validation_start is None:
             self.validation_start = score
         if self.validation_best is None or score < self.validation_best[0]:
@@ -969,6 +978,10 @@ def _flat(parameters) -> torch.Tensor:
 def _same_point(a: tuple, b: tuple) -> bool:
     """Equal parameter values and the very same element starts."""
     return torch.equal(a[0], b[0]) and len(a[1]) == len(b[1]) and all(x is y for x, y in zip(a[1], b[1]))
+
+
+def _same_state(a: dict, b: dict) -> bool:
+    return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
 
 def _copy_state(module: torch.nn.Module) -> dict:

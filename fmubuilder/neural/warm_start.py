@@ -413,14 +413,15 @@ class _Search:
 def _through_simulation(trainer, loss: float, trials: int = THROUGH_SIMULATION_TRIALS) -> dict:
     """The last layer fitted through the simulation from the current parameters (their training
     loss `loss`; a Jacobian and `trials` trials, see THROUGH_SIMULATION_TRIALS), kept if the
-    training loss falls. Returns what it did."""
+    training loss falls, each step it keeps scored on the validation data (last_layer.py).
+    Returns what it did."""
     from .last_layer import refine_last_layer
     topology = trainer.model.topology
     parameters = list(topology.ann.parameters())
     start = _copy(parameters)
     unknowns = int(topology.last_layer_free().sum()) + topology.ann[-1].bias.numel()
     refined = refine_last_layer(trainer, unknowns + 1 + trials,
-                                "warm start: the ANN's last layer through the simulation")
+                                "warm start: the ANN's last layer through the simulation", stage=(0, "warm start"))
     if refined is None:
         return None
     done = {"simulations": refined["simulations"], "loss": loss, "kept": False}

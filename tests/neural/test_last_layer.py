@@ -10,19 +10,21 @@ from fmubuilder.data import MeasuredData
 from fmubuilder.neural.last_layer import _Problem, refine_last_layer
 from fmubuilder.neural.model import NeuralFMU
 from fmubuilder.neural.topology import TopologyConfig
-from fmubuilder.neural.train import Trainer, TrainSettings, simulate_over
+from fmubuilder.neural.train import Trainer, TrainSettings, Validation, simulate_over
 
 from .conftest import plant_data
 
 STEP = 0.002
 
 
-def _trainer(plant_fmu, data: MeasuredData, simulations: int = 0, element_length: float = 10.0) -> Trainer:
+def _trainer(plant_fmu, data: MeasuredData, simulations: int = 0, element_length: float = 10.0,
+             validation: MeasuredData | None = None) -> Trainer:
     settings = TrainSettings(element_length=element_length, step_size=STEP, solver="rk4", progress=False, sensor_lag=0.0,
                              last_layer_simulations=simulations)
     config = TopologyConfig(channels=["der(w)"], inputs=["w"], hidden=[6], kind="residual")
     torch.manual_seed(1)
-    trainer = Trainer(NeuralFMU(plant_fmu, config), data, settings, 0.0)
+    held_out = None if validation is None else Validation(validation, (validation.start, validation.stop))
+    trainer = Trainer(NeuralFMU(plant_fmu, config), data, settings, 0.0, held_out)
     trainer.prepare()
     return trainer
 
@@ -38,10 +40,19 @@ def truth(plant_fmu):
         with torch.no_grad():
             last.weight.copy_(torch.linspace(-0.4, 0.5, last.weight.numel(), dtype=torch.float64).reshape(last.weight.shape))
             last.bias.fill_(-0.3)
-        result = simulate_over(model, data, STEP, "rk4")
-        measured = MeasuredData(data.time, {"w": np.interp(data.time, result.time, result["w"])}, {},
-                                data.inputs, "made by a known hybrid")
-        return measured, model.topology.state_dict()
+        return _made_by(model, data), model.topology.state_dict()
+
+
+def _made_by(model: NeuralFMU, data: MeasuredData) -> MeasuredData:
+    """The speed the hybrid `model` simulates with the inputs of `data`."""
+    result = simulate_over(model, data, STEP, "rk4")
+    return MeasuredData(data.time, {"w": np.interp(data.time, result.time, result["w"])}, {},
+                        data.inputs, "made by a known hybrid")
+
+
+def _halved(state: dict) -> dict:
+    """The known hybrid with its last layer halved."""
+    return {k: (v * 0.5 if k.startswith("ann.2.") else v) for k, v in state.items()}
 
 
 @pytest.mark.parametrize("element_length", [10.0, 1.0])
@@ -50,7 +61,7 @@ def test_the_refinement_finds_a_known_last_layer_again(plant_fmu, truth, element
     data, state = truth
     trainer = _trainer(plant_fmu, data, simulations=40, element_length=element_length)
     with trainer.model as model:
-        wrong = {k: (v * 0.5 if k.startswith("ann.2.") else v) for k, v in state.items()}
+        wrong = _halved(state)
         model.topology.load_state_dict(wrong)
         before = trainer.engine_differences()["w"]
         done = refine_last_layer(trainer, 40)
@@ -119,7 +130,7 @@ def test_the_search_ends_when_converged_where_the_whole_budget_finds_no_lower_lo
         monkeypatch.setattr(last_layer, "CONVERGED_BELOW", converged_below)
         trainer = _trainer(plant_fmu, noisy)
         with trainer.model as model:
-            model.topology.load_state_dict({k: (v * 0.5 if k.startswith("ann.2.") else v) for k, v in state.items()})
+            model.topology.load_state_dict(_halved(state))
             results[converged_below] = refine_last_layer(trainer, budget)
             model.topology.load_state_dict(state)
             known = float(np.mean(trainer.engine_differences()["w"] ** 2)) / trainer.scale["w"]
@@ -140,8 +151,37 @@ def test_the_refinements_bar_shows_on_a_terminal_only(plant_fmu, truth, monkeypa
     trainer.settings.progress = True
     monkeypatch.setattr(sys.stderr, "isatty", lambda: terminal)
     with trainer.model as model:
-        model.topology.load_state_dict({k: (v * 0.5 if k.startswith("ann.2.") else v) for k, v in state.items()})
+        model.topology.load_state_dict(_halved(state))
         capsys.readouterr()
         assert refine_last_layer(trainer, 10) is not None
     drawn = "refining the ANN's last layer" in capsys.readouterr().err
     assert drawn == terminal
+
+
+@pytest.mark.parametrize("validation_by", ["the known layer", "the halved layer"])
+def test_every_step_kept_is_scored_on_the_validation_data_and_the_best_kept(plant_fmu, truth, validation_by):
+    """Trained on the known layer's data from the halved layer. Validation data made by the known
+    layer: every step the search keeps scores lower there (the same data: the score is the training
+    loss over the plain model's), and the trainer keeps the last. Made by the halved layer, every
+    step scores higher than its start, which the trainer keeps."""
+    data, state = truth
+    with NeuralFMU(plant_fmu, TopologyConfig(channels=["der(w)"], inputs=["w"], hidden=[6], kind="residual")) as maker:
+        maker.topology.load_state_dict(state if validation_by == "the known layer" else _halved(state))
+        validation = _made_by(maker, data)
+    trainer = _trainer(plant_fmu, data, validation=validation)
+    with trainer.model as model:
+        model.topology.load_state_dict(_halved(state))
+        at_start = trainer.track_validation(0, "the halved layer")
+        done = refine_last_layer(trainer, 20, stage=(1, "search"))
+        at_end = trainer.validation_score()       # simulated afresh, not the search's record
+        scores = done["validation_scores"]
+        assert done["kept"] and len(scores) >= 2
+        if validation_by == "the known layer":
+            assert all(later < earlier for earlier, later in zip([at_start, *scores], scores))
+            assert done["best_validation"] == pytest.approx(at_end, rel=1e-9)
+            assert trainer.validation_best[3] == "search"
+        else:
+            assert min(scores) > at_start
+            assert trainer.validation_best[3] == "the halved layer"
+            trainer.restore_best()
+            torch.testing.assert_close(model.topology.ann[-1].weight, 0.5 * state["ann.2.weight"])
