@@ -21,7 +21,8 @@ choices in numbers: docs/MEASUREMENTS.md, "How the training gets there").
    noise variance: noise_scale). Adam with step-size decay per epoch and
    rewinds after a worse epoch (Trainer._keep_best), or one L-BFGS step over all elements per epoch;
    the work is `epochs`, or with `budget` loss evaluations spent exactly (Trainer.fit). The
-   parameters of the lowest loss, or with `validation` data of the best validation score, are kept.
+   parameters of the lowest loss, or with `validation` data of the best validation score (scored at
+   the start, after the warm start, after every epoch and every step a last-layer search keeps), are kept.
    Fixed seeds, a time budget, a checkpoint after every epoch, and resume.
    Then, with `last_layer_simulations`, the ANN's last layer refined through the engine by
    Levenberg-Marquardt (last_layer.py).
