@@ -791,7 +791,7 @@ class Trainer:
         if self.validation_start is None:
             self.validation_start = score
         if self.validation_best is None or score < self.validation_best[0]:
-            self.validation_best = (score, epoch, _copy_state(self.model.topology), stage)
+            self.validation_best = (score, epoch, state, stage)     # a copy, never changed
         return score
 
     def validation_summary(self) -> dict | None:
