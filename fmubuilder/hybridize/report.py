@@ -192,9 +192,14 @@ def _diagnosis_section(report: dict) -> list[str]:
     if training:
         cut = (" The wall-clock cap of {:g} s cut it short.".format(training["time_budget"])
                if training["cut_short_by_time_budget"] else "")
-        lines.append(f"\nThe NeuralFMU trained with {training['loss_evaluations']} of {training['budget']} loss "
-                     f"evaluations ({training['optimizer']}, {training['steps']} steps, seed {training['seed']}) on "
-                     f"`{training['trained_on']}`.{cut}")
+        if training.get("at_noise_floor"):
+            lines.append(f"\nThe NeuralFMU was not trained through the solver ({training['budget']} loss evaluations "
+                         f"were allowed): after its warm start on `{training['trained_on']}` every training signal lay "
+                         "at its noise floor.")
+        else:
+            lines.append(f"\nThe NeuralFMU trained with {training['loss_evaluations']} of {training['budget']} loss "
+                         f"evaluations ({training['optimizer']}, {training['steps']} steps, seed {training['seed']}) "
+                         f"on `{training['trained_on']}`.{cut}")
     return lines
 
 
@@ -249,13 +254,15 @@ def _warm_start_note(warm: dict) -> str:
     return f"warm start: {', then '.join(parts)}, training loss {warm['loss_before']:.4g} -> {warm['loss_after']:.4g}"
 
 
-def _stop_note(checkpoint: dict, steps: int | None) -> str:
-    """Which parameters the training ended with: those of its best validation score."""
+def _stop_note(checkpoint: dict, steps: int | None, trained: bool = True) -> str:
+    """Which parameters the training ended with: those of its best validation score (`trained`:
+    whether it took steps through the solver)."""
     stage = checkpoint.get("best_stage")
     if stage == "start":
         return "ended at its start (nothing it learned scored better on the validation data)"
     if stage == "warm start":
-        return "ended at its warm start (no training step scored better on the validation data)"
+        return ("ended at its warm start (no training step scored better on the validation data)" if trained
+                else "ended at its warm start, its best on the validation data")
     if stage == "epoch":
         of = f" of {steps}" if steps else ""
         return f"ended after step {checkpoint['best_epoch']}{of}, its best on the validation data"
@@ -269,13 +276,20 @@ def _candidate_note(model: dict, training: dict | None) -> str:
     notes, training = [], training or {}
     if model.get("loss_evaluations") is not None:       # a NeuralFMU, plain or on the fitted term
         done, asked = model["loss_evaluations"], training.get("budget")
-        notes.append(f"trained with {done} of {asked} loss evaluations" if asked is not None
-                     else f"trained with {done} loss evaluations")
-        if done == 0:
-            notes.append("the wall-clock cap ran out before the first loss evaluation"
-                         if training.get("cut_short_by_time_budget") else "no training was asked for")
-        elif training.get("cut_short_by_time_budget"):
-            notes.append("cut short by the wall-clock cap")
+        floor = model.get("at_noise_floor")
+        if floor:
+            ratios = ", ".join(f"{name} {ratio:.3g}" for name, ratio in floor["ratios"].items())
+            notes.append(f"not trained through the solver ({done} of {asked} loss evaluations): after the warm start "
+                         f"every training signal lay at its noise floor (MSE / noise variance {ratios}; the noise "
+                         f"alone gives up to {floor['factor']:.3g}), where a step can fit only the noise")
+        else:
+            notes.append(f"trained with {done} of {asked} loss evaluations" if asked is not None
+                         else f"trained with {done} loss evaluations")
+            if done == 0:
+                notes.append("the wall-clock cap ran out before the first loss evaluation"
+                             if training.get("cut_short_by_time_budget") else "no training was asked for")
+            elif training.get("cut_short_by_time_budget"):
+                notes.append("cut short by the wall-clock cap")
         if model.get("warm_start"):
             notes.append(_warm_start_note(model["warm_start"]))
         refined = model.get("last_layer")
@@ -285,7 +299,7 @@ def _candidate_note(model: dict, training: dict | None) -> str:
         elif refined:
             notes.append(f"last layer's refinement not kept ({refined['simulations']} sims)")
         if model.get("validation_checkpoint"):
-            notes.append(_stop_note(model["validation_checkpoint"], model.get("steps")))
+            notes.append(_stop_note(model["validation_checkpoint"], model.get("steps"), trained=not floor))
     elif model.get("calibrated"):
         notes.append(f"calibrated by Gauss-Newton on `{model.get('fitted_on', 'the training data')}` in "
                      f"{model.get('simulations', '?')} simulations, no training")

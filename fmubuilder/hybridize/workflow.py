@@ -84,6 +84,12 @@ LAST_LAYER_SIMULATIONS_PER_EVALUATION = 20
 # shipped hybrid's test energy from 62 to 107 times its noise, and the 80 simulations took about 20
 # minutes (docs/MEASUREMENTS.md, "The last layer refined through the simulation"; bench_neural.py
 # --last-layer).
+# No training through the solver where the warm start leaves every training signal at its noise
+# floor (choice.floor_factor; neural.train.TrainSettings.floor_factor): on every DC drive effect and
+# on the demo the training's steps after such a warm start ended where it left the ANN (no step
+# scored better on the validation data); on the demo they took about 230 s of the second process's 1424
+# (docs/MEASUREMENTS.md, "No training through the solver at the noise floor"). True: train anyway.
+TRAIN_AT_FLOOR = False
 # Seconds of the training data on which outputs equal to the corrected derivative are detected.
 ALIAS_SPAN = 60.0
 
@@ -627,7 +633,7 @@ def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], ali
                         "steps": metrics.get("epochs"), "optimizer": optimizer, "seed": ctx.seed,
                         "time_budget": ctx.time_budget,
                         "cut_short_by_time_budget": bool(metrics.get("cut_short_by_time_budget")),
-                        "trained_on": first.label}
+                        "at_noise_floor": metrics.get("at_noise_floor"), "trained_on": first.label}
     details = {"channel": ", ".join(channels), "channels": channels, "inputs": inputs,
                "channel_inputs": dict(zip(channels, channel_inputs)), "aliases": aliases,
                "steps": metrics.get("epochs"), "loss_evaluations": metrics.get("loss_evaluations"),
@@ -635,7 +641,7 @@ def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], ali
                "loss_signals": settings["loss_signals"], "trained_on": first.label,
                "input_choice": ctx.input_choice if not base_terms else None,
                "warm_start": metrics.get("warm_start"), "last_layer": metrics.get("last_layer"),
-               "validation_checkpoint": metrics.get("validation")}
+               "at_noise_floor": metrics.get("at_noise_floor"), "validation_checkpoint": metrics.get("validation")}
     description = f"ANN on {_wiring(channels, inputs, channel_inputs)}"
     if base_terms:
         description += " added to the fitted term"
@@ -646,6 +652,7 @@ def _training_settings(data: MeasuredData, diagnosis, budget: int) -> dict:
     """Element length and loss signals of the NeuralFMU training: the loss is on the signals in
     which the diagnosis found the effect (all of them if it found it in none alone). The others sit
     at the noise level and their fit to noise pulls the ANN away from the effect."""
+    from .choice import floor_factor
     span = float(data.time[-1] - data.time[0])
     showing = [e.signal for e in diagnosis.errors if e.significant]
     element_length = min(MAX_ELEMENT_LENGTH, span / MIN_ELEMENTS)
@@ -654,7 +661,8 @@ def _training_settings(data: MeasuredData, diagnosis, budget: int) -> dict:
             "loss_scale": LOSS_SCALE,
             "warm_start": WARM_START, "ccpt_window": COLLOCATION_WINDOW, "warm_start_target": WARM_START_TARGET,
             "integral_window": INTEGRAL_WINDOW, "optimizer": OPTIMIZER,
-            "last_layer_simulations": LAST_LAYER_SIMULATIONS_PER_EVALUATION * budget if one_element else 0}
+            "last_layer_simulations": LAST_LAYER_SIMULATIONS_PER_EVALUATION * budget if one_element else 0,
+            "floor_factor": floor_factor([data.time]) if LOSS_SCALE == "noise" and not TRAIN_AT_FLOOR else None}
 
 
 def _roundtrip(chosen: Candidate, test: Part) -> dict:

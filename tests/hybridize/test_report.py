@@ -99,7 +99,12 @@ def test_the_round_trip_names_the_published_fmu_not_a_temporary_file(published):
 def test_the_candidate_table_explains_each_row(published):
     candidates = section((published.report_dir / "report.md").read_text(), "Candidates")
     neural = next(line for line in candidates.splitlines() if line.startswith("| neural |"))
-    assert "trained with 1 of 1 loss evaluations" in neural
+    # the warm start leaves every training signal at the noise floor here: no step through the solver
+    floor = next(m for m in published.report["models"] if m["name"] == "neural")["at_noise_floor"]
+    assert "not trained through the solver (0 of 1 loss evaluations)" in neural
+    assert "no training step scored better" not in neural       # it took none
+    assert ", ".join(f"{name} {ratio:.3g}" for name, ratio in floor["ratios"].items()) in neural
+    assert all(ratio <= floor["factor"] for ratio in floor["ratios"].values())
     fitted = next(line for line in candidates.splitlines() if line.startswith("| fitted term |"))
     assert "speed*\\|speed\\|" in fitted and fitted.count(" | ") == 8   # the term's bars do not split the row
 
@@ -287,6 +292,14 @@ def test_candidate_notes_say_how_each_kind_was_made():
     assert "ended at its warm start" in stopped["warm start"]
     assert "ended after step 3 of 4, its best on the validation data" in stopped["epoch"]
     assert "ended after the last layer's refinement" in stopped["last layer"]
+    floor = {"factor": 1.11, "ratios": {"speed": 0.97, "energy": 1.0654}}
+    at_floor = _candidate_note({"name": "neural", "loss_evaluations": 0, "at_noise_floor": floor, **scores,
+                                "validation_checkpoint": {"best_stage": "warm start"}}, {"budget": 5})
+    assert at_floor.startswith("not trained through the solver (0 of 5 loss evaluations): after the warm start every "
+                               "training signal lay at its noise floor (MSE / noise variance speed 0.97, energy 1.07; "
+                               "the noise alone gives up to 1.11)")
+    assert "no training was asked for" not in at_floor and "no training step scored better" not in at_floor
+    assert "ended at its warm start, its best on the validation data" in at_floor
 
 
 def test_the_summary_names_what_each_kind_of_candidate_ships():
