@@ -15,6 +15,7 @@ import re
 import shutil
 import subprocess
 import sys
+import sysconfig
 import textwrap
 import zipfile
 
@@ -51,12 +52,24 @@ def wheel(tmp_path_factory) -> pathlib.Path:
     return wheel_file
 
 
+def _see_the_running_site_packages(python: pathlib.Path) -> None:
+    """Where the tests run in a venv, --system-site-packages reaches only the base interpreter's
+    site, not this venv's dependencies: a .pth line adds them. Only paths are added, so the .pth
+    files there (an editable install of the checkout) stay unread."""
+    paths = {sysconfig.get_path("purelib"), sysconfig.get_path("platlib")}
+    proc = subprocess.run([str(python), "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
+                          capture_output=True, text=True, check=True)
+    site = pathlib.Path(proc.stdout.strip())
+    (site / "running_environment.pth").write_text("".join(f"{p}\n" for p in sorted(paths)))
+
+
 @pytest.fixture(scope="module")
 def venv_python(wheel, tmp_path_factory) -> pathlib.Path:
-    """A fresh venv with the wheel installed; torch, fmpy etc. come from the system site."""
+    """A fresh venv with the wheel installed; torch, fmpy etc. come from the running environment."""
     venv = tmp_path_factory.mktemp("venv")
     subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", str(venv)], check=True)
     python = venv / "bin" / "python"
+    _see_the_running_site_packages(python)
     # --ignore-installed: a checkout installed in the system site stays untouched.
     proc = subprocess.run([str(python), "-m", "pip", "install", "--no-deps", "--no-index", "--ignore-installed",
                            str(wheel)], capture_output=True, text=True, env=_clean_env())
