@@ -97,6 +97,9 @@ def test_the_wheel_carries_every_template_cmake_file_and_example_source(wheel):
     assert packed == _shipped_files(REPO)
     expected_modules = {p.relative_to(REPO).as_posix() for p in PACKAGE.rglob("*.py")}
     assert expected_modules <= modules, sorted(expected_modules - modules)
+    core = {f"fmubuilder/simulation/core/{name}" for name in ("event_loop.c", "event_loop.h", "CMakeLists.txt")}
+    with zipfile.ZipFile(wheel) as zf:
+        assert core <= set(zf.namelist()), "the compiled simulation core's sources are missing"
 
 
 # Runs in the venv from a folder outside the checkout: build an example from the installed
@@ -110,6 +113,7 @@ EXPORT_SCRIPT = textwrap.dedent("""
     from fmubuilder.export import export_hybrid
     from fmubuilder.fmi import read_model_info
     from fmubuilder.hybridize.terms import spec_from_fitted_term
+    from fmubuilder.simulation import simulate
 
     out = pathlib.Path(sys.argv[1])
     fmu = example_fmu("bouncing_ball")
@@ -118,7 +122,9 @@ EXPORT_SCRIPT = textwrap.dedent("""
     hybrid = export_hybrid(spec, out / "hybrid.fmu")
     result = fmpy.simulate_fmu(str(hybrid), stop_time=0.4, output_interval=0.1, output=["h", "v"],
                                relative_tolerance=1e-10)
+    falling = simulate(fmu, solver="rk4", step_size=0.01, stop_time=0.4, output_interval=0.1, variables=["v"])
     print(json.dumps({"package": fmubuilder.__file__, "data": str(repo_root()), "example": str(fmu),
+                      "core_v": falling["v"].tolist(),
                       "problems": validate_fmu(str(hybrid)),
                       "time": result["time"].tolist(), "v": result["v"].tolist()}))
 """)
@@ -141,6 +147,9 @@ def test_the_installed_wheel_builds_an_example_and_exports_a_hybrid(venv_python,
     g, k = 9.81, 0.4
     t = np.array(report["time"])
     np.testing.assert_allclose(report["v"], -g / k * (1 - np.exp(-k * t)), rtol=1e-6, atol=1e-8)
+    # The compiled core, built from the installed sources: RK4 is exact on the free fall v = -g t.
+    np.testing.assert_allclose(report["core_v"], -g * t, rtol=1e-12, atol=1e-12)
+    assert list((tmp_path / "cache" / "event_loop").glob("*/event_loop.so")), "the core was not built"
 
 
 def test_the_installed_command_runs(venv_python, tmp_path, bouncing_ball_fmu):

@@ -43,9 +43,11 @@ _MODEL_OFFSET, _MODEL_SIZE = 128, 128
 
 _MAP_FIXED = 0x10   # Linux; the mmap module does not export it
 
+TIME_OFFSET = 64
+
 _page = mmap.mmap(-1, mmap.PAGESIZE, flags=mmap.MAP_SHARED | mmap.MAP_ANONYMOUS)
 CALL = memoryview(_page).cast("q")
-TIME = memoryview(_page)[64:72].cast("d")
+TIME = memoryview(_page)[TIME_OFFSET:TIME_OFFSET + 8].cast("d")
 
 
 def _helper_page():
@@ -60,6 +62,12 @@ def _helper_page():
 
 _helper_fd, _helper = _helper_page()
 HELPER = memoryview(_helper).cast("q") if _helper is not None else None
+
+
+def page_address() -> int:
+    """The address of the page the crumbs go to, for compiled code that leaves them itself (the
+    helper's page is mapped at the same address, see become_helper)."""
+    return ctypes.addressof(ctypes.c_char.from_buffer(_page))
 
 
 def reset() -> None:

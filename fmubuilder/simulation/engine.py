@@ -13,6 +13,7 @@ from bisect import bisect_left, bisect_right
 
 import numpy as np
 
+from . import core
 from .events import EventSequence, locate, time_scale, time_tolerance
 from .results import SimulationResult, SimulationStats
 from .solvers import Solver
@@ -25,6 +26,9 @@ def run(system: HybridSystem, solver: Solver, *, start_time: float, stop_time: f
     (sorted, within [start_time, stop_time]). With record_events the outputs just before
     and after each event are added as extra rows at the event time."""
     started = wallclock.perf_counter()
+    if core.applies(system, solver):
+        return _run_compiled(system, solver, start_time, stop_time, np.asarray(output_times, dtype=float),
+                             record_events, started)
     stats = SimulationStats(solver=solver.name)
     recorder = _Recorder(system.output_names, system.output_types)
     loop = _Loop(system, solver, start_time, stop_time, np.asarray(output_times, dtype=float),
@@ -40,6 +44,35 @@ def run(system: HybridSystem, solver: Solver, *, start_time: float, stop_time: f
     return SimulationResult(time=time, values=values, stats=stats,
                             terminated_early=loop.terminated and loop.t < stop_time - loop.eps,
                             stop_time=loop.t, events=loop.events)
+
+
+def _run_compiled(system, solver, start_time, stop_time, output_times, record_events, started) -> SimulationResult:
+    """`run` in the compiled core (core/): the system initialised here, its loop in C."""
+    core.library()      # built (or found) before the instance is initialised
+    stats = SimulationStats(solver=solver.name)
+    recorder = _Recorder(system.output_names, system.output_types)
+    x, next_event, terminate = system.initialize(start_time, stop_time)
+    eps = time_tolerance(start_time, time_scale(start_time, stop_time))
+    if terminate:       # the model stops during its initialisation: what it reached
+        recorder.add([start_time], system.outputs((start_time,), x[None, :]))
+        system.terminate()
+        stats.event_iterations, stats.wall_time = system.event_iterations, wallclock.perf_counter() - started
+        time, values = recorder.arrays()
+        return SimulationResult(time=time, values=values, stats=stats, terminated_early=start_time < stop_time - eps,
+                                stop_time=start_time, events=[])
+    done = core.run(system, solver, start_time=start_time, stop_time=stop_time, output_times=output_times,
+                    x0=x, next_event=next_event, record_events=record_events)
+    system.event_iterations += done.counts.pop("event_iterations")
+    system.terminate()
+    recorder.add(done.times.tolist(), done.table)
+    for key, value in done.counts.items():
+        setattr(stats, key, value)
+    stats.event_iterations = system.event_iterations
+    stats.wall_time = wallclock.perf_counter() - started
+    time, values = recorder.arrays()
+    return SimulationResult(time=time, values=values, stats=stats,
+                            terminated_early=done.terminated and done.t < stop_time - eps,
+                            stop_time=done.t, events=done.events)
 
 
 class _Loop:

@@ -156,6 +156,15 @@ class InputSignals:
             out[:, k] = np.interp(times, self.time, self._cont[:, k])
         return out
 
+    def tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(continuous values [samples, continuous inputs], their slopes [samples - 1, continuous
+        inputs], discrete values [samples, discrete inputs] as floats): what `at` and
+        `discrete_at` read, for the compiled loop."""
+        discrete = np.zeros((self.time.size, len(self.discrete)))
+        for k, var in enumerate(self.discrete):
+            discrete[:, k] = self._disc[var.name]
+        return self._cont, self._slope, discrete
+
     def discrete_at(self, t: float) -> dict[str, object]:
         """Values of the discrete inputs at t (the last sample at or before t)."""
         i = max(bisect.bisect_right(self._times, t) - 1, 0)

@@ -76,11 +76,12 @@ class FmuSystem:
         for var in recorded:
             if var.api_type == "String":
                 raise FmuBuilderError(f"cannot record String variable '{var.name}'; choose numeric variables")
+        self.recorded = recorded
         self.output_names = [v.name for v in recorded]
         self.output_types = [v.api_type for v in recorded]
         self.inputs = inputs
         self.breakpoints = inputs.breakpoints if inputs is not None else np.zeros(0)
-        self._input_events = inputs.discrete_change_times().tolist() if inputs is not None else []
+        self.input_event_times = inputs.discrete_change_times().tolist() if inputs is not None else []
         self.event_iterations = 0
         self._continuous_mode = False
         self._terminated = False
@@ -96,7 +97,7 @@ class FmuSystem:
         self._set_inputs = None
         if inputs is not None and inputs.continuous:
             self._set_inputs = inst.real_setter([v.value_reference for v in inputs.continuous])
-        self._columns = _OutputColumns(inst, info, recorded)
+        self.columns = _OutputColumns(inst, info, recorded)
 
     # -- life cycle ------------------------------------------------------------------------
     def initialize(self, start_time: float, stop_time: float) -> tuple[np.ndarray, float, bool]:
@@ -110,7 +111,7 @@ class FmuSystem:
         inst.enter_initialization_mode()
         self._apply_inputs(start_time)
         inst.exit_initialization_mode()
-        self._columns.discrete_changed()
+        self.columns.discrete_changed()
         return self._after_event(start_time, event_mode(inst, entered=True))
 
     def terminate(self) -> None:
@@ -147,7 +148,7 @@ class FmuSystem:
         return self._completed(True)
 
     def outputs(self, times: np.ndarray, states: np.ndarray) -> np.ndarray:
-        columns = self._columns
+        columns = self.columns
         if len(times) == 1:
             return self._output_row(times[0], states[0])[None, :]
         # Many points (dense output within a step): the states' and discrete values' columns whole.
@@ -168,7 +169,7 @@ class FmuSystem:
     def _output_row(self, t: float, x: np.ndarray) -> np.ndarray:
         """outputs() of one point, written into one row: [states | discrete | computed] in the
         recorded columns' order."""
-        columns = self._columns
+        columns = self.columns
         n, n_discrete = self.n_states, columns.n_discrete
         row = np.empty(n + n_discrete + columns.n_computed)
         row[:n] = x
@@ -184,7 +185,7 @@ class FmuSystem:
     def handle_event(self, t: float, x: np.ndarray) -> tuple[np.ndarray, float, bool]:
         self._at(t, x)
         self._continuous_mode = False
-        self._columns.discrete_changed()
+        self.columns.discrete_changed()
         inputs = self.inputs     # _at has set the continuous ones; discrete ones change in event mode
         discrete = inputs is not None and inputs.discrete
         info = event_mode(self.instance, before_iteration=(lambda: self.instance.set(inputs.discrete_at(t)))
@@ -202,8 +203,8 @@ class FmuSystem:
 
     def _next_time_event(self, fmu_next: float, t: float) -> float:
         """The FMU's next time event or the next change of a discrete input, if earlier."""
-        i = bisect.bisect_right(self._input_events, t)
-        return min(fmu_next, self._input_events[i]) if i < len(self._input_events) else fmu_next
+        i = bisect.bisect_right(self.input_event_times, t)
+        return min(fmu_next, self.input_event_times[i]) if i < len(self.input_event_times) else fmu_next
 
     def _apply_inputs(self, t: float) -> None:
         if self.inputs is None:
@@ -220,9 +221,9 @@ class _OutputColumns:
     (continuous, computed from the state) from the FMU at each sample."""
 
     def __init__(self, inst, info, recorded: list[Variable]):
-        state_index = {v.name: i for i, v in enumerate(info.states)}
-        discrete = [v for v in recorded if v.name not in state_index and v.variability != "continuous"]
-        computed = [v for v in recorded if v.name not in state_index and v.variability == "continuous"]
+        self.state_index = state_index = {v.name: i for i, v in enumerate(info.states)}
+        self.discrete = discrete = [v for v in recorded if v.name not in state_index and v.variability != "continuous"]
+        self.computed = computed = [v for v in recorded if v.name not in state_index and v.variability == "continuous"]
         self.n_discrete, self.n_computed = len(discrete), len(computed)
         # Column of each recorded variable in [states | discrete | computed].
         position = {v.name: len(state_index) + k for k, v in enumerate(discrete + computed)}

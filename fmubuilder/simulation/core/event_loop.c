@@ -1,0 +1,813 @@
+/* The compiled event loop (see event_loop.h). Each function mirrors its Python counterpart in
+ * simulation/events.py, engine.py, solvers.py and system.py (FmuSystem), named in its comment;
+ * arithmetic keeps their operand order, so the two loops agree to the bit (the build turns
+ * floating-point contraction off). */
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "event_loop.h"
+
+/* A fixed step that would leave less than this fraction of itself before its limit is
+ * stretched to the limit (solvers._SNAP). */
+#define SNAP 1e-6
+/* locate's iteration cap (events.locate's max_iterations). */
+#define MAX_LOCATE_ITERATIONS 200
+
+typedef struct {
+    const CoreFmu *fmu;
+    const CorePlan *plan;
+    CoreResult *res;
+    size_t n, nz;
+    double eps;                     /* the engine's output tolerance: time_tolerance(start, scale) */
+    /* the event sequence (events.EventSequence) */
+    double t, next_event;
+    int terminated, events_here, cuts_in_a_row;
+    double *z, *z_end;              /* z: NULL without indicators */
+    /* the engine's current state */
+    double *x;
+    /* the fixed-step solver (solvers.FixedStepSolver) */
+    double st, st_prev;
+    double *sx, *sx_prev, *dx, *dx_prev, *x_new;
+    int dx_current;
+    double *stage, *k2, *k3, *k4, *interpolated;
+    /* locate's bracket */
+    double *za, *zb, *z_trial, *wa, *wb;
+    /* outputs and inputs */
+    size_t i_out, i_bp, segment;
+    double *input_values, *discrete_cache, *computed, *row;
+    int *integers;
+    int discrete_valid, continuous_mode;
+    /* the point the instance was last put at: setting it again would change nothing */
+    double held_t, *held_x;
+    int held;
+} Loop;
+
+/* ---- FMI calls, each leaving its breadcrumb ------------------------------------------- */
+
+static int failed(Loop *loop, core_call call, int status)
+{
+    loop->res->error = CORE_FMI_ERROR;
+    loop->res->failed_call = (int)call;
+    loop->res->failed_status = status;
+    loop->res->error_time = loop->t;
+    return 1;
+}
+
+#define FMI(loop, call, expr)                                                \
+    do {                                                                     \
+        const CoreFmu *fmu_ = (loop)->fmu;                                   \
+        fmu_->call_slot[0] = fmu_->call_codes[call];                         \
+        int status_ = (expr);                                                \
+        fmu_->call_slot[0] = -fmu_->call_codes[call];                        \
+        fmu_->ping_slot[0] = 0;                                              \
+        if (status_ > 1) {                                                   \
+            return failed((loop), (call), status_);                          \
+        }                                                                    \
+    } while (0)
+
+#define TRY(expr)                                                            \
+    do {                                                                     \
+        if (expr) {                                                          \
+            return 1;                                                        \
+        }                                                                    \
+    } while (0)
+
+static int set_time(Loop *loop, double t)
+{
+    loop->fmu->time_slot[0] = t;
+    FMI(loop, CALL_SET_TIME, loop->fmu->set_time(loop->fmu->component, t));
+    return 0;
+}
+
+/* inputs.InputSignals.at: linear between samples, constant outside them. */
+static void continuous_inputs_at(Loop *loop, double t)
+{
+    const CorePlan *p = loop->plan;
+    size_t m = p->n_continuous_inputs, n = p->n_samples, i = loop->segment;
+    const double *times = p->sample_times;
+    const double *values;
+    if (!(i + 1 < n && times[i] <= t && t < times[i + 1])) {
+        if (t <= times[0]) {
+            memcpy(loop->input_values, p->continuous_values, m * sizeof(double));
+            return;
+        }
+        if (t >= times[n - 1]) {
+            memcpy(loop->input_values, p->continuous_values + (n - 1) * m, m * sizeof(double));
+            return;
+        }
+        size_t lo = 0, hi = n;      /* bisect_right(times, t) - 1 */
+        while (lo < hi) {
+            size_t mid = (lo + hi) / 2;
+            if (t < times[mid]) {
+                hi = mid;
+            } else {
+                lo = mid + 1;
+            }
+        }
+        i = loop->segment = lo - 1;
+    }
+    values = p->continuous_values + i * m;
+    for (size_t k = 0; k < m; ++k) {
+        loop->input_values[k] = values[k] + (t - times[i]) * p->continuous_slopes[i * m + k];
+    }
+}
+
+/* FmuSystem._at: the instance at (t, x), its continuous inputs at t. Where it already stands
+ * there (the calls since the last put only read), the calls are left out. */
+static int put_at(Loop *loop, double t, const double *x)
+{
+    const CoreFmu *f = loop->fmu;
+    const CorePlan *p = loop->plan;
+    if (loop->held && t == loop->held_t && memcmp(x, loop->held_x, loop->n * sizeof(double)) == 0) {
+        return 0;
+    }
+    loop->held = 0;
+    TRY(set_time(loop, t));
+    if (p->n_continuous_inputs) {
+        continuous_inputs_at(loop, t);
+        FMI(loop, CALL_SET_REAL,
+            f->set_real(f->component, p->continuous_input_vrs, p->n_continuous_inputs, loop->input_values));
+    }
+    if (loop->n) {
+        FMI(loop, CALL_SET_CONTINUOUS_STATES, f->set_continuous_states(f->component, x, loop->n));
+    }
+    loop->held = 1;
+    loop->held_t = t;
+    memcpy(loop->held_x, x, loop->n * sizeof(double));
+    return 0;
+}
+
+/* FmuSystem.derivatives */
+static int derivatives(Loop *loop, double t, const double *x, double *out)
+{
+    TRY(put_at(loop, t, x));
+    if (loop->n) {
+        FMI(loop, CALL_GET_DERIVATIVES, loop->fmu->get_derivatives(loop->fmu->component, out, loop->n));
+    }
+    loop->res->rhs_evaluations += 1;
+    return 0;
+}
+
+/* FmuSystem.indicators */
+static int indicators(Loop *loop, double t, const double *x, double *out)
+{
+    TRY(put_at(loop, t, x));
+    if (loop->nz) {
+        FMI(loop, CALL_GET_EVENT_INDICATORS, loop->fmu->get_event_indicators(loop->fmu->component, out, loop->nz));
+    }
+    loop->res->indicator_evaluations += 1;
+    return 0;
+}
+
+/* ---- the fixed-step solvers (solvers.Euler, solvers.RK4) -------------------------------- */
+
+static void solver_restart(Loop *loop, double t, const double *x)
+{
+    loop->st = loop->st_prev = t;
+    memcpy(loop->sx, x, loop->n * sizeof(double));
+    memcpy(loop->sx_prev, x, loop->n * sizeof(double));
+    loop->dx_current = 0;
+}
+
+/* RK4._derivative_here: the derivative at the solver's current point, evaluated once. */
+static int derivative_here(Loop *loop)
+{
+    if (!loop->dx_current) {
+        TRY(derivatives(loop, loop->st, loop->sx, loop->dx));
+        loop->dx_current = 1;
+    }
+    return 0;
+}
+
+/* FixedStepSolver.step with Euler._advance or RK4._advance / rk4_step. */
+static int solver_step(Loop *loop, double t_limit, double *t_reached)
+{
+    size_t n = loop->n;
+    double t = loop->st, h = t_limit - t, t_new;
+    double *x = loop->sx, *x_new = loop->x_new;
+    if (h > loop->plan->step_size * (1.0 + SNAP)) {
+        h = loop->plan->step_size;
+        t_new = t + h;
+    } else {
+        t_new = t_limit;
+    }
+    if (loop->plan->solver == CORE_EULER) {
+        TRY(derivatives(loop, t, x, loop->stage));
+        for (size_t i = 0; i < n; ++i) {
+            x_new[i] = x[i] + h * loop->stage[i];
+        }
+    } else {
+        double half = 0.5 * h, t_half = t + 0.5 * h, sixth = h / 6.0;
+        TRY(derivative_here(loop));
+        memcpy(loop->dx_prev, loop->dx, n * sizeof(double));
+        loop->dx_current = 0;
+        const double *k1 = loop->dx_prev;
+        for (size_t i = 0; i < n; ++i) {
+            loop->stage[i] = x[i] + half * k1[i];
+        }
+        TRY(derivatives(loop, t_half, loop->stage, loop->k2));
+        for (size_t i = 0; i < n; ++i) {
+            loop->stage[i] = x[i] + half * loop->k2[i];
+        }
+        TRY(derivatives(loop, t_half, loop->stage, loop->k3));
+        for (size_t i = 0; i < n; ++i) {
+            loop->stage[i] = x[i] + h * loop->k3[i];
+        }
+        TRY(derivatives(loop, t + h, loop->stage, loop->k4));
+        for (size_t i = 0; i < n; ++i) {
+            x_new[i] = x[i] + sixth * (k1[i] + 2.0 * (loop->k2[i] + loop->k3[i]) + loop->k4[i]);
+        }
+    }
+    memcpy(loop->sx_prev, x, n * sizeof(double));
+    memcpy(loop->sx, x_new, n * sizeof(double));
+    loop->st_prev = t;
+    loop->st = t_new;
+    loop->res->steps += 1;
+    *t_reached = t_new;
+    return 0;
+}
+
+/* Solver.interpolate: the state at t inside the last step (Euler: linear; RK4: cubic Hermite
+ * from the derivatives at both ends, solvers.hermite). */
+static int interpolate(Loop *loop, double t, double *out)
+{
+    size_t n = loop->n;
+    double h = loop->st - loop->st_prev;
+    double theta = h == 0.0 ? 1.0 : (t - loop->st_prev) / h;
+    if (loop->plan->solver == CORE_EULER) {
+        for (size_t i = 0; i < n; ++i) {
+            out[i] = loop->sx_prev[i] + theta * (loop->sx[i] - loop->sx_prev[i]);
+        }
+        return 0;
+    }
+    if (loop->st == loop->st_prev) {
+        memcpy(out, loop->sx, n * sizeof(double));
+        return 0;
+    }
+    TRY(derivative_here(loop));
+    double t2 = theta * theta, t3 = t2 * theta;
+    double a = 2 * t3 - 3 * t2 + 1, b = (t3 - 2 * t2 + theta) * h, c = -2 * t3 + 3 * t2, d = (t3 - t2) * h;
+    for (size_t i = 0; i < n; ++i) {
+        out[i] = a * loop->sx_prev[i] + b * loop->dx_prev[i] + c * loop->sx[i] + d * loop->dx[i];
+    }
+    return 0;
+}
+
+/* ---- recording ---------------------------------------------------------------------------- */
+
+static int grow(void **array, size_t *capacity, size_t needed, size_t item)
+{
+    if (needed <= *capacity) {
+        return 0;
+    }
+    size_t wanted = *capacity ? *capacity : 64;
+    while (wanted < needed) {
+        wanted *= 2;
+    }
+    void *bigger = realloc(*array, wanted * item);
+    if (bigger == NULL) {
+        return 1;
+    }
+    *array = bigger;
+    *capacity = wanted;
+    return 0;
+}
+
+/* values_reader: the variables that change only at events, read once after each event. */
+static int read_discrete(Loop *loop)
+{
+    const CoreFmu *f = loop->fmu;
+    const CorePlan *p = loop->plan;
+    for (int type = TYPE_REAL; type <= TYPE_BOOLEAN; ++type) {
+        for (size_t k = 0; k < p->n_discrete; ++k) {
+            if (p->discrete_types[k] != type) {
+                continue;
+            }
+            double *into = loop->discrete_cache + k;
+            if (type == TYPE_REAL) {
+                FMI(loop, CALL_GET_REAL, f->get_real(f->component, p->discrete_vrs + k, 1, into));
+            } else if (type == TYPE_INTEGER) {
+                FMI(loop, CALL_GET_INTEGER, f->get_integer(f->component, p->discrete_vrs + k, 1, loop->integers));
+                *into = (double)loop->integers[0];
+            } else {
+                FMI(loop, CALL_GET_BOOLEAN, f->get_boolean(f->component, p->discrete_vrs + k, 1, loop->integers));
+                *into = loop->integers[0] ? 1.0 : 0.0;
+            }
+        }
+    }
+    loop->discrete_valid = 1;
+    return 0;
+}
+
+/* FmuSystem._output_row: the recorded columns at (t, x), as count rows at times. */
+static int record(Loop *loop, const double *times, size_t count, double t, const double *x)
+{
+    const CorePlan *p = loop->plan;
+    CoreResult *r = loop->res;
+    if (p->n_discrete && !loop->discrete_valid) {
+        TRY(read_discrete(loop));
+    }
+    if (p->n_computed) {
+        if (loop->continuous_mode) {    /* in event mode the FMU already holds (t, x) */
+            TRY(put_at(loop, t, x));
+        }
+        FMI(loop, CALL_GET_REAL, loop->fmu->get_real(loop->fmu->component, p->computed_vrs, p->n_computed, loop->computed));
+    }
+    for (size_t j = 0; j < p->n_columns; ++j) {
+        int index = p->column_index[j];
+        loop->row[j] = p->column_kind[j] == COLUMN_STATE ? x[index]
+                       : p->column_kind[j] == COLUMN_DISCRETE ? loop->discrete_cache[index] : loop->computed[index];
+    }
+    if (grow((void **)&r->times, &r->row_capacity, r->n_rows + count, sizeof(double))) {
+        r->error = CORE_NO_MEMORY;
+        return 1;
+    }
+    double *rows = realloc(r->rows, r->row_capacity * (p->n_columns ? p->n_columns : 1) * sizeof(double));
+    if (rows == NULL) {
+        r->error = CORE_NO_MEMORY;
+        return 1;
+    }
+    r->rows = rows;
+    for (size_t k = 0; k < count; ++k) {
+        r->times[r->n_rows] = times[k];
+        memcpy(r->rows + r->n_rows * p->n_columns, loop->row, p->n_columns * sizeof(double));
+        r->n_rows += 1;
+    }
+    return 0;
+}
+
+/* engine._Loop._record_reached: the output times reached (after the events at t). */
+static int record_reached(Loop *loop, double t)
+{
+    const CorePlan *p = loop->plan;
+    size_t i_next = loop->i_out;
+    while (i_next < p->n_outputs && p->output_times[i_next] <= t + loop->eps) {
+        i_next += 1;
+    }
+    if (i_next > loop->i_out) {
+        size_t first = loop->i_out;
+        loop->i_out = i_next;
+        TRY(record(loop, p->output_times + first, i_next - first, t, loop->x));
+    }
+    return 0;
+}
+
+/* ---- what the sequence asks of its driver (engine._Loop) --------------------------------- */
+
+/* step_limit: the stop, the next input kink, the next output time. */
+static int step_limit(Loop *loop, double stop, double *target)
+{
+    const CorePlan *p = loop->plan;
+    double t = loop->t;
+    *target = stop;
+    if (loop->i_out < p->n_outputs && p->output_times[loop->i_out] <= t + loop->eps) {
+        TRY(record_reached(loop, t));
+    }
+    if (p->n_breakpoints) {
+        while (loop->i_bp < p->n_breakpoints && p->breakpoints[loop->i_bp] <= t + loop->eps) {
+            loop->i_bp += 1;
+        }
+        if (loop->i_bp < p->n_breakpoints && p->breakpoints[loop->i_bp] < *target) {
+            *target = p->breakpoints[loop->i_bp];
+        }
+    }
+    if (loop->i_out < p->n_outputs && p->output_times[loop->i_out] < *target) {
+        *target = p->output_times[loop->i_out];
+    }
+    return 0;
+}
+
+/* events.crossed for any indicator. */
+static int any_crossed(const double *z0, const double *z1, size_t nz)
+{
+    for (size_t i = 0; i < nz; ++i) {
+        if ((z0[i] < 0.0 && z1[i] >= 0.0) || (z0[i] > 0.0 && z1[i] <= 0.0)) {
+            return 1;
+        }
+    }
+    return 0;
+}
+
+/* events._secant_earliest over the firing indicators, weighted. */
+static double secant_earliest(const Loop *loop, double ta, double tb)
+{
+    const double *z0 = loop->z;
+    int found = 0;
+    double earliest = 0.0;
+    for (size_t i = 0; i < loop->nz; ++i) {
+        if (!((z0[i] < 0.0 && loop->zb[i] >= 0.0) || (z0[i] > 0.0 && loop->zb[i] <= 0.0))) {
+            continue;
+        }
+        double za = loop->wa[i] * loop->za[i], zb = loop->wb[i] * loop->zb[i];
+        double root = tb - zb * (tb - ta) / (zb - za);
+        if (isfinite(root) && (!found || root < earliest)) {
+            earliest = root;
+            found = 1;
+        }
+    }
+    if (!found) {
+        return 0.5 * (ta + tb);
+    }
+    double bounded = ta > earliest ? ta : earliest;     /* min(max(roots.min(), ta), tb) */
+    return tb < bounded ? tb : bounded;
+}
+
+/* engine._Loop._indicators_on_step: the indicators on the last step's dense output. */
+static int indicators_on_step(Loop *loop, double t, double *out)
+{
+    TRY(interpolate(loop, t, loop->interpolated));
+    return indicators(loop, t, loop->interpolated, out);
+}
+
+/* events.locate: the earliest crossing in (t0, t1] by a vector Illinois iteration; the right end
+ * of the final bracket (t, in *t_event) and the indicators there (in loop->zb). */
+static int locate(Loop *loop, double t0, double t1, const double *z1, double tolerance, double *t_event)
+{
+    size_t nz = loop->nz;
+    double ta = t0, tb = t1, width_before = t1 - t0;
+    int last_side = 0, evaluations = 0;
+    memcpy(loop->za, loop->z, nz * sizeof(double));
+    memcpy(loop->zb, z1, nz * sizeof(double));
+    for (size_t i = 0; i < nz; ++i) {
+        loop->wa[i] = loop->wb[i] = 1.0;
+    }
+    while (tb - ta > tolerance && evaluations < MAX_LOCATE_ITERATIONS) {
+        double t_trial = secant_earliest(loop, ta, tb);
+        if (evaluations % 3 == 2 && tb - ta > 0.5 * width_before) {
+            t_trial = 0.5 * (ta + tb);      /* slow progress: bisect */
+        }
+        if (evaluations % 3 == 2) {
+            width_before = tb - ta;
+        }
+        double margin = 0.25 * tolerance, low = ta + margin, high = tb - margin;
+        t_trial = low > t_trial ? low : t_trial;
+        t_trial = high < t_trial ? high : t_trial;
+        TRY(indicators_on_step(loop, t_trial, loop->z_trial));
+        evaluations += 1;
+        if (any_crossed(loop->z, loop->z_trial, nz)) {
+            tb = t_trial;
+            memcpy(loop->zb, loop->z_trial, nz * sizeof(double));
+            for (size_t i = 0; i < nz; ++i) {
+                loop->wb[i] = 1.0;
+                if (last_side == 1) {
+                    loop->wa[i] *= 0.5;
+                }
+            }
+            last_side = 1;
+        } else {
+            ta = t_trial;
+            memcpy(loop->za, loop->z_trial, nz * sizeof(double));
+            for (size_t i = 0; i < nz; ++i) {
+                loop->wa[i] = 1.0;
+                if (last_side == -1) {
+                    loop->wb[i] *= 0.5;
+                }
+            }
+            last_side = -1;
+        }
+    }
+    *t_event = tb;
+    return 0;
+}
+
+static double tolerance_at(const Loop *loop, double t)
+{
+    /* events.time_tolerance */
+    double scale = loop->plan->time_scale, magnitude = fabs(t);
+    return loop->plan->relative_time_tolerance * (scale > magnitude ? scale : magnitude);
+}
+
+/* EventSequence._cut with engine._Loop.cut_at_state_event: the step cut at its earliest state
+ * event; the engine's state there. z_end holds the indicators at the new end. */
+static int cut_at_state_event(Loop *loop, double t_start, double *t_end)
+{
+    loop->cuts_in_a_row += 1;
+    if (loop->cuts_in_a_row > loop->plan->max_cuts_in_a_row) {
+        loop->res->error = CORE_CHATTERING;
+        loop->res->error_time = *t_end;
+        return 1;
+    }
+    double tolerance = tolerance_at(loop, *t_end), relative = 1e-12 * (*t_end - t_start);
+    tolerance = relative > tolerance ? relative : tolerance;
+    double t_event;
+    TRY(locate(loop, t_start, *t_end, loop->z_end, tolerance, &t_event));
+    memcpy(loop->z_end, loop->zb, loop->nz * sizeof(double));
+    if (t_event != *t_end) {
+        TRY(interpolate(loop, t_event, loop->x));
+    }
+    *t_end = t_event;
+    return 0;
+}
+
+/* engine._Loop.completed_step with FmuSystem.completed_step: output times inside the step from
+ * the dense output, then fmi2CompletedIntegratorStep. */
+static int completed_step(Loop *loop, int *step_event, int *terminate)
+{
+    const CorePlan *p = loop->plan;
+    double t = loop->t;
+    while (loop->i_out < p->n_outputs && p->output_times[loop->i_out] < t - loop->eps) {
+        double time = p->output_times[loop->i_out];
+        TRY(interpolate(loop, time, loop->interpolated));
+        TRY(record(loop, &time, 1, time, loop->interpolated));
+        loop->i_out += 1;
+    }
+    *step_event = *terminate = 0;
+    if (p->needs_completed_step) {
+        TRY(put_at(loop, t, loop->x));
+        FMI(loop, CALL_COMPLETED_INTEGRATOR_STEP,
+            loop->fmu->completed_integrator_step(loop->fmu->component, 1, step_event, terminate));
+    }
+    return 0;
+}
+
+/* inputs.InputSignals.discrete_at, set by FmuSystem.handle_event before the event iteration. */
+static int set_discrete_inputs(Loop *loop, double t)
+{
+    const CoreFmu *f = loop->fmu;
+    const CorePlan *p = loop->plan;
+    size_t lo = 0, hi = p->n_samples;
+    while (lo < hi) {
+        size_t mid = (lo + hi) / 2;
+        if (t < p->sample_times[mid]) {
+            hi = mid;
+        } else {
+            lo = mid + 1;
+        }
+    }
+    size_t row = lo > 0 ? lo - 1 : 0;
+    for (size_t k = 0; k < p->n_discrete_inputs; ++k) {
+        const unsigned int *vr = p->discrete_input_vrs + k;
+        double value = p->discrete_values[row * p->n_discrete_inputs + k];
+        if (p->discrete_input_types[k] == TYPE_REAL) {
+            FMI(loop, CALL_SET_REAL, f->set_real(f->component, vr, 1, &value));
+        } else if (p->discrete_input_types[k] == TYPE_INTEGER) {
+            int integer = (int)value;
+            FMI(loop, CALL_SET_INTEGER, f->set_integer(f->component, vr, 1, &integer));
+        } else {
+            int boolean = value != 0.0;
+            FMI(loop, CALL_SET_BOOLEAN, f->set_boolean(f->component, vr, 1, &boolean));
+        }
+    }
+    return 0;
+}
+
+/* FmuInstance.update_discrete_states: the event iteration, merged over its passes. */
+static int event_iteration(Loop *loop, core_event_info *merged)
+{
+    const CoreFmu *f = loop->fmu;
+    core_event_info info;
+    int values_changed = 0, iterations = 0;
+    for (;;) {
+        info.newDiscreteStatesNeeded = 1;
+        FMI(loop, CALL_NEW_DISCRETE_STATES, f->new_discrete_states(f->component, &info));
+        iterations += 1;
+        values_changed |= info.valuesOfContinuousStatesChanged;
+        if (info.terminateSimulation || !info.newDiscreteStatesNeeded) {
+            break;
+        }
+    }
+    *merged = info;
+    merged->valuesOfContinuousStatesChanged = values_changed;
+    loop->res->event_iterations += iterations;
+    return 0;
+}
+
+/* engine._Loop.event with FmuSystem.handle_event and events.event_mode. */
+static int event(Loop *loop, int kind)
+{
+    const CoreFmu *f = loop->fmu;
+    const CorePlan *p = loop->plan;
+    CoreResult *r = loop->res;
+    double t = loop->t;
+    if (grow((void **)&r->event_times, &r->event_capacity, r->n_events + 1, sizeof(double))) {
+        r->error = CORE_NO_MEMORY;
+        return 1;
+    }
+    int *kinds = realloc(r->event_kinds, r->event_capacity * sizeof(int));
+    if (kinds == NULL) {
+        r->error = CORE_NO_MEMORY;
+        return 1;
+    }
+    r->event_kinds = kinds;
+    r->event_times[r->n_events] = t;
+    r->event_kinds[r->n_events] = kind;
+    r->n_events += 1;
+    if (p->record_events) {
+        TRY(record(loop, &t, 1, t, loop->x));
+    }
+    TRY(put_at(loop, t, loop->x));
+    loop->continuous_mode = 0;
+    loop->discrete_valid = 0;
+    loop->held = 0;         /* the event may change the states and the discrete inputs */
+    FMI(loop, CALL_ENTER_EVENT_MODE, f->enter_event_mode(f->component));
+    if (p->n_discrete_inputs) {
+        TRY(set_discrete_inputs(loop, t));
+    }
+    core_event_info info;
+    TRY(event_iteration(loop, &info));
+    if (!info.terminateSimulation) {
+        FMI(loop, CALL_ENTER_CONTINUOUS_TIME_MODE, f->enter_continuous_time_mode(f->component));
+    }
+    if (loop->n) {      /* the event may have reset the states */
+        FMI(loop, CALL_GET_CONTINUOUS_STATES, f->get_continuous_states(f->component, loop->x, loop->n));
+    }
+    if (info.terminateSimulation) {
+        loop->next_event = INFINITY;
+        loop->terminated = 1;
+    } else {
+        loop->continuous_mode = 1;
+        double next = info.nextEventTimeDefined ? info.nextEventTime : INFINITY;
+        for (size_t k = 0; k < p->n_input_events; ++k) {   /* the next change of a discrete input */
+            if (p->input_event_times[k] > t) {
+                next = p->input_event_times[k] < next ? p->input_event_times[k] : next;
+                break;
+            }
+        }
+        loop->next_event = next;
+    }
+    if (p->record_events) {
+        TRY(record(loop, &t, 1, t, loop->x));
+    }
+    if (!loop->terminated) {
+        solver_restart(loop, t, loop->x);
+        if (loop->z != NULL) {      /* the indicators after the event: the next step's reference */
+            TRY(indicators(loop, t, loop->x, loop->z));
+        }
+    }
+    return 0;
+}
+
+/* ---- the sequence (events.EventSequence.towards, driven by engine._Loop.run) -------------- */
+
+static int is_due(const Loop *loop, double event_time, double t)
+{
+    return event_time <= t + tolerance_at(loop, t);
+}
+
+static int towards(Loop *loop, double limit)
+{
+    const CorePlan *p = loop->plan;
+    CoreResult *r = loop->res;
+    double at_limit = limit - tolerance_at(loop, limit);
+    while (!loop->terminated) {
+        double t = loop->t;
+        if (is_due(loop, loop->next_event, t)) {
+            if (loop->next_event > t) {
+                loop->t = loop->next_event;     /* a time event a rounding error ahead is now */
+            }
+            loop->events_here += 1;
+            if (loop->events_here > p->max_events_at_one_time) {
+                r->error = CORE_EVENT_STORM;
+                r->error_time = loop->t;
+                return 1;
+            }
+            r->time_events += 1;
+            TRY(event(loop, EVENT_TIME));
+            continue;
+        }
+        if (t >= at_limit) {
+            return 0;
+        }
+        double end, t_end;
+        TRY(step_limit(loop, limit, &end));
+        TRY(solver_step(loop, loop->next_event < end ? loop->next_event : end, &t_end));
+        memcpy(loop->x, loop->sx, loop->n * sizeof(double));
+        int state_event = 0;
+        if (loop->z != NULL) {      /* the indicators at the step's end: a sign change cuts it */
+            TRY(indicators(loop, t_end, loop->x, loop->z_end));
+            if (any_crossed(loop->z, loop->z_end, loop->nz)) {
+                state_event = 1;
+                TRY(cut_at_state_event(loop, t, &t_end));
+            } else {
+                loop->cuts_in_a_row = 0;
+            }
+            double *swap = loop->z;
+            loop->z = loop->z_end;
+            loop->z_end = swap;
+        }
+        loop->t = t_end;
+        loop->events_here = 0;
+        int step_event = 0;
+        if (t_end != t) {
+            int terminate;
+            TRY(completed_step(loop, &step_event, &terminate));
+            if (terminate) {
+                loop->terminated = 1;
+                return 0;
+            }
+        }
+        if (is_due(loop, loop->next_event, t_end)) {
+            continue;   /* a time event is due now: the next pass handles it, and any crossing with it */
+        }
+        if (state_event) {
+            r->state_events += 1;
+            r->step_events += step_event;
+            TRY(event(loop, EVENT_STATE));
+        } else if (step_event) {
+            r->step_events += 1;
+            TRY(event(loop, EVENT_STEP));
+        } else if (loop->i_bp < p->n_breakpoints && loop->t >= p->breakpoints[loop->i_bp] - loop->eps) {
+            solver_restart(loop, loop->t, loop->x);     /* the inputs' slope changes here */
+        }
+    }
+    return 0;
+}
+
+/* ---- set-up and the run --------------------------------------------------------------------- */
+
+static double *take(double **pool, size_t count)
+{
+    double *block = *pool;
+    *pool += count;
+    return block;
+}
+
+int core_run(const CoreFmu *fmu, const CorePlan *plan, CoreResult *result)
+{
+    Loop loop;
+    memset(&loop, 0, sizeof(loop));
+    memset(result, 0, sizeof(*result));
+    size_t n = plan->n_states, nz = plan->n_indicators;
+    size_t words = 12 * n + 7 * nz + plan->n_continuous_inputs + plan->n_discrete + plan->n_computed
+                   + plan->n_columns + 1;
+    double *memory = calloc(words, sizeof(double));
+    int *integers = calloc(1, sizeof(int));
+    result->x = calloc(n ? n : 1, sizeof(double));
+    if (memory == NULL || integers == NULL || result->x == NULL) {
+        free(memory);
+        free(integers);
+        result->error = CORE_NO_MEMORY;
+        return result->error;
+    }
+    double *pool = memory;
+    loop.fmu = fmu;
+    loop.plan = plan;
+    loop.res = result;
+    loop.n = n;
+    loop.nz = nz;
+    loop.eps = plan->relative_time_tolerance * plan->time_scale;
+    loop.x = take(&pool, n);
+    loop.sx = take(&pool, n);
+    loop.sx_prev = take(&pool, n);
+    loop.dx = take(&pool, n);
+    loop.dx_prev = take(&pool, n);
+    loop.x_new = take(&pool, n);
+    loop.stage = take(&pool, n);
+    loop.k2 = take(&pool, n);
+    loop.k3 = take(&pool, n);
+    loop.k4 = take(&pool, n);
+    loop.interpolated = take(&pool, n);
+    loop.held_x = take(&pool, n);
+    double *z_a = take(&pool, nz), *z_b = take(&pool, nz);
+    loop.za = take(&pool, nz);
+    loop.zb = take(&pool, nz);
+    loop.z_trial = take(&pool, nz);
+    loop.wa = take(&pool, nz);
+    loop.wb = take(&pool, nz);
+    loop.input_values = take(&pool, plan->n_continuous_inputs);
+    loop.discrete_cache = take(&pool, plan->n_discrete);
+    loop.computed = take(&pool, plan->n_computed);
+    loop.row = take(&pool, plan->n_columns);
+    loop.integers = integers;
+    loop.continuous_mode = 1;
+    loop.t = plan->start;
+    loop.next_event = plan->next_event;
+    memcpy(loop.x, plan->x0, n * sizeof(double));
+    solver_restart(&loop, plan->start, plan->x0);
+
+    int failed_run = 0;
+    if (nz) {       /* the indicators at the start: the first step's reference */
+        loop.z = z_a;
+        loop.z_end = z_b;
+        failed_run = indicators(&loop, plan->start, loop.x, loop.z);
+    }
+    if (!failed_run) {
+        failed_run = towards(&loop, plan->stop);
+    }
+    if (!failed_run && !loop.terminated) {
+        failed_run = record_reached(&loop, loop.t);
+    }
+    if (!failed_run && loop.terminated) {   /* what the model reached, if not recorded yet */
+        int recorded = result->n_rows > 0 && fabs(result->times[result->n_rows - 1] - loop.t) <= loop.eps;
+        if (!recorded) {
+            failed_run = record(&loop, &loop.t, 1, loop.t, loop.x);
+        }
+    }
+    result->t = loop.t;
+    result->terminated = loop.terminated;
+    memcpy(result->x, loop.x, n * sizeof(double));
+    free(memory);
+    free(integers);
+    return result->error;
+}
+
+void core_free_result(CoreResult *result)
+{
+    free(result->x);
+    free(result->times);
+    free(result->rows);
+    free(result->event_times);
+    free(result->event_kinds);
+    memset(result, 0, sizeof(*result));
+}
