@@ -75,6 +75,13 @@ class FittedTerm(nn.Module):
             return total
         return evaluate
 
+    def terms_by_basis(self) -> tuple[list[tuple[int, int, float, float]], float]:
+        """([(basis index in BASES, input index, center, coefficient)] grouped by basis, bias): the
+        terms point_kernel sums, in its order, for the compiled core."""
+        terms = [(b, int(self.select[:, k].argmax()), float(self.center[k]), float(self.weights[b, k, 0]))
+                 for b in range(len(BASES)) for k in range(self.center.numel()) if float(self.weights[b, k, 0]) != 0.0]
+        return terms, float(self.bias[0])
+
     def numpy_kernel(self):
         """The same function in numpy: u [n_in] -> a number, or u [R, n_in] -> [R]."""
         select = self.select.numpy().copy()

@@ -13,6 +13,7 @@ import torch
 
 from ..errors import FmuBuilderError
 from ..simulation import SimulationResult, make_solver, output_grid, run
+from ..simulation.core import SOURCE_DERIVATIVE, SOURCE_STATE, SOURCE_VARIABLE, Correction
 from ..simulation.inputs import InputSignals
 from ..simulation.system import FmuSystem
 from .model import NeuralFMU
@@ -27,6 +28,7 @@ def _sigmoid(z, out):
 
 
 _ACTIVATIONS = {torch.tanh: np.tanh, torch.relu: lambda z, out: np.maximum(z, 0.0, out=out), torch.sigmoid: _sigmoid}
+_ACTIVATION_NAMES = {torch.tanh: "tanh", torch.relu: "relu", torch.sigmoid: "sigmoid"}
 
 
 _EMPTY = np.zeros(0)
@@ -49,10 +51,16 @@ class NumpyTopology:
         self._base = topology.base.numpy_kernel() if topology.base is not None else None
         self._base_at = topology.base.point_kernel() if topology.base is not None else None
         self._base_gate = topology.gate_ann.detach().numpy().copy()
+        self._base_terms = topology.base.terms_by_basis() if topology.base is not None else None
         with torch.no_grad():
-            for layer in topology.folded():   # the torch topology's own fold, as numpy arrays
+            folded = topology.folded()
+            for layer in folded:   # the torch topology's own fold, as numpy arrays
                 self.layers.append(tuple(a.numpy().copy() for a in layer) if isinstance(layer, tuple)
                                    else _ACTIVATIONS[layer])
+        # The same layers for the compiled core: (W, b, the activation after them or None).
+        self.program = [(layer[0], layer[1], _ACTIVATION_NAMES[folded[i + 1]]
+                         if i + 1 < len(folded) and not isinstance(folded[i + 1], tuple) else None)
+                        for i, layer in enumerate(self.layers) if isinstance(layer, tuple)]
 
         # Preallocated buffers; the inputs are gathered one by one (a handful of scalars is faster
         # than fancy indexing), the last layer of a single channel is a dot product.
@@ -96,6 +104,19 @@ class NumpyTopology:
             der[self.channels] = self._last_W @ z + self._last_b + self.gate_fmu * der[self.channels]
         return der
 
+    def correction(self, variable_vrs: list[int]) -> Correction | None:
+        """The same map for the compiled core (simulation.core.Correction); None when inactive."""
+        if not self.active:
+            return None
+        sources = (SOURCE_STATE, SOURCE_DERIVATIVE, SOURCE_VARIABLE)
+        terms, bias, gate = [], 0.0, 0.0
+        if self._base_terms is not None:
+            terms, bias = self._base_terms
+            gate = float(self._base_gate[0])
+        return Correction(inputs=[(sources[kind], index) for kind, index in self._gather], variable_vrs=variable_vrs,
+                          layers=self.program, channels=self.channels.tolist(), gate_fmu=self.gate_fmu,
+                          terms=terms, term_bias=bias, term_gate=gate)
+
     def rows(self, x: np.ndarray, der: np.ndarray, variables: np.ndarray) -> np.ndarray:
         """The same for several points at once: x, der [R, n], variables [R, k]; `der` is updated
         in place and returned."""
@@ -122,12 +143,15 @@ class NeuralFmuSystem(FmuSystem):
         super().__init__(model.loaded_copy(), variables=variables, start_values=values, inputs=inputs, tolerance=tolerance)
         self.kernel = NumpyTopology(model.topology)
         info = model.info
-        self._read_variables = self.instance.real_getter(
-            [info.variable(name).value_reference for name in model.topology.fmu_variables])
+        self._variable_vrs = [info.variable(name).value_reference for name in model.topology.fmu_variables]
+        self._read_variables = self.instance.real_getter(self._variable_vrs)
         self._has_variables = bool(model.topology.fmu_variables)
         derivative_names = [v.name for v in info.derivatives]
         self._derivative_columns = [(j, derivative_names.index(name)) for j, name in enumerate(self.output_names)
                                     if name in derivative_names]
+
+    def compiled_correction(self) -> Correction | None:
+        return self.kernel.correction(self._variable_vrs)
 
     def derivatives(self, t: float, x: np.ndarray) -> np.ndarray:
         return self._add_network(super().derivatives(t, x), x)

@@ -99,6 +99,11 @@ class FmuSystem:
             self._set_inputs = inst.real_setter([v.value_reference for v in inputs.continuous])
         self.columns = _OutputColumns(inst, info, recorded)
 
+    def compiled_correction(self):
+        """How a subclass corrects the derivatives, as the compiled core (core.Correction) evaluates
+        it; None: the FMU's own. A subclass that overrides `derivatives` without it runs in Python."""
+        return None
+
     # -- life cycle ------------------------------------------------------------------------
     def initialize(self, start_time: float, stop_time: float) -> tuple[np.ndarray, float, bool]:
         inst = self.instance

@@ -56,12 +56,53 @@ def enabled() -> bool:
     return os.environ.get(ENGINE_VARIABLE, "").strip().lower() != "python"
 
 
+# What a system may change of FmuSystem and still run in the core: the derivatives and the recorded
+# derivative columns, as its compiled_correction() describes them.
+_CORRECTED = ("derivatives", "outputs")
+_FIXED = ("initialize", "indicators", "completed_step", "handle_event", "terminate", "close")
+
+
 def applies(system, solver) -> bool:
-    """Whether the core runs this system with this solver: a plain FMU instance (a system whose
-    derivatives are computed in Python keeps the Python loop) and a fixed-step solver."""
+    """Whether the core runs this system with this solver: an FmuSystem whose derivatives are the
+    FMU's or corrected as its `compiled_correction()` describes (a system that changes anything
+    else in Python keeps the Python loop), and a fixed-step solver of solvers.py."""
+    from .. import solvers
     from ..system import FmuSystem
-    return enabled() and type(system) is FmuSystem and solver.name in SOLVERS and type(solver).__module__.endswith(
-        "simulation.solvers")
+    if not (enabled() and isinstance(system, FmuSystem) and type(solver) in (solvers.Euler, solvers.RK4)):
+        return False
+    cls = type(system)
+    if any(getattr(cls, name) is not getattr(FmuSystem, name) for name in _FIXED):
+        return False
+    # The correction must be described by the class that last changed the derivatives, or below it.
+    described_by = _owner(cls, "compiled_correction")
+    return all(issubclass(described_by, _owner(cls, name)) for name in _CORRECTED)
+
+
+def _owner(cls, name: str) -> type:
+    """The class in cls's method resolution order that defines `name`."""
+    return next(klass for klass in cls.__mro__ if name in vars(klass))
+
+
+@dataclass
+class Correction:
+    """A correction of some state derivatives that the core evaluates after each fmi2GetDerivatives
+    (see CoreCorrection in event_loop.h): inputs gathered as (SOURCE_*, index), FMU variables read
+    by value reference, dense layers (W [rows, cols], b, activation name or None), the corrected
+    states with their FMU gates, and a base term: (basis index, input, center, coefficient) grouped
+    by basis in BASES order, its bias and gate (0: none)."""
+    inputs: list[tuple[int, int]]
+    variable_vrs: list[int]
+    layers: list[tuple[np.ndarray, np.ndarray, str | None]]
+    channels: list[int]
+    gate_fmu: np.ndarray
+    terms: list[tuple[int, int, float, float]] = field(default_factory=list)
+    term_bias: float = 0.0
+    term_gate: float = 0.0
+
+
+SOURCE_STATE, SOURCE_DERIVATIVE, SOURCE_VARIABLE = 0, 1, 2
+ACTIVATIONS = {None: 0, "tanh": 1, "sigmoid": 2, "relu": 3}
+COLUMN_DERIVATIVE = 3
 
 
 @dataclass
@@ -100,12 +141,14 @@ def _plan(ffi, system, solver, start, stop, output_times, x0, next_event, record
     keep = []       # numpy arrays the plan points into, alive until the run returns
 
     def array(values, c_type="double"):
+        """A C pointer into a kept array of `values`."""
         dtype = {"double": np.float64, "int": np.intc, "unsigned int": np.uintc}[c_type]
         data = np.ascontiguousarray(values, dtype=dtype)
         if data.size == 0:
             data = np.zeros(1, dtype=dtype)
         keep.append(data)
         return ffi.cast(f"{c_type} *", ffi.from_buffer(data))
+    array.keep = keep.append
 
     info = system.info
     scale = time_scale(start, stop)
@@ -121,10 +164,16 @@ def _plan(ffi, system, solver, start, stop, output_times, x0, next_event, record
     plan.record_events = bool(record_events)
     plan.n_outputs, plan.output_times = len(output_times), array(output_times)
 
+    correction = system.compiled_correction()
+    if correction is not None:
+        plan.correction = _correction(ffi, correction, array)
+    derivative_index = {v.name: i for i, v in enumerate(info.derivatives)} if correction is not None else {}
     columns = system.columns
     kinds, indices = [], []
     for var in system.recorded:
-        if var.name in columns.state_index:
+        if var.name in derivative_index:
+            kinds.append(COLUMN_DERIVATIVE), indices.append(derivative_index[var.name])
+        elif var.name in columns.state_index:
             kinds.append(COLUMN_STATE), indices.append(columns.state_index[var.name])
         elif var in columns.discrete:
             kinds.append(COLUMN_DISCRETE), indices.append(columns.discrete.index(var))
@@ -155,6 +204,32 @@ def _plan(ffi, system, solver, start, stop, output_times, x0, next_event, record
         plan.n_input_events, plan.input_event_times = len(input_events), array(input_events)
     keep.append(plan)
     return plan, keep
+
+
+def _correction(ffi, correction: Correction, array):
+    c = ffi.new("CoreCorrection *")
+    c.n_inputs = len(correction.inputs)
+    c.input_source = array([source for source, _ in correction.inputs], "int")
+    c.input_index = array([index for _, index in correction.inputs], "int")
+    c.n_variables, c.variable_vrs = len(correction.variable_vrs), array(correction.variable_vrs, "unsigned int")
+    layers = correction.layers
+    c.n_layers = len(layers)
+    c.layer_rows = array([W.shape[0] for W, _, _ in layers], "int")
+    c.layer_cols = array([W.shape[1] for W, _, _ in layers], "int")
+    c.layer_activation = array([ACTIVATIONS[activation] for _, _, activation in layers], "int")
+    c.weights = array(np.concatenate([np.ravel(W) for W, _, _ in layers]) if layers else [])
+    c.biases = array(np.concatenate([np.ravel(b) for _, b, _ in layers]) if layers else [])
+    c.n_channels, c.channel_state = len(correction.channels), array(correction.channels, "int")
+    c.gate_fmu = array(correction.gate_fmu)
+    terms = correction.terms
+    c.n_terms = len(terms)
+    c.term_basis = array([t[0] for t in terms], "int")
+    c.term_input = array([t[1] for t in terms], "int")
+    c.term_center = array([t[2] for t in terms])
+    c.term_coefficient = array([t[3] for t in terms])
+    c.term_bias, c.term_gate = correction.term_bias, correction.term_gate
+    array.keep(c)
+    return c
 
 
 def _fmu(ffi, system, plan):

@@ -38,6 +38,9 @@ typedef struct {
     double *input_values, *discrete_cache, *computed, *row;
     int *integers;
     int discrete_valid, continuous_mode;
+    /* the correction's inputs, variables and layer buffers; derivatives for recorded columns */
+    double *network_in, *network_a, *network_b, *variables, *recorded_dx;
+    int derivative_columns;
     /* the point the instance was last put at: setting it again would change nothing */
     double held_t, *held_x;
     int held;
@@ -138,14 +141,88 @@ static int put_at(Loop *loop, double t, const double *x)
     return 0;
 }
 
-/* FmuSystem.derivatives */
+static double activated(int activation, double value)
+{
+    switch (activation) {
+    case ACTIVATION_TANH:
+        return tanh(value);
+    case ACTIVATION_SIGMOID:        /* as neural/system.py: 0.5 tanh(z / 2) + 0.5 */
+        return 0.5 * tanh(value * 0.5) + 0.5;
+    case ACTIVATION_RELU:
+        return value > 0.0 ? value : 0.0;
+    default:
+        return value;
+    }
+}
+
+/* The fitted base term at the inputs z (neural/base_term.py, FittedTerm.point_kernel). */
+static double base_term(const CoreCorrection *c, const double *z)
+{
+    double total = c->term_bias;
+    size_t k = 0;
+    while (k < c->n_terms) {
+        int basis = c->term_basis[k];
+        double sum = 0.0;
+        for (; k < c->n_terms && c->term_basis[k] == basis; ++k) {
+            double u = z[c->term_input[k]] - c->term_center[k];
+            double phi = basis == BASIS_W ? u : basis == BASIS_ABS ? fabs(u)
+                         : basis == BASIS_SIGNED_SQUARE ? u * fabs(u) : u * u;
+            sum += c->term_coefficient[k] * phi;
+        }
+        total += sum;
+    }
+    return c->term_gate * total;
+}
+
+/* The correction (CoreCorrection) of the FMU's derivatives `der` at x; the instance stands at (t, x). */
+static int correct(Loop *loop, const double *x, double *der)
+{
+    const CoreCorrection *c = loop->plan->correction;
+    double *z = loop->network_in, *h = loop->network_a, *next = loop->network_b;
+    if (c->n_variables) {
+        FMI(loop, CALL_GET_REAL, loop->fmu->get_real(loop->fmu->component, c->variable_vrs, c->n_variables,
+                                                      loop->variables));
+    }
+    for (size_t i = 0; i < c->n_inputs; ++i) {
+        int index = c->input_index[i];
+        z[i] = c->input_source[i] == SOURCE_STATE ? x[index]
+               : c->input_source[i] == SOURCE_DERIVATIVE ? der[index] : loop->variables[index];
+    }
+    double base = c->term_gate != 0.0 ? base_term(c, z) : 0.0;
+    const double *in = z, *w = c->weights, *b = c->biases;
+    for (size_t layer = 0; layer < c->n_layers; ++layer) {
+        int rows = c->layer_rows[layer], cols = c->layer_cols[layer];
+        for (int j = 0; j < rows; ++j) {
+            double sum = 0.0;
+            for (int k = 0; k < cols; ++k) {
+                sum += w[j * cols + k] * in[k];
+            }
+            next[j] = activated(c->layer_activation[layer], sum + b[j]);
+        }
+        w += (size_t)rows * cols;
+        b += rows;
+        in = next;
+        next = next == loop->network_b ? h : loop->network_b;
+    }
+    for (size_t k = 0; k < c->n_channels; ++k) {
+        int state = c->channel_state[k];
+        double network = c->n_layers ? in[k] : 0.0;
+        double fmu = c->n_layers ? c->gate_fmu[k] * der[state] : der[state];
+        der[state] = network + fmu + (c->n_channels == 1 ? base : 0.0);
+    }
+    return 0;
+}
+
+/* FmuSystem.derivatives, corrected where the plan says */
 static int derivatives(Loop *loop, double t, const double *x, double *out)
 {
     TRY(put_at(loop, t, x));
     if (loop->n) {
         FMI(loop, CALL_GET_DERIVATIVES, loop->fmu->get_derivatives(loop->fmu->component, out, loop->n));
     }
-    loop->res->rhs_evaluations += 1;
+    if (loop->plan->correction != NULL) {
+        TRY(correct(loop, x, out));
+    }
     return 0;
 }
 
@@ -175,6 +252,7 @@ static int derivative_here(Loop *loop)
 {
     if (!loop->dx_current) {
         TRY(derivatives(loop, loop->st, loop->sx, loop->dx));
+        loop->res->rhs_evaluations += 1;
         loop->dx_current = 1;
     }
     return 0;
@@ -194,6 +272,7 @@ static int solver_step(Loop *loop, double t_limit, double *t_reached)
     }
     if (loop->plan->solver == CORE_EULER) {
         TRY(derivatives(loop, t, x, loop->stage));
+        loop->res->rhs_evaluations += 1;
         for (size_t i = 0; i < n; ++i) {
             x_new[i] = x[i] + h * loop->stage[i];
         }
@@ -215,6 +294,7 @@ static int solver_step(Loop *loop, double t_limit, double *t_reached)
             loop->stage[i] = x[i] + h * loop->k3[i];
         }
         TRY(derivatives(loop, t + h, loop->stage, loop->k4));
+        loop->res->rhs_evaluations += 3;
         for (size_t i = 0; i < n; ++i) {
             x_new[i] = x[i] + sixth * (k1[i] + 2.0 * (loop->k2[i] + loop->k3[i]) + loop->k4[i]);
         }
@@ -314,10 +394,20 @@ static int record(Loop *loop, const double *times, size_t count, double t, const
         }
         FMI(loop, CALL_GET_REAL, loop->fmu->get_real(loop->fmu->component, p->computed_vrs, p->n_computed, loop->computed));
     }
+    if (loop->derivative_columns) {     /* the corrected derivatives at (t, x) */
+        if (loop->continuous_mode) {
+            TRY(derivatives(loop, t, x, loop->recorded_dx));
+        } else {                        /* in event mode the FMU already holds (t, x) */
+            FMI(loop, CALL_GET_DERIVATIVES, loop->fmu->get_derivatives(loop->fmu->component, loop->recorded_dx, loop->n));
+            if (p->correction != NULL) {
+                TRY(correct(loop, x, loop->recorded_dx));
+            }
+        }
+    }
     for (size_t j = 0; j < p->n_columns; ++j) {
-        int index = p->column_index[j];
-        loop->row[j] = p->column_kind[j] == COLUMN_STATE ? x[index]
-                       : p->column_kind[j] == COLUMN_DISCRETE ? loop->discrete_cache[index] : loop->computed[index];
+        int index = p->column_index[j], kind = p->column_kind[j];
+        loop->row[j] = kind == COLUMN_STATE ? x[index] : kind == COLUMN_DISCRETE ? loop->discrete_cache[index]
+                       : kind == COLUMN_COMPUTED ? loop->computed[index] : loop->recorded_dx[index];
     }
     if (grow((void **)&r->times, &r->row_capacity, r->n_rows + count, sizeof(double))) {
         r->error = CORE_NO_MEMORY;
@@ -729,8 +819,13 @@ int core_run(const CoreFmu *fmu, const CorePlan *plan, CoreResult *result)
     memset(&loop, 0, sizeof(loop));
     memset(result, 0, sizeof(*result));
     size_t n = plan->n_states, nz = plan->n_indicators;
-    size_t words = 12 * n + 7 * nz + plan->n_continuous_inputs + plan->n_discrete + plan->n_computed
-                   + plan->n_columns + 1;
+    const CoreCorrection *c = plan->correction;
+    size_t width = 0, n_inputs = c ? c->n_inputs : 0, n_variables = c ? c->n_variables : 0;
+    for (size_t layer = 0; c != NULL && layer < c->n_layers; ++layer) {
+        width = (size_t)c->layer_rows[layer] > width ? (size_t)c->layer_rows[layer] : width;
+    }
+    size_t words = 13 * n + 7 * nz + plan->n_continuous_inputs + plan->n_discrete + plan->n_computed
+                   + plan->n_columns + n_inputs + 2 * width + n_variables + 1;
     double *memory = calloc(words, sizeof(double));
     int *integers = calloc(1, sizeof(int));
     result->x = calloc(n ? n : 1, sizeof(double));
@@ -769,6 +864,14 @@ int core_run(const CoreFmu *fmu, const CorePlan *plan, CoreResult *result)
     loop.discrete_cache = take(&pool, plan->n_discrete);
     loop.computed = take(&pool, plan->n_computed);
     loop.row = take(&pool, plan->n_columns);
+    loop.recorded_dx = take(&pool, n);
+    loop.network_in = take(&pool, n_inputs);
+    loop.network_a = take(&pool, width);
+    loop.network_b = take(&pool, width);
+    loop.variables = take(&pool, n_variables);
+    for (size_t j = 0; j < plan->n_columns; ++j) {
+        loop.derivative_columns |= plan->column_kind[j] == COLUMN_DERIVATIVE;
+    }
     loop.integers = integers;
     loop.continuous_mode = 1;
     loop.t = plan->start;

@@ -71,7 +71,43 @@ typedef struct {
 } CoreFmu;
 
 enum { CORE_EULER = 0, CORE_RK4 = 1 };
-enum { COLUMN_STATE = 0, COLUMN_DISCRETE = 1, COLUMN_COMPUTED = 2 };
+/* A recorded column: a state, a variable that changes only at events, one computed from the state,
+ * or a state derivative as the corrected system gives it. */
+enum { COLUMN_STATE = 0, COLUMN_DISCRETE = 1, COLUMN_COMPUTED = 2, COLUMN_DERIVATIVE = 3 };
+enum { SOURCE_STATE = 0, SOURCE_DERIVATIVE = 1, SOURCE_VARIABLE = 2 };
+enum { ACTIVATION_NONE = 0, ACTIVATION_TANH = 1, ACTIVATION_SIGMOID = 2, ACTIVATION_RELU = 3 };
+enum { BASIS_W = 0, BASIS_ABS = 1, BASIS_SIGNED_SQUARE = 2, BASIS_SQUARE = 3 };
+
+/* A correction of some state derivatives, evaluated after each fmi2GetDerivatives (a NeuralFMU's
+ * network, with a fitted base term):
+ *     z = the inputs: states, the FMU's derivatives, FMU variables (read after the derivatives)
+ *     out = dense layers over z (W row-major [rows][cols], + b, then the layer's activation)
+ *     der[channel_k] = out_k + gate_fmu_k der[channel_k] (+ base, with one channel)
+ *     base = term_gate (term_bias + the terms' sums, basis by basis: coefficient basis(z_i - center))
+ * No layers: the channels keep the FMU's derivative plus the base. */
+typedef struct {
+    size_t n_inputs;
+    const int *input_source;        /* SOURCE_* */
+    const int *input_index;
+    size_t n_variables;
+    const unsigned int *variable_vrs;
+    size_t n_layers;
+    const int *layer_rows;
+    const int *layer_cols;
+    const int *layer_activation;    /* ACTIVATION_* after the affine map */
+    const double *weights;          /* the layers' W, one after another */
+    const double *biases;           /* the layers' b, one after another */
+    size_t n_channels;
+    const int *channel_state;
+    const double *gate_fmu;
+    size_t n_terms;                 /* grouped by basis, in BASIS_* order */
+    const int *term_basis;
+    const int *term_input;
+    const double *term_center;
+    const double *term_coefficient;
+    double term_bias;
+    double term_gate;               /* 0: no base */
+} CoreCorrection;
 enum { TYPE_REAL = 0, TYPE_INTEGER = 1, TYPE_BOOLEAN = 2 };
 
 /* What to simulate, from where the initialisation left the instance. */
@@ -118,6 +154,7 @@ typedef struct {
     const double *discrete_values;      /* [n_samples][n_discrete_inputs] */
     size_t n_input_events;
     const double *input_event_times;
+    const CoreCorrection *correction;   /* NULL: the FMU's own derivatives */
 } CorePlan;
 
 enum { CORE_OK = 0, CORE_FMI_ERROR = 1, CORE_EVENT_STORM = 2, CORE_CHATTERING = 3, CORE_NO_MEMORY = 4 };
