@@ -144,11 +144,14 @@ def _test_floors(plain, roles) -> dict:
 
 def summary_line(report: dict) -> str:
     d, units = report["diagnosis"], report["units"]
-    if not d["significant"]:
-        return (f"**No effect found** beyond the measurement noise (joint p = {d['p_value']:.2g}). "
-                "**Shipped: nothing**, the declared FMU explains the data.")
-    leading = f" depending most likely on {_with_unit(d['inputs'][0], units)}" if d["inputs"] else ""
-    found = f"**Found** an effect on {_with_unit(d['channel'], units)}{leading} (joint p = {d['p_value']:.2g})."
+    if d["significant"]:
+        leading = f" depending most likely on {_with_unit(d['inputs'][0], units)}" if d["inputs"] else ""
+        found = f"**Found** an effect on {_with_unit(d['channel'], units)}{leading} (joint p = {d['p_value']:.2g})."
+    else:
+        found = f"**No effect found** beyond the measurement noise (joint p = {d['p_value']:.2g})."
+        if not report["models"]:
+            return f"{found} **Shipped: nothing**, the declared FMU explains the data."
+        found += " The candidates were built anyway (`--allow-insignificant`)."
     chosen = next((m for m in report["models"] if m["chosen"]), None)
     if chosen is None:
         best = min((m["validation_relative_mse"] for m in report["models"]), default=float("nan"))
@@ -225,7 +228,8 @@ def _diagnosis_section(report: dict) -> list[str]:
             lines += ["", f"Fitted term: `{d['fitted_term']['expression']}`."]
     else:
         lines.append(f"No significant effect: the residual is at the level of the measurement noise "
-                     f"(joint p = {d['p_value']:.2g}). No hybrid FMU was written.")
+                     f"(joint p = {d['p_value']:.2g})."
+                     + ("" if report["models"] else " No hybrid FMU was written."))
     training = report.get("training")
     if training:
         cut = (" The wall-clock cap of {:g} s cut it short.".format(training["time_budget"])

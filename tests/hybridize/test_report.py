@@ -355,3 +355,24 @@ def test_the_headline_keeps_a_signal_at_its_floor_apart_from_a_large_gain_on_ano
             "`energy` [J] 1.09e+08× lower on validation, 1.2e+07× lower on test, 1.07× and 0.992× the noise; "
             "`power` 2× higher on validation, 3× lower on test, the noise not known (no `_std` column).") in summary
     assert "1× is the noise floor" in summary and "mean" not in summary
+
+
+def test_a_hybrid_built_without_a_significant_effect_is_said_to_be_shipped():
+    """`--allow-insignificant`: the diagnosis found nothing, the candidates were built anyway and one
+    was published; the summary and the diagnosis section say so instead of "shipped nothing"."""
+    from fmubuilder.hybridize.report import _diagnosis_section, summary_line
+    report = {"diagnosis": {"significant": False, "p_value": 1.0, "channel": None, "inputs": []}, "units": {},
+              "hybrid_fmu": "out.fmu",
+              "models": [{"chosen": True, "name": "calibrated mu", "description": "mu = 1.3 (declared 1)",
+                          "calibrated": {"mu": 1.3}}],
+              "mse_factor": {"validation": {"x": 100.0}, "test": {"x": 50.0}},
+              "errors": {role: {"after": {"x": {"mse": 1.0}}} for role in ("validation", "test")},
+              "noise_variance": {"validation": {"x": 1.0}, "test": {"x": 1.0}}}
+    summary = summary_line(report)
+    assert summary.startswith("**No effect found**") and "built anyway (`--allow-insignificant`)" in summary
+    assert "**Shipped** `out.fmu` with the calibrated parameter mu = 1.3 (declared 1)" in summary
+    assert "Shipped: nothing" not in summary
+    assert "No hybrid FMU was written" not in "\n".join(_diagnosis_section(report))
+    nothing = {**report, "models": [], "hybrid_fmu": None}
+    assert "**Shipped: nothing**" in summary_line(nothing)
+    assert "No hybrid FMU was written" in "\n".join(_diagnosis_section(nothing))
