@@ -94,6 +94,28 @@ def test_the_readme_depends_on_nothing_outside_the_repository():
         assert "../shared" not in page.read_text(), page.name
 
 
+def _anchors(text: str) -> set[str]:
+    """The anchors a markdown renderer gives the headings (a repeated heading gets -1, -2, ...)."""
+    found, seen = set(), {}
+    for heading in re.findall(r"^#+ (.*)$", text, flags=re.M):
+        anchor = re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+        seen[anchor] = seen.get(anchor, -1) + 1
+        found.add(f"{anchor}-{seen[anchor]}" if seen[anchor] else anchor)
+    return found
+
+
+def test_every_link_of_the_readme_and_the_guide_resolves():
+    for page in (README, *DOCS.glob("*.md")):
+        for target in re.findall(r"\]\(([^)\s]+)\)", page.read_text()):
+            if target.startswith("http"):
+                continue
+            path, _, anchor = target.partition("#")
+            linked = (page.parent / path).resolve() if path else page
+            assert linked.exists(), f"{page.name}: {target}"
+            if anchor and linked.suffix == ".md":
+                assert anchor in _anchors(linked.read_text()), f"{page.name}: {target}"
+
+
 def test_every_json_block_is_valid_json():
     for page in (README, *DOCS.glob("*.md")):
         for text in re.findall(r"```json\n(.*?)```", page.read_text(), flags=re.S):
