@@ -12,6 +12,7 @@ import sys
 import warnings
 
 from ..errors import FmuBuilderError, first_line
+from .common import guide
 
 DEFAULT_CALL_TIMEOUT = 60.0
 
@@ -35,7 +36,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     parser = _Parser(
         prog="fmubuilder",
-        description="Hybrid FMUs from a first-principle FMI 2.0 Model-Exchange FMU and measured data.")
+        description="Hybrid FMUs from a first-principle FMI 2.0 Model-Exchange FMU and measured data.",
+        epilog=guide("README.md") + " Each command's --help names the page for that command.")
     parser.add_argument("--version", action="version", version=f"fmubuilder {__version__}")
     _add_run_options(parser, default=None)
     common = _Parser(add_help=False)

@@ -7,6 +7,13 @@ import math
 from ..errors import FmuBuilderError
 
 
+def guide(page: str, section: str | None = None) -> str:
+    """The epilog of a command's --help: the documentation page that explains it (paths in the
+    fmubuilder source tree)."""
+    where = f"{page}, section \"{section}\"" if section else page
+    return f"Guide: {where} (in the fmubuilder source)."
+
+
 def parse_assignments(items: list[str] | None, option: str = "--start") -> dict[str, str]:
     """Parse repeated NAME=VALUE options into a dict (values stay strings; the FMU's
     variable types decide their conversion)."""

@@ -3,12 +3,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from .common import guide
 from .hybridize import summary
 
 
 def add_demo_parser(subparsers, common) -> None:
     p = subparsers.add_parser(
-        "demo", parents=[common], help="run the whole workflow on the bundled example and write a report",
+        "demo", parents=[common], epilog=guide("README.md", "The demo"), help="run the whole workflow on the bundled example and write a report",
         description="Write the VLDM example (a declared vehicle model without its extra driving resistance, "
                     "the truth FMUs and measured data sets) into the output folder, then run `fmubuilder "
                     "hybridize` on the extra-resistance data: diagnose the missing effect, fit a term and train "

@@ -6,12 +6,12 @@ import math
 
 from ..errors import FmuBuilderError
 from ..files import refuse_existing, write_atomically
-from .common import parse_assignments
+from .common import guide, parse_assignments
 
 
 def add_diagnose_parser(subparsers, common=None) -> None:
     p = subparsers.add_parser(
-        "diagnose", parents=[common] if common else [],
+        "diagnose", parents=[common] if common else [], epilog=guide("docs/how-it-works.md"),
         help="compare a model with measured data: errors, is it more than noise, where is an effect missing",
         description="Simulate the declared model against measured data, test whether the residual exceeds the "
                     "measurement noise and, if so, trace it to the state derivative and the variables a missing "

@@ -14,19 +14,19 @@ import tempfile
 from pathlib import Path
 
 from ..errors import FmuBuilderError
-from .common import parse_assignments
+from .common import guide, parse_assignments
 
 
 def add_export_parsers(subparsers, common=None) -> None:
     """Add the `export` and `validate` commands to an argparse subparsers object."""
     parents = [common] if common else []
-    p = subparsers.add_parser("export", parents=parents, help="export a trained hybrid model as an FMI 2.0 Model-Exchange FMU")
+    p = subparsers.add_parser("export", parents=parents, epilog=guide("docs/export.md"), help="export a trained hybrid model as an FMI 2.0 Model-Exchange FMU")
     p.add_argument("trained", metavar="TRAINED", help="hybrid spec JSON or trained NeuralFMU file")
     p.add_argument("--output", "-o", required=True, metavar="HYBRID.fmu", help="the FMU to write")
     p.add_argument("--force", action="store_true", help="overwrite an existing output file")
     p.set_defaults(func=cmd_export, outputs=lambda args: [args.output])
 
-    p = subparsers.add_parser("validate", parents=parents, help="check an exported hybrid FMU against the Python reference")
+    p = subparsers.add_parser("validate", parents=parents, epilog=guide("docs/export.md"), help="check an exported hybrid FMU against the Python reference")
     p.add_argument("fmu", metavar="HYBRID.fmu", help="hybrid FMU written by `fmubuilder export`")
     p.add_argument("--against", metavar="TRAINED",
                    help="hybrid spec JSON or trained NeuralFMU file (default: the spec stored in the FMU)")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from .common import loss_evaluations, parse_assignments, processes
+from .common import guide, loss_evaluations, parse_assignments, processes
 
 
 class _TrainFile(argparse.Action):
@@ -27,7 +27,8 @@ class _TrainStart(argparse.Action):
 def add_hybridize_parser(subparsers, common=None) -> None:
     from ..hybridize.workflow import DEFAULT_BUDGET, VALIDATION_SHARE
     p = subparsers.add_parser(
-        "hybridize", parents=[common] if common else [], help="diagnose, add the missing effect, train, export and validate a hybrid FMU, with a report")
+        "hybridize", parents=[common] if common else [],
+        epilog=guide("docs/how-it-works.md") + " The data it reads: docs/data.md.", help="diagnose, add the missing effect, train, export and validate a hybrid FMU, with a report")
     p.add_argument("fmu", metavar="MODEL.fmu", help="the first-principle FMI 2.0 Model-Exchange FMU")
     p.add_argument("--train", required=True, action=_TrainFile, metavar="TRAIN.csv",
                    help="measured data to train on (repeatable: one run per file)")

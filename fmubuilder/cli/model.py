@@ -4,16 +4,16 @@ from __future__ import annotations
 import sys
 
 from ..files import refuse_existing
-from .common import parse_assignments, parse_names
+from .common import guide, parse_assignments, parse_names
 
 
 def add_model_parsers(subparsers, common) -> None:
-    p = subparsers.add_parser("inspect", parents=[common],
+    p = subparsers.add_parser("inspect", parents=[common], epilog=guide("README.md", "Use it on your own FMU and data"),
                               help="list an FMU's variables, states, event indicators and capabilities")
     p.add_argument("fmu", help="path of an FMI 2.0 Model-Exchange FMU")
     p.set_defaults(func=cmd_inspect)
 
-    p = subparsers.add_parser("simulate", parents=[common], help="simulate an FMU with fmubuilder's engine and write a CSV")
+    p = subparsers.add_parser("simulate", parents=[common], epilog=guide("docs/data.md"), help="simulate an FMU with fmubuilder's engine and write a CSV")
     p.add_argument("fmu", help="path of an FMI 2.0 Model-Exchange FMU")
     p.add_argument("--start-time", type=float, default=None, help="default: the FMU's DefaultExperiment or 0")
     p.add_argument("--stop-time", type=float, default=None, help="default: the FMU's DefaultExperiment or 1")

@@ -6,14 +6,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import parse_assignments, parse_floats, parse_names, positive
+from .common import guide, parse_assignments, parse_floats, parse_names, positive
 
 
 def add_synth_parser(subparsers, common=None) -> None:
     from ..synth import DEFAULT_NOISE_STD, DEFAULT_SIGNALS
     defaults = ", ".join(f"{name} {std:g}" for name, std in DEFAULT_NOISE_STD.items())
     p = subparsers.add_parser(
-        "synth", parents=[common] if common else [], help="simulate a truth FMU on a test bench and write measured data (CSV + JSON sidecar)",
+        "synth", parents=[common] if common else [], epilog=guide("docs/data.md"), help="simulate a truth FMU on a test bench and write measured data (CSV + JSON sidecar)",
         description="Simulate a truth FMU and log it as a test bench does: a few signals, sensor lag, "
                     "jittered 10 Hz time stamps, sensor noise, two runs averaged (their spread is written "
                     "as <signal>_std columns). The start values are recorded in <output>.json.")
@@ -41,7 +41,7 @@ def add_synth_parser(subparsers, common=None) -> None:
 
 def add_example_parser(subparsers, common=None) -> None:
     p = subparsers.add_parser(
-        "example", parents=[common] if common else [], help="write an example: FMUs, truth FMUs and measured data sets into a folder",
+        "example", parents=[common] if common else [], epilog=guide("README.md", "The demo"), help="write an example: FMUs, truth FMUs and measured data sets into a folder",
         description="Write the declared model, its truth variants and synthetic measurements "
                     "(training and test cycle) with a README into a folder.")
     p.add_argument("name", help="example name (available: vldm)")

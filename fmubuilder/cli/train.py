@@ -4,12 +4,12 @@ from __future__ import annotations
 import argparse
 
 from ..errors import FmuBuilderError
-from .common import loss_evaluations, parse_assignments, parse_names
+from .common import guide, loss_evaluations, parse_assignments, parse_names
 
 
 def add_train_parser(subparsers, common=None) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
-        "train", parents=[common] if common else [], help="train a NeuralFMU (FMU + ANN on chosen derivatives) on measured data",
+        "train", parents=[common] if common else [], epilog=guide("docs/how-it-works.md"), help="train a NeuralFMU (FMU + ANN on chosen derivatives) on measured data",
         description="Train a NeuralFMU: an ANN corrects chosen state derivatives of the FMU; it is fitted to "
                     "measured signals by simulating the hybrid model with the FMU's event handling.")
     p.add_argument("fmu", help="path of an FMI 2.0 Model-Exchange FMU")

@@ -1,8 +1,8 @@
 """The hybridize report: report.json for tools; report.md and report.html (the same page, its plots
 inline) for people.
 
-The page reads top-down in a minute: one summary line (what was found, what was shipped, the
-held-out gain), the data's roles, the diagnosis, the candidates, the errors per role, the round trip
+The page reads top-down in a minute: one summary line (what was found, what was shipped, and per
+signal how much lower the held-out error is and how far it stays above the noise), the data's roles, the diagnosis, the candidates, the errors per role, the round trip
 of the published FMU, the plots. Every quantity carries the unit its modelDescription declares.
 """
 from __future__ import annotations
@@ -69,6 +69,7 @@ def write_report(folder: Path, *, model_fmu, diagnosis, plain, candidates, chose
                     "chosen": c is chosen, **c.details}
                    for c in candidates],
         "test_plain_score": validation_score(plain.errors["test"], test_floors),
+        "noise_variance": _held_out_noise(plain, roles),
         "test_note": TEST_NOTE,
         "roundtrip": {key: roundtrip[key] if roundtrip else None
                       for key in ("max_rel_error", "passed", "not_compared", "span")},
@@ -117,12 +118,21 @@ def _with_unit(name: str, units: dict) -> str:
 
 
 def _gain(ratio: float) -> str:
-    """A mean MSE ratio after/before as the factor it improves by."""
+    """An MSE ratio after/before as the factor it improves by."""
     if not np.isfinite(ratio):
         return "diverged"
     if ratio <= 0:
         return "exact"
     return f"{1 / ratio:.3g}× lower" if ratio < 1 else f"{ratio:.3g}× higher"
+
+
+def _held_out_noise(plain, roles) -> dict:
+    """Each held-out role's noise variance per signal (None where its data carry no `_std` spread):
+    the floor the headline measures every signal against. The validation role reads its first
+    part's data, as the choice does."""
+    parts = {"validation": roles.validation[0] if roles.validation else None, "test": roles.test}
+    return {role: {name: (part.data.noise_variance(name) if part else None) for name in plain.errors[role]}
+            for role, part in parts.items()}
 
 
 def _test_floors(plain, roles) -> dict:
@@ -134,11 +144,14 @@ def _test_floors(plain, roles) -> dict:
 
 def summary_line(report: dict) -> str:
     d, units = report["diagnosis"], report["units"]
-    if not d["significant"]:
-        return (f"**No effect found** beyond the measurement noise (joint p = {d['p_value']:.2g}). "
-                "**Shipped: nothing**, the declared FMU explains the data.")
-    leading = f" depending most likely on {_with_unit(d['inputs'][0], units)}" if d["inputs"] else ""
-    found = f"**Found** an effect on {_with_unit(d['channel'], units)}{leading} (joint p = {d['p_value']:.2g})."
+    if d["significant"]:
+        leading = f" depending most likely on {_with_unit(d['inputs'][0], units)}" if d["inputs"] else ""
+        found = f"**Found** an effect on {_with_unit(d['channel'], units)}{leading} (joint p = {d['p_value']:.2g})."
+    else:
+        found = f"**No effect found** beyond the measurement noise (joint p = {d['p_value']:.2g})."
+        if not report["models"]:
+            return f"{found} **Shipped: nothing**, the declared FMU explains the data."
+        found += " The candidates were built anyway (`--allow-insignificant`)."
     chosen = next((m for m in report["models"] if m["chosen"]), None)
     if chosen is None:
         best = min((m["validation_relative_mse"] for m in report["models"]), default=float("nan"))
@@ -150,9 +163,37 @@ def summary_line(report: dict) -> str:
         what = f"the calibrated parameter {chosen['description']}"
     else:
         what = f"a neural network ({chosen['description']})"
-    return (f"{found} **Shipped** `{Path(report['hybrid_fmu']).name}` with {what}. **Held-out gain** (MSE, mean "
-            f"over the signals): {_gain(chosen['validation_relative_mse'])} on validation, "
-            f"{_gain(chosen['test_relative_mse'])} on test.")
+    return (f"{found} **Shipped** `{Path(report['hybrid_fmu']).name}` with {what}. "
+            f"**Held out, per signal** (MSE against the declared FMU's, and against the data's noise variance: "
+            f"1× is the noise floor): {per_signal_gain(report)}.")
+
+
+HELD_OUT = ("validation", "test")
+
+
+def per_signal_gain(report: dict) -> str:
+    """Per signal: how many times lower the published model's MSE is than the declared FMU's on the
+    validation and the test data, and how far it is from the noise floor there (its MSE over the
+    data's noise variance; 1 is the floor). A mean over the signals would hide a signal at its floor
+    behind another's large gain."""
+    noise = report.get("noise_variance") or {}
+    parts = []
+    for signal in report["errors"]["test"]["after"]:
+        gains = ", ".join(f"{_gain(1 / factor if factor else float('inf'))} on {role}"
+                          for role in HELD_OUT if (factor := report["mse_factor"][role].get(signal)) is not None)
+        ratios = [_noise_ratio(report["errors"][role]["after"].get(signal), (noise.get(role) or {}).get(signal))
+                  for role in HELD_OUT]
+        known = [f"{ratio:.3g}×" if ratio is not None else "?" for ratio in ratios]
+        floor = (f", {' and '.join(known)} the noise" if any(r is not None for r in ratios)
+                 else ", the noise not known (no `_std` column)")
+        parts.append(f"{_with_unit(signal, report['units'])} {gains}{floor}")
+    return "; ".join(parts)
+
+
+def _noise_ratio(errors: dict | None, variance: float | None) -> float | None:
+    if errors is None or variance is None or not variance > 0:
+        return None
+    return errors["mse"] / variance
 
 
 def markdown(report: dict, roundtrip: dict | None) -> str:
@@ -187,7 +228,8 @@ def _diagnosis_section(report: dict) -> list[str]:
             lines += ["", f"Fitted term: `{d['fitted_term']['expression']}`."]
     else:
         lines.append(f"No significant effect: the residual is at the level of the measurement noise "
-                     f"(joint p = {d['p_value']:.2g}). No hybrid FMU was written.")
+                     f"(joint p = {d['p_value']:.2g})."
+                     + ("" if report["models"] else " No hybrid FMU was written."))
     training = report.get("training")
     if training:
         cut = (" The wall-clock cap of {:g} s cut it short.".format(training["time_budget"])

@@ -85,8 +85,23 @@ def test_the_summary_line_says_what_was_found_shipped_and_gained(published):
     chosen = next(m for m in report["models"] if m["chosen"])
     assert "**Found**" in summary and "der(speed)" in summary and "`speed`" in summary
     assert f"**Shipped** `{published.hybrid_fmu.name}`" in summary and chosen["name"] in summary
-    for role in ("validation", "test"):
-        assert f"{1 / chosen[f'{role}_relative_mse']:.3g}× lower on {role}" in summary
+    assert "mean over the signals" not in summary
+
+
+def test_the_summary_line_speaks_per_signal_of_the_gain_and_the_noise_floor(published, files):
+    """Per signal: the held-out MSE factor of the published model against the declared FMU, and its
+    MSE over the noise variance of the test data's `_std` columns (data.MeasuredData.noise_variance)."""
+    report = published.report
+    summary = report["summary"]
+    test = load_data(files["test"], read_model_info(example_fmu("dc_drive")))
+    for signal in BENCH["signals"]:
+        factors = [report["mse_factor"][role][signal] for role in ("validation", "test")]
+        gains = [f"{f:.3g}× lower on {role}" if f >= 1 else f"{1 / f:.3g}× higher on {role}"
+                 for f, role in zip(factors, ("validation", "test"))]
+        floor = report["errors"]["test"]["after"][signal]["mse"] / test.noise_variance(signal)
+        assert report["noise_variance"]["test"][signal] == pytest.approx(test.noise_variance(signal), rel=1e-12)
+        assert re.search(rf"`{signal}` \[[^]]*\] {re.escape(', '.join(gains))}, [0-9.e+-]+× and "
+                         rf"{re.escape(f'{floor:.3g}')}× the noise", summary), signal
 
 
 def test_the_round_trip_names_the_published_fmu_not_a_temporary_file(published):
@@ -308,7 +323,10 @@ def test_the_summary_names_what_each_kind_of_candidate_ships():
 
     def shipped(model: dict) -> str:
         chosen = {"chosen": True, "validation_relative_mse": 0.5, "test_relative_mse": 0.5, **model}
-        return summary_line({"diagnosis": found, "units": {}, "hybrid_fmu": "out.fmu", "models": [chosen]})
+        return summary_line({"diagnosis": found, "units": {}, "hybrid_fmu": "out.fmu", "models": [chosen],
+                             "mse_factor": {"validation": {"v": 2.0}, "test": {"v": 2.0}},
+                             "errors": {role: {"after": {"v": {"mse": 1.0}}} for role in ("validation", "test")},
+                             "noise_variance": {"validation": {"v": 1.0}, "test": {"v": 1.0}}})
 
     calibrated = shipped({"name": "calibrated b", "description": "b = 0.2 (declared 0.1)", "calibrated": {"b": 0.2}})
     assert "with the calibrated parameter b = 0.2 (declared 0.1)." in calibrated and "neural" not in calibrated
@@ -316,3 +334,45 @@ def test_the_summary_names_what_each_kind_of_candidate_ships():
                                                                 "description": "der(v) += -0.1*v"})
     assert "with a neural network (ANN on der(v))." in shipped({"name": "neural", "description": "ANN on der(v)",
                                                                   "loss_evaluations": 3})
+
+
+def test_the_headline_keeps_a_signal_at_its_floor_apart_from_a_large_gain_on_another():
+    """The demo's shape: the speed near its noise floor already, the energy far above it before;
+    a mean of the ratios would read as one middling gain. Units from the report, numbers to 3 digits,
+    a rise said as a rise, a signal without a `_std` column said to have no known noise."""
+    from fmubuilder.hybridize.report import summary_line
+    errors = {"validation": {"speed": 0.997, "energy": 1.07, "power": 4.0},
+              "test": {"speed": 0.994, "energy": 0.992, "power": 2.0}}
+    report = {"diagnosis": {"significant": True, "p_value": 1e-9, "channel": "der(speed)", "inputs": ["speed"]},
+              "units": {"speed": "m/s", "energy": "J"}, "hybrid_fmu": "/tmp/out.fmu",
+              "models": [{"chosen": True, "name": "fitted term", "description": "der(speed) += -0.1*speed"}],
+              "mse_factor": {"validation": {"speed": 1.2, "energy": 1.09e8, "power": 0.5},
+                             "test": {"speed": 1.04, "energy": 1.2e7, "power": 3.0}},
+              "errors": {role: {"after": {s: {"mse": v} for s, v in values.items()}} for role, values in errors.items()},
+              "noise_variance": {role: {"speed": 1.0, "energy": 1.0, "power": None} for role in errors}}
+    summary = summary_line(report)
+    assert ("`speed` [m/s] 1.2× lower on validation, 1.04× lower on test, 0.997× and 0.994× the noise; "
+            "`energy` [J] 1.09e+08× lower on validation, 1.2e+07× lower on test, 1.07× and 0.992× the noise; "
+            "`power` 2× higher on validation, 3× lower on test, the noise not known (no `_std` column).") in summary
+    assert "1× is the noise floor" in summary and "mean" not in summary
+
+
+def test_a_hybrid_built_without_a_significant_effect_is_said_to_be_shipped():
+    """`--allow-insignificant`: the diagnosis found nothing, the candidates were built anyway and one
+    was published; the summary and the diagnosis section say so instead of "shipped nothing"."""
+    from fmubuilder.hybridize.report import _diagnosis_section, summary_line
+    report = {"diagnosis": {"significant": False, "p_value": 1.0, "channel": None, "inputs": []}, "units": {},
+              "hybrid_fmu": "out.fmu",
+              "models": [{"chosen": True, "name": "calibrated mu", "description": "mu = 1.3 (declared 1)",
+                          "calibrated": {"mu": 1.3}}],
+              "mse_factor": {"validation": {"x": 100.0}, "test": {"x": 50.0}},
+              "errors": {role: {"after": {"x": {"mse": 1.0}}} for role in ("validation", "test")},
+              "noise_variance": {"validation": {"x": 1.0}, "test": {"x": 1.0}}}
+    summary = summary_line(report)
+    assert summary.startswith("**No effect found**") and "built anyway (`--allow-insignificant`)" in summary
+    assert "**Shipped** `out.fmu` with the calibrated parameter mu = 1.3 (declared 1)" in summary
+    assert "Shipped: nothing" not in summary
+    assert "No hybrid FMU was written" not in "\n".join(_diagnosis_section(report))
+    nothing = {**report, "models": [], "hybrid_fmu": None}
+    assert "**Shipped: nothing**" in summary_line(nothing)
+    assert "No hybrid FMU was written" in "\n".join(_diagnosis_section(nothing))
