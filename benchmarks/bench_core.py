@@ -13,6 +13,10 @@ step, 88,100 time events) three ways, alternately, best of several repeats:
 It prints each time and the ratios engine/floor and python/floor, and checks that the engine's
 final states agree with the floor's (to 1e-6 relative: the floor does not locate state events).
 
+Then the same run of a NeuralFMU (the model's network on der(speed) and der(energy), reading the
+speed, der(speed) and the power, 16 x 16 tanh units, random weights behind a gate of 0.1), by the
+compiled core with the network in C and by the Python loop with it in numpy, against the same floor.
+
     python benchmarks/bench_core.py [--repeats R] [--stop 881] [--model vldm]
 """
 from __future__ import annotations
@@ -62,6 +66,22 @@ def run_engine(fmu: Fmu, names: list[str], stop: float, step: float):
         system.close()
 
 
+def run_neural(fmu_path, names: list[str], stop: float, step: float):
+    import torch
+    from fmubuilder.neural import NeuralFMU, TopologyConfig
+    from fmubuilder.neural.system import simulate_hybrid
+    torch.manual_seed(0)
+    config = TopologyConfig(channels=["der(speed)", "der(energy)"], inputs=["speed", "der(speed)", "power"],
+                            hidden=[16, 16])
+    with NeuralFMU(fmu_path, config) as model:
+        with torch.no_grad():
+            model.topology.gate_ann.fill_(0.1)
+        started = time.perf_counter()
+        result = simulate_hybrid(model, start_time=0.0, stop_time=stop, variables=names, solver="rk4",
+                                 step_size=step)
+        return time.perf_counter() - started, result
+
+
 def timed(function):
     started = time.perf_counter()
     value = function()
@@ -85,8 +105,10 @@ def main() -> None:
             floor.append(seconds)
             seconds, result = timed(lambda: run_engine(fmu, names, args.stop, args.step))
             engine.append(seconds)
+        neural = [run_neural(fmu.path, names, args.stop, args.step)[0] for _ in range(args.repeats)]
         os.environ["FMUBUILDER_ENGINE"] = "python"
         python, _ = timed(lambda: run_engine(fmu, names, args.stop, args.step))
+        neural_python, _ = run_neural(fmu.path, names, args.stop, args.step)
         del os.environ["FMUBUILDER_ENGINE"]
     states = np.array([result[v.name][-1] for v in info.states])
     agree = np.allclose(states, floor_states, rtol=1e-6, atol=1e-9)
@@ -99,6 +121,11 @@ def main() -> None:
     print(f"  engine (Python loop)   {python * 1e3:8.1f} ms   (one run)"
           f"              ratio {python / best_floor:5.2f}")
     print(f"  final states agree with the floor's (rtol 1e-6): {'yes' if agree else 'NO'}")
+    print("with the NeuralFMU's network in the loop (16 x 16 tanh units on der(speed), der(energy)):")
+    print(f"  compiled core, network in C   {min(neural) * 1e3:8.1f} ms   (median {np.median(neural) * 1e3:.1f})"
+          f"   ratio {min(neural) / best_floor:5.2f}")
+    print(f"  Python loop, network in numpy {neural_python * 1e3:8.1f} ms   (one run)"
+          f"              ratio {neural_python / best_floor:5.2f}")
     if not agree:
         print("    engine", states, "\n    floor ", floor_states)
         sys.exit(1)

@@ -301,6 +301,8 @@ class DOPRI5(Solver):
         n = x.size
         h_wanted = h = min(self.h, self.max_step)
         rejected = False
+        if not h > 0.0:     # no step size to start with (a degenerate tolerance)
+            raise step_size_underflow(t, h)
         while True:
             remaining = t_limit - t
             if h >= remaining * (1.0 - _SNAP):
@@ -329,11 +331,8 @@ class DOPRI5(Solver):
             else:
                 h *= max(0.2, 0.9 * err ** -0.2)
             h_wanted = h
-            if h < 1e-14 * max(1.0, abs(t)):
-                raise FmuBuilderError(
-                    f"step size underflow at t={t:.12g} (error test fails for h={h:.3g}); "
-                    "the model may be stiff or discontinuous without an event indicator: "
-                    "loosen rtol/atol or use a fixed-step solver")
+            if not h >= 1e-14 * max(1.0, abs(t)):     # NaN too: no step size is left
+                raise step_size_underflow(t, h)
         factor = 10.0 if err == 0.0 else min(10.0, max(0.2, 0.9 * err ** -0.2))
         if rejected:
             factor = min(1.0, factor)
@@ -372,6 +371,12 @@ class DOPRI5(Solver):
         h = self.t - self.t_prev
         theta = (np.asarray(times, dtype=float) - self.t_prev) / h if h else np.ones(len(times))
         return self.x_prev + h * ((theta[:, None] ** _POWERS) @ self._dense().T)
+
+
+def step_size_underflow(t: float, h: float) -> FmuBuilderError:
+    return FmuBuilderError(
+        f"step size underflow at t={t:.12g} (error test fails for h={h:.3g}); the model may be stiff or "
+        "discontinuous without an event indicator: loosen rtol/atol or use a fixed-step solver")
 
 
 def _rms(v: np.ndarray) -> float:

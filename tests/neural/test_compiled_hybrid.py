@@ -86,7 +86,8 @@ def test_the_core_takes_the_network_and_leaves_other_systems_to_python():
     try:
         system = NeuralFmuSystem(model, variables=["h"])
         shifted = Shifted(model, variables=["h"])
-        assert core.applies(system, RK4(0.01)) and not core.applies(system, DOPRI5())
+        assert core.applies(system, RK4(0.01)) and core.applies(system, DOPRI5())
+        assert not core.applies(system, DOPRI5(first_step=1e-3))
         assert system.compiled_correction() is not None
         assert not core.applies(shifted, RK4(0.01))
         with torch.no_grad():

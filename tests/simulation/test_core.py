@@ -1,7 +1,8 @@
-"""The compiled simulation core (fmubuilder/simulation/core) against the Python loop it replaces
-for fixed-step runs: the same rows, values, events and counts, to the bit, on every example FMU and
+"""The compiled simulation core (fmubuilder/simulation/core) against the Python loop it replaces:
+with Euler and RK4 the same rows, values, events and counts, to the bit, on every example FMU and
 on the Reference FMUs we did not write, with inputs (continuous and discrete), events recorded,
-termination and failures; and a build that cannot happen is one line."""
+termination and failures; with DOPRI5 the same steps and events, values to round-off; and a build
+that cannot happen is one line."""
 import os
 import subprocess
 import sys
@@ -48,6 +49,49 @@ def test_examples_to_the_bit(monkeypatch, name, solver):
     python, compiled = both_loops(monkeypatch, example_fmu(name), **options)
     assert_identical(python, compiled)
     assert compiled.stats.steps > 0
+
+
+def assert_close(python, compiled, rtol):
+    """DOPRI5 sums its stages in another order than numpy: the same events, values to round-off
+    amplified by the step control at most to the tolerance, the steps and rejections alike (an
+    error estimate within round-off of the acceptance limit may be taken either way)."""
+    assert python.names == compiled.names
+    assert [kind for _, kind in compiled.events] == [kind for _, kind in python.events]
+    np.testing.assert_allclose([t for t, _ in compiled.events], [t for t, _ in python.events], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(compiled.time, python.time, rtol=0, atol=1e-9)
+    for name in python.names:
+        values, reference = compiled[name].astype(float), python[name].astype(float)
+        scale = max(1.0, float(np.abs(reference).max()))
+        np.testing.assert_allclose(values, reference, rtol=0, atol=rtol * scale, err_msg=name)
+    for count in ("time_events", "state_events", "step_events"):
+        assert getattr(compiled.stats, count) == getattr(python.stats, count), count
+    for count in ("steps", "rejected_steps", "rhs_evaluations"):
+        ours, theirs = getattr(compiled.stats, count), getattr(python.stats, count)
+        assert abs(ours - theirs) <= 0.02 * theirs + 2, (count, ours, theirs)
+
+
+@pytest.mark.parametrize("rtol", [1e-6, 1e-10])
+@pytest.mark.parametrize("name", [n for n in list_examples() if not n.startswith("vldm_")])
+def test_dopri5_takes_the_python_steps(monkeypatch, name, rtol):
+    options = dict(rtol=rtol, atol=rtol, record_events=True)
+    if name.split("_truth")[0] in ("vldm", "dc_drive"):
+        options["stop_time"] = 30.0 if name == "vldm" else 5.0
+    python, compiled = both_loops(monkeypatch, example_fmu(name), **options)
+    assert_close(python, compiled, rtol=1e-7)
+
+
+def test_dopri5_with_inputs_and_its_step_underflow(monkeypatch):
+    path = example_fmu("sampled_plant")
+    inputs = {"time": np.linspace(0.0, 2.0, 23), "setpoint": np.sin(3 * np.linspace(0.0, 2.0, 23))}
+    python, compiled = both_loops(monkeypatch, path, stop_time=2.0, output_interval=0.05, inputs=inputs)
+    assert_close(python, compiled, rtol=1e-9)
+    messages = []
+    for engine in ("python", "c"):      # a tolerance no step size can meet: the same one line
+        monkeypatch.setenv("FMUBUILDER_ENGINE", engine)
+        with pytest.raises(FmuBuilderError) as caught:
+            simulate(example_fmu("dc_drive"), rtol=1e-300, atol=1e-300, stop_time=1.0)
+        messages.append(str(caught.value))
+    assert messages[0] == messages[1] and messages[0].startswith("step size underflow at t=")
 
 
 def test_termination_and_every_event_kind(monkeypatch):

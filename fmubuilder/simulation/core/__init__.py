@@ -1,12 +1,14 @@
 """The compiled simulation core: the engine's loop for one FMU instance in C (event_loop.c).
 
 `run(system, solver, ...)` hands an initialised `FmuSystem` and a plan (solver, output grid,
-recorded columns, input tables) to the C loop and returns what it recorded; nothing runs in Python
-per step. The C loop is the Python engine's (engine.py, events.py, solvers.py), operation for
-operation, so both give the same numbers to the bit; the Python loop stays for the adaptive
-solver, for systems that change the dynamics in Python, and as the reference the tests hold
-the core to. The library is built with CMake on first use, once per version of its source,
-into the build cache (build.cache_dir()), and loaded with cffi.
+recorded columns, input tables, a correction of the derivatives such as a NeuralFMU's network) to
+the C loop and returns what it recorded; nothing runs in Python per step. The C loop is the Python
+engine's (engine.py, events.py, solvers.py) operation for operation: with Euler and RK4 on a plain
+FMU both give the same numbers to the bit; DOPRI5 and a network sum their products in another order
+than numpy, so they agree to round-off. The Python loop stays for systems that change the dynamics
+in Python only, and as the reference the tests hold the core to. The library is built with CMake on
+first use, once per version of its source, into the build cache (build.cache_dir()), and loaded with
+cffi.
 
 `FMUBUILDER_ENGINE=python` in the environment turns the core off (the Python loop everywhere).
 """
@@ -26,6 +28,7 @@ from ...errors import FmuBuilderError, first_line
 from ...fmi import breadcrumb
 from ...fmi.binding import ffi as fmi_ffi
 from ...fmi.instance import FmuCallError
+from ..solvers import step_size_underflow
 from ..events import MAX_CUT_STEPS_IN_A_ROW, MAX_EVENTS_AT_ONE_TIME, RELATIVE_TIME_TOLERANCE, time_scale, \
     time_tolerance
 
@@ -45,11 +48,11 @@ CALLS = (
     ("fmi2CompletedIntegratorStep", "completed_integrator_step"), ("fmi2EnterEventMode", "enter_event_mode"),
     ("fmi2EnterContinuousTimeMode", "enter_continuous_time_mode"), ("fmi2NewDiscreteStates", "new_discrete_states"),
 )
-SOLVERS = {"euler": 0, "rk4": 1}
+SOLVERS = {"euler": 0, "rk4": 1, "dopri5": 2}
 COLUMN_STATE, COLUMN_DISCRETE, COLUMN_COMPUTED = 0, 1, 2
 TYPES = {"Real": 0, "Integer": 1, "Boolean": 2}
 EVENT_KINDS = ("time", "state", "step")
-CORE_FMI_ERROR, CORE_EVENT_STORM, CORE_CHATTERING, CORE_NO_MEMORY = 1, 2, 3, 4
+CORE_FMI_ERROR, CORE_EVENT_STORM, CORE_CHATTERING, CORE_NO_MEMORY, CORE_STEP_UNDERFLOW = 1, 2, 3, 4, 5
 
 
 def enabled() -> bool:
@@ -65,10 +68,12 @@ _FIXED = ("initialize", "indicators", "completed_step", "handle_event", "termina
 def applies(system, solver) -> bool:
     """Whether the core runs this system with this solver: an FmuSystem whose derivatives are the
     FMU's or corrected as its `compiled_correction()` describes (a system that changes anything
-    else in Python keeps the Python loop), and a fixed-step solver of solvers.py."""
+    else in Python keeps the Python loop), and a solver of solvers.py."""
     from .. import solvers
     from ..system import FmuSystem
-    if not (enabled() and isinstance(system, FmuSystem) and type(solver) in (solvers.Euler, solvers.RK4)):
+    plain_solver = type(solver) in (solvers.Euler, solvers.RK4) or (
+        type(solver) is solvers.DOPRI5 and solver.first_step is None)
+    if not (enabled() and isinstance(system, FmuSystem) and plain_solver):
         return False
     cls = type(system)
     if any(getattr(cls, name) is not getattr(FmuSystem, name) for name in _FIXED):
@@ -155,7 +160,11 @@ def _plan(ffi, system, solver, start, stop, output_times, x0, next_event, record
     eps = time_tolerance(start, scale)
     plan = ffi.new("CorePlan *")
     plan.n_states, plan.n_indicators = system.n_states, system.n_indicators
-    plan.solver, plan.step_size = SOLVERS[solver.name], solver.h
+    plan.solver = SOLVERS[solver.name]
+    if solver.adaptive:
+        plan.rtol, plan.atol, plan.max_step = solver.rtol, solver.atol, solver.max_step
+    else:
+        plan.step_size = solver.h
     plan.start, plan.stop, plan.time_scale = start, stop, scale
     plan.relative_time_tolerance = RELATIVE_TIME_TOLERANCE
     plan.max_events_at_one_time, plan.max_cuts_in_a_row = MAX_EVENTS_AT_ONE_TIME, MAX_CUT_STEPS_IN_A_ROW
@@ -273,7 +282,7 @@ def _collected(ffi, result, plan) -> CoreRun:
         if n_events else np.zeros(0, dtype=np.intc)
     events = list(zip(doubles(result.event_times, n_events).tolist(), (EVENT_KINDS[k] for k in kinds.tolist())))
     counts = {name: int(getattr(result, name)) for name in (
-        "steps", "rhs_evaluations", "indicator_evaluations", "time_events", "state_events", "step_events",
+        "steps", "rejected_steps", "rhs_evaluations", "indicator_evaluations", "time_events", "state_events", "step_events",
         "event_iterations")}
     return CoreRun(times=doubles(result.times, rows), table=table, events=events, counts=counts,
                    t=float(result.t), terminated=bool(result.terminated), x=doubles(result.x, plan.n_states))
@@ -292,6 +301,8 @@ def _raise(code: int, result, system) -> None:
         raise FmuBuilderError(
             f"more than {MAX_CUT_STEPS_IN_A_ROW} state events in a row at t={t:.6g} (chattering "
             "or Zeno behaviour); reduce the step size or fix the model")
+    if code == CORE_STEP_UNDERFLOW:
+        raise step_size_underflow(t, float(result.error_step))
     raise MemoryError("the compiled simulation core ran out of memory")
 
 

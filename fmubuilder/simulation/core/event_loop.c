@@ -26,11 +26,14 @@ typedef struct {
     double *z, *z_end;              /* z: NULL without indicators */
     /* the engine's current state */
     double *x;
-    /* the fixed-step solver (solvers.FixedStepSolver) */
+    /* the solver (solvers.Euler, RK4, DOPRI5) */
     double st, st_prev;
     double *sx, *sx_prev, *dx, *dx_prev, *x_new;
     int dx_current;
     double *stage, *k2, *k3, *k4, *interpolated;
+    double h;                       /* DOPRI5: the proposed next step */
+    double *K, *K_last, *abs_x, *abs_new, *Q;      /* DOPRI5: stages [7][n], |x|, dense output [n][4] */
+    int stepped, dense_ready;
     /* locate's bracket */
     double *za, *zb, *z_trial, *wa, *wb;
     /* outputs and inputs */
@@ -239,12 +242,20 @@ static int indicators(Loop *loop, double t, const double *x, double *out)
 
 /* ---- the fixed-step solvers (solvers.Euler, solvers.RK4) -------------------------------- */
 
-static void solver_restart(Loop *loop, double t, const double *x)
+static int dopri5_restart(Loop *loop, double t, const double *x, int keep_step);
+
+/* Solver.restart (FixedStepSolver, DOPRI5): start again at (t, x) after an event; the first start
+ * too (DOPRI5's proposed step is 0 then). */
+static int solver_restart(Loop *loop, double t, const double *x, int keep_step)
 {
     loop->st = loop->st_prev = t;
     memcpy(loop->sx, x, loop->n * sizeof(double));
     memcpy(loop->sx_prev, x, loop->n * sizeof(double));
     loop->dx_current = 0;
+    if (loop->plan->solver == CORE_DOPRI5) {
+        return dopri5_restart(loop, t, x, keep_step);
+    }
+    return 0;
 }
 
 /* RK4._derivative_here: the derivative at the solver's current point, evaluated once. */
@@ -258,9 +269,14 @@ static int derivative_here(Loop *loop)
     return 0;
 }
 
-/* FixedStepSolver.step with Euler._advance or RK4._advance / rk4_step. */
+static int dopri5_step(Loop *loop, double t_limit, double *t_reached);
+
+/* FixedStepSolver.step with Euler._advance or RK4._advance / rk4_step; DOPRI5.step. */
 static int solver_step(Loop *loop, double t_limit, double *t_reached)
 {
+    if (loop->plan->solver == CORE_DOPRI5) {
+        return dopri5_step(loop, t_limit, t_reached);
+    }
     size_t n = loop->n;
     double t = loop->st, h = t_limit - t, t_new;
     double *x = loop->sx, *x_new = loop->x_new;
@@ -308,13 +324,246 @@ static int solver_step(Loop *loop, double t_limit, double *t_reached)
     return 0;
 }
 
+/* ---- DOPRI5 (solvers.DOPRI5): Dormand-Prince 5(4), its tables as there ------------------- */
+
+static const double DP_C[7] = {0.0, 1.0 / 5, 3.0 / 10, 4.0 / 5, 8.0 / 9, 1.0, 1.0};
+static const double DP_M[7][7] = {
+    {1.0 / 5, 0, 0, 0, 0, 0, 0},
+    {3.0 / 40, 9.0 / 40, 0, 0, 0, 0, 0},
+    {44.0 / 45, -56.0 / 15, 32.0 / 9, 0, 0, 0, 0},
+    {19372.0 / 6561, -25360.0 / 2187, 64448.0 / 6561, -212.0 / 729, 0, 0, 0},
+    {9017.0 / 3168, -355.0 / 33, 46732.0 / 5247, 49.0 / 176, -5103.0 / 18656, 0, 0},
+    {35.0 / 384, 0, 500.0 / 1113, 125.0 / 192, -2187.0 / 6784, 11.0 / 84, 0},
+    {71.0 / 57600, 0, -71.0 / 16695, 71.0 / 1920, -17253.0 / 339200, 22.0 / 525, -1.0 / 40},
+};
+static const double DP_P[7][4] = {
+    {1.0, -8048581381.0 / 2820520608, 8663915743.0 / 2820520608, -12715105075.0 / 11282082432},
+    {0.0, 0.0, 0.0, 0.0},
+    {0.0, 131558114200.0 / 32700410799, -68118460800.0 / 10900136933, 87487479700.0 / 32700410799},
+    {0.0, -1754552775.0 / 470086768, 14199869525.0 / 1410260304, -10690763975.0 / 1880347072},
+    {0.0, 127303824393.0 / 49829197408, -318862633887.0 / 49829197408, 701980252875.0 / 199316789632},
+    {0.0, -282668133.0 / 205662961, 2019193451.0 / 616988883, -1453857185.0 / 822651844},
+    {0.0, 40617522.0 / 29380423, -110615467.0 / 29380423, 69997945.0 / 29380423},
+};
+
+static double rms(const double *v, size_t n)
+{
+    double sum = 0.0;
+    for (size_t i = 0; i < n; ++i) {
+        sum += v[i] * v[i];
+    }
+    return sqrt(sum / n);
+}
+
+/* DOPRI5._initial_step: Hairer's starting-step heuristic, one extra derivative evaluation. */
+static int dopri5_initial_step(Loop *loop, double *h)
+{
+    size_t n = loop->n;
+    const CorePlan *p = loop->plan;
+    double *x = loop->sx, *dx = loop->K, *scaled = loop->stage, *probe = loop->k2, *dx1 = loop->k3;
+    if (n == 0) {
+        *h = p->max_step;
+        return 0;
+    }
+    for (size_t i = 0; i < n; ++i) {
+        scaled[i] = x[i] / (p->atol + p->rtol * fabs(x[i]));
+    }
+    double d0 = rms(scaled, n);
+    for (size_t i = 0; i < n; ++i) {
+        scaled[i] = dx[i] / (p->atol + p->rtol * fabs(x[i]));
+    }
+    double d1 = rms(scaled, n);
+    double h0 = d0 < 1e-5 || d1 < 1e-5 ? 1e-6 : 0.01 * d0 / d1;
+    h0 = p->max_step < h0 ? p->max_step : h0;      /* min() as Python's: a NaN stays */
+    for (size_t i = 0; i < n; ++i) {
+        probe[i] = x[i] + h0 * dx[i];
+    }
+    TRY(derivatives(loop, loop->st + h0, probe, dx1));
+    loop->res->rhs_evaluations += 1;
+    for (size_t i = 0; i < n; ++i) {
+        scaled[i] = (dx1[i] - dx[i]) / (p->atol + p->rtol * fabs(x[i]));
+    }
+    double d2 = rms(scaled, n) / h0, d = d2 > d1 ? d2 : d1;
+    double h1 = d <= 1e-15 ? (1e-6 > h0 * 1e-3 ? 1e-6 : h0 * 1e-3) : pow(0.01 / d, 1.0 / 5);
+    *h = 100 * h0;
+    *h = h1 < *h ? h1 : *h;
+    *h = p->max_step < *h ? p->max_step : *h;
+    return 0;
+}
+
+/* DOPRI5.restart / _start: the derivative at (t, x) is the next step's first stage; a new first
+ * step, or with keep_step the size reached so far, never larger than it. */
+static int dopri5_restart(Loop *loop, double t, const double *x, int keep_step)
+{
+    double previous = loop->h;
+    TRY(derivatives(loop, t, x, loop->K));
+    loop->res->rhs_evaluations += 1;
+    memcpy(loop->dx, loop->K, loop->n * sizeof(double));
+    loop->stepped = 0;
+    loop->dense_ready = 0;
+    for (size_t i = 0; i < loop->n; ++i) {
+        loop->abs_x[i] = fabs(x[i]);
+    }
+    if (keep_step && previous > 0.0) {
+        loop->h = previous;
+    } else {
+        TRY(dopri5_initial_step(loop, &loop->h));
+    }
+    if (previous > 0.0 && previous < loop->h) {
+        loop->h = previous;
+    }
+    return 0;
+}
+
+/* DOPRI5.step: one accepted step ending at or before t_limit. */
+static int dopri5_step(Loop *loop, double t_limit, double *t_reached)
+{
+    const CorePlan *p = loop->plan;
+    size_t n = loop->n;
+    double *K = loop->K, *x = loop->sx, *x_new = loop->x_new, *stage = loop->stage;
+    double t = loop->st, h = p->max_step < loop->h ? p->max_step : loop->h, h_wanted = h, t_new, err;
+    int rejected = 0;
+    if (!(h > 0.0)) {       /* no step size to start with (a degenerate tolerance) */
+        loop->res->error = CORE_STEP_UNDERFLOW;
+        loop->res->error_time = t;
+        loop->res->error_step = h;
+        return 1;
+    }
+    for (;;) {
+        double remaining = t_limit - t;
+        if (h >= remaining * (1.0 - SNAP)) {
+            h = remaining;
+            t_new = t_limit;
+        } else {
+            t_new = t + h;
+        }
+        for (int s = 0; s < 5; ++s) {
+            for (size_t i = 0; i < n; ++i) {
+                double sum = 0.0;
+                for (int j = 0; j <= s; ++j) {
+                    sum += h * DP_M[s][j] * K[j * n + i];
+                }
+                stage[i] = x[i] + sum;
+            }
+            TRY(derivatives(loop, t + DP_C[s + 1] * h, stage, K + (size_t)(s + 1) * n));
+        }
+        for (size_t i = 0; i < n; ++i) {
+            double sum = 0.0;
+            for (int j = 0; j < 6; ++j) {
+                sum += h * DP_M[5][j] * K[j * n + i];
+            }
+            x_new[i] = x[i] + sum;
+        }
+        TRY(derivatives(loop, t_new, x_new, K + 6 * n));
+        loop->res->rhs_evaluations += 6;
+        err = 0.0;
+        if (n) {
+            double squares = 0.0;
+            for (size_t i = 0; i < n; ++i) {
+                double sum = 0.0;
+                for (int j = 0; j < 7; ++j) {
+                    sum += h * DP_M[6][j] * K[j * n + i];
+                }
+                loop->abs_new[i] = fabs(x_new[i]);
+                double a = loop->abs_x[i], b = loop->abs_new[i];     /* numpy.maximum: NaN wins */
+                double larger = isnan(a) || isnan(b) ? NAN : (a > b ? a : b);
+                double e = sum / (p->atol + p->rtol * larger);
+                squares += e * e;
+            }
+            err = sqrt(squares / n);
+        }
+        if (err <= 1.0) {
+            break;
+        }
+        loop->res->rejected_steps += 1;
+        rejected = 1;
+        if (!isfinite(err)) {       /* the model failed somewhere: retreat, clear the stages */
+            memset(K + n, 0, 6 * n * sizeof(double));
+            h *= 0.2;
+        } else {
+            double factor = 0.9 * pow(err, -0.2);
+            h *= factor > 0.2 ? factor : 0.2;
+        }
+        h_wanted = h;
+        if (!(h >= 1e-14 * (fabs(t) > 1.0 ? fabs(t) : 1.0))) {     /* NaN too: no step size is left */
+            loop->res->error = CORE_STEP_UNDERFLOW;
+            loop->res->error_time = t;
+            loop->res->error_step = h;
+            return 1;
+        }
+    }
+    double factor = 10.0;
+    if (err != 0.0) {
+        factor = 0.9 * pow(err, -0.2);
+        factor = factor > 0.2 ? factor : 0.2;
+        factor = factor < 10.0 ? factor : 10.0;
+    }
+    if (rejected) {
+        factor = factor < 1.0 ? factor : 1.0;
+    }
+    double h_next = h * factor;
+    if (t_new == t_limit && h < h_wanted) {     /* shortened to land on t_limit */
+        h_next = h_wanted > h_next ? h_wanted : h_next;
+    }
+    loop->h = p->max_step < h_next ? p->max_step : h_next;
+    loop->st_prev = t;
+    loop->st = t_new;
+    memcpy(loop->sx_prev, x, n * sizeof(double));
+    memcpy(loop->dx_prev, K, n * sizeof(double));
+    memcpy(loop->sx, x_new, n * sizeof(double));
+    memcpy(loop->dx, K + 6 * n, n * sizeof(double));
+    memcpy(loop->abs_x, loop->abs_new, n * sizeof(double));
+    /* swap the stage buffers; the next step starts from this one's last stage */
+    loop->K = loop->K_last;
+    loop->K_last = K;
+    memcpy(loop->K, K + 6 * n, n * sizeof(double));
+    loop->dense_ready = 0;
+    loop->stepped = 1;
+    loop->res->steps += 1;
+    *t_reached = t_new;
+    return 0;
+}
+
+/* DOPRI5.interpolate: the continuous extension of order 4. */
+static void dopri5_interpolate(Loop *loop, double t, double *out)
+{
+    size_t n = loop->n;
+    if (!loop->stepped) {
+        memcpy(out, loop->sx, n * sizeof(double));
+        return;
+    }
+    if (!loop->dense_ready) {
+        for (size_t i = 0; i < n; ++i) {
+            for (int q = 0; q < 4; ++q) {
+                double sum = 0.0;
+                for (int j = 0; j < 7; ++j) {
+                    sum += loop->K_last[j * n + i] * DP_P[j][q];
+                }
+                loop->Q[i * 4 + q] = sum;
+            }
+        }
+        loop->dense_ready = 1;
+    }
+    double h = loop->st - loop->st_prev;
+    double theta = h == 0.0 ? 1.0 : (t - loop->st_prev) / h;
+    double powers[4] = {theta, theta * theta, pow(theta, 3), pow(theta, 4)};
+    for (size_t i = 0; i < n; ++i) {
+        const double *q = loop->Q + i * 4;
+        out[i] = loop->sx_prev[i] + h * (q[0] * powers[0] + q[1] * powers[1] + q[2] * powers[2] + q[3] * powers[3]);
+    }
+}
+
 /* Solver.interpolate: the state at t inside the last step (Euler: linear; RK4: cubic Hermite
- * from the derivatives at both ends, solvers.hermite). */
+ * from the derivatives at both ends, solvers.hermite; DOPRI5: its continuous extension). */
 static int interpolate(Loop *loop, double t, double *out)
 {
     size_t n = loop->n;
     double h = loop->st - loop->st_prev;
     double theta = h == 0.0 ? 1.0 : (t - loop->st_prev) / h;
+    if (loop->plan->solver == CORE_DOPRI5) {
+        dopri5_interpolate(loop, t, out);
+        return 0;
+    }
     if (loop->plan->solver == CORE_EULER) {
         for (size_t i = 0; i < n; ++i) {
             out[i] = loop->sx_prev[i] + theta * (loop->sx[i] - loop->sx_prev[i]);
@@ -462,8 +711,8 @@ static int step_limit(Loop *loop, double stop, double *target)
             *target = p->breakpoints[loop->i_bp];
         }
     }
-    if (loop->i_out < p->n_outputs && p->output_times[loop->i_out] < *target) {
-        *target = p->output_times[loop->i_out];
+    if (p->solver != CORE_DOPRI5 && loop->i_out < p->n_outputs && p->output_times[loop->i_out] < *target) {
+        *target = p->output_times[loop->i_out];     /* a fixed-step solver ends a step at each output */
     }
     return 0;
 }
@@ -720,7 +969,7 @@ static int event(Loop *loop, int kind)
         TRY(record(loop, &t, 1, t, loop->x));
     }
     if (!loop->terminated) {
-        solver_restart(loop, t, loop->x);
+        TRY(solver_restart(loop, t, loop->x, kind == EVENT_TIME));
         if (loop->z != NULL) {      /* the indicators after the event: the next step's reference */
             TRY(indicators(loop, t, loop->x, loop->z));
         }
@@ -798,7 +1047,7 @@ static int towards(Loop *loop, double limit)
             r->step_events += 1;
             TRY(event(loop, EVENT_STEP));
         } else if (loop->i_bp < p->n_breakpoints && loop->t >= p->breakpoints[loop->i_bp] - loop->eps) {
-            solver_restart(loop, loop->t, loop->x);     /* the inputs' slope changes here */
+            TRY(solver_restart(loop, loop->t, loop->x, 0));     /* the inputs' slope changes here */
         }
     }
     return 0;
@@ -824,7 +1073,7 @@ int core_run(const CoreFmu *fmu, const CorePlan *plan, CoreResult *result)
     for (size_t layer = 0; c != NULL && layer < c->n_layers; ++layer) {
         width = (size_t)c->layer_rows[layer] > width ? (size_t)c->layer_rows[layer] : width;
     }
-    size_t words = 13 * n + 7 * nz + plan->n_continuous_inputs + plan->n_discrete + plan->n_computed
+    size_t words = 33 * n + 7 * nz + plan->n_continuous_inputs + plan->n_discrete + plan->n_computed
                    + plan->n_columns + n_inputs + 2 * width + n_variables + 1;
     double *memory = calloc(words, sizeof(double));
     int *integers = calloc(1, sizeof(int));
@@ -854,6 +1103,11 @@ int core_run(const CoreFmu *fmu, const CorePlan *plan, CoreResult *result)
     loop.k4 = take(&pool, n);
     loop.interpolated = take(&pool, n);
     loop.held_x = take(&pool, n);
+    loop.K = take(&pool, 7 * n);
+    loop.K_last = take(&pool, 7 * n);
+    loop.abs_x = take(&pool, n);
+    loop.abs_new = take(&pool, n);
+    loop.Q = take(&pool, 4 * n);
     double *z_a = take(&pool, nz), *z_b = take(&pool, nz);
     loop.za = take(&pool, nz);
     loop.zb = take(&pool, nz);
@@ -877,13 +1131,11 @@ int core_run(const CoreFmu *fmu, const CorePlan *plan, CoreResult *result)
     loop.t = plan->start;
     loop.next_event = plan->next_event;
     memcpy(loop.x, plan->x0, n * sizeof(double));
-    solver_restart(&loop, plan->start, plan->x0);
-
-    int failed_run = 0;
+    int failed_run = solver_restart(&loop, plan->start, plan->x0, 0);
     if (nz) {       /* the indicators at the start: the first step's reference */
         loop.z = z_a;
         loop.z_end = z_b;
-        failed_run = indicators(&loop, plan->start, loop.x, loop.z);
+        failed_run = failed_run || indicators(&loop, plan->start, loop.x, loop.z);
     }
     if (!failed_run) {
         failed_run = towards(&loop, plan->stop);

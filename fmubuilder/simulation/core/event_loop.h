@@ -70,7 +70,7 @@ typedef struct {
     int64_t call_codes[15];         /* breadcrumb code of each core_call */
 } CoreFmu;
 
-enum { CORE_EULER = 0, CORE_RK4 = 1 };
+enum { CORE_EULER = 0, CORE_RK4 = 1, CORE_DOPRI5 = 2 };
 /* A recorded column: a state, a variable that changes only at events, one computed from the state,
  * or a state derivative as the corrected system gives it. */
 enum { COLUMN_STATE = 0, COLUMN_DISCRETE = 1, COLUMN_COMPUTED = 2, COLUMN_DERIVATIVE = 3 };
@@ -114,8 +114,9 @@ enum { TYPE_REAL = 0, TYPE_INTEGER = 1, TYPE_BOOLEAN = 2 };
 typedef struct {
     size_t n_states;
     size_t n_indicators;
-    int solver;                     /* CORE_EULER or CORE_RK4 */
-    double step_size;
+    int solver;                     /* CORE_EULER, CORE_RK4 or CORE_DOPRI5 */
+    double step_size;               /* the fixed step */
+    double rtol, atol, max_step;    /* DOPRI5's */
     double start, stop;
     double time_scale;              /* events.time_scale(start, stop) */
     double relative_time_tolerance; /* events.RELATIVE_TIME_TOLERANCE */
@@ -157,7 +158,8 @@ typedef struct {
     const CoreCorrection *correction;   /* NULL: the FMU's own derivatives */
 } CorePlan;
 
-enum { CORE_OK = 0, CORE_FMI_ERROR = 1, CORE_EVENT_STORM = 2, CORE_CHATTERING = 3, CORE_NO_MEMORY = 4 };
+enum { CORE_OK = 0, CORE_FMI_ERROR = 1, CORE_EVENT_STORM = 2, CORE_CHATTERING = 3, CORE_NO_MEMORY = 4,
+       CORE_STEP_UNDERFLOW = 5 };
 enum { EVENT_TIME = 0, EVENT_STATE = 1, EVENT_STEP = 2 };
 
 /* What a run gives back; the arrays are the core's (free them with core_free_result). */
@@ -166,6 +168,7 @@ typedef struct {
     int failed_call;                /* core_call of a CORE_FMI_ERROR */
     int failed_status;              /* its fmi2Status */
     double error_time;
+    double error_step;              /* the step size of a CORE_STEP_UNDERFLOW */
     double t;                       /* the time reached */
     int terminated;                 /* the model asked to stop */
     double *x;                      /* the states reached [n_states] */
@@ -175,7 +178,7 @@ typedef struct {
     size_t n_events;
     double *event_times;
     int *event_kinds;               /* EVENT_* */
-    int64_t steps, rhs_evaluations, indicator_evaluations;
+    int64_t steps, rejected_steps, rhs_evaluations, indicator_evaluations;
     int64_t time_events, state_events, step_events, event_iterations;
     size_t row_capacity, event_capacity;
 } CoreResult;
