@@ -97,6 +97,10 @@ def execute(args) -> int:
 
 def _call(args, caught: list) -> int:
     try:
+        plan = getattr(args, "plan", None)
+        if plan is not None:  # every output checked before any work
+            from .outputs import check
+            check(plan(args))
         args.func(args)
         sys.stdout.flush()
         if caught:  # kept back, but not lost: one line
