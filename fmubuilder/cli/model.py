@@ -1,6 +1,7 @@
 """`fmubuilder inspect` and `fmubuilder simulate`."""
 from __future__ import annotations
 
+import os
 import sys
 
 from ..errors import FmuBuilderError
@@ -41,6 +42,9 @@ def cmd_inspect(args) -> None:
 def cmd_simulate(args) -> None:
     from ..simulation import simulate
     output = refuse_existing(args.output, args.force) if args.output else None
+    if args.input and os.path.isfile(args.input):
+        from ..data import check_plain_numbers
+        check_plain_numbers(args.input)
     result = simulate(
         args.fmu, start_time=args.start_time, stop_time=args.stop_time,
         start_values=parse_assignments(args.start), input_csv=args.input,
