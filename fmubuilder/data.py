@@ -227,9 +227,9 @@ def _check_sidecar(meta: dict, where: Path) -> None:
             number(field, value)
         else:
             fail(field, value, "a number, true/false or a string")
-    number("sensor_lag", meta.get("sensor_lag"), 0.0)
+    number("sensor_lag", meta.get("sensor_lag"))     # its range: sensor_lag_of
     bench = mapping("bench", meta.get("bench"))
-    number("bench.lag", bench.get("lag"), 0.0)
+    number("bench.lag", bench.get("lag"))
     number("bench.runs", bench.get("runs"), 1, whole=True)
     number("bench.fine_step", bench.get("fine_step"), 0.0, above=True)
     mapping("truth_model", meta.get("truth_model"))
