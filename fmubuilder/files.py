@@ -274,7 +274,8 @@ def foreign_content(folder: str | os.PathLike) -> str | None:
         manifest = json.loads((folder / MANIFEST_NAME).read_text(encoding="utf-8"))
         listed, listed_folders = dict(manifest["files"]), set(manifest["folders"])
     except (OSError, ValueError, KeyError, TypeError):
-        return "it has no fmubuilder manifest, so fmubuilder did not make it"
+        first = (files or folders)[0] if files or folders else MANIFEST_NAME
+        return f"it holds '{first}' and no fmubuilder manifest, so fmubuilder did not write it"
     for name in files:
         if name not in listed:
             return f"it holds '{name}', which fmubuilder did not write"

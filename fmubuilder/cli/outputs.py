@@ -57,6 +57,10 @@ def check(plan: Plan) -> None:
         _check_file(option, path, plan.force, inputs)
         outputs.append((option, path))
     for option, folder in plan.folders:
+        for other_option, other in outputs:
+            if os.path.abspath(other) == os.path.abspath(folder):
+                raise FmuBuilderError(f"{other_option} and {option} are the same path ({folder}); give each "
+                                      "output its own path")
         _check_folder(option, folder, plan.force, inputs)
         for other_option, other in outputs:
             if inside(other, folder):
