@@ -102,21 +102,30 @@ def check_writable_folder(folder: str | os.PathLike, target: str | os.PathLike) 
 
 # -- the journal of what this run created ------------------------------------------------------
 
+_created_here: set[str] = set()     # the outputs this process created, replaced again by it later
+
+
 def _record(kind: str, path: Path) -> None:
+    """Note in the journal that this run made `path`: "staged" (a hidden .partial file or folder of
+    a unique name), or "created" (an output where nothing was before)."""
     journal = os.environ.get(JOURNAL_ENV)
     if not journal:
         return
     try:
         info = os.lstat(path)
         with open(journal, "a", encoding="utf-8") as handle:
-            handle.write(json.dumps([kind, os.path.abspath(path), info.st_dev, info.st_ino]) + "\n")
+            handle.write(json.dumps([kind, os.path.abspath(path), info.st_dev, info.st_ino, info.st_ctime_ns]) + "\n")
     except OSError:
         pass
+    if kind == "created":
+        _created_here.add(os.path.abspath(path))
 
 
 def created_paths(journal: str | os.PathLike) -> list[Path]:
-    """The paths a run recorded in `journal` that are still the ones it made (same device and inode),
-    newest first: what the clean-up of a failed run may remove."""
+    """The paths a run recorded in `journal` that are still the ones it made, newest first: what the
+    clean-up of a failed run may remove. The same device and inode; for a created file also its
+    status-change time (an inode number is reused: a file another program wrote there since has
+    its own). A staged path has a unique random name, and a folder fills after it was made."""
     try:
         lines = Path(journal).read_text(encoding="utf-8").splitlines()
     except OSError:
@@ -124,11 +133,14 @@ def created_paths(journal: str | os.PathLike) -> list[Path]:
     paths = []
     for line in reversed(lines):
         try:
-            _, path, device, inode = json.loads(line)
+            kind, path, device, inode, changed = json.loads(line)
             info = os.lstat(path)
         except (ValueError, TypeError, OSError):
             continue
-        if (info.st_dev, info.st_ino) == (device, inode) and Path(path) not in paths:
+        same = (info.st_dev, info.st_ino) == (device, inode)
+        if kind == "created" and stat.S_ISREG(info.st_mode):
+            same = same and info.st_ctime_ns == changed
+        if same and Path(path) not in paths:
             paths.append(Path(path))
     return paths
 
@@ -218,7 +230,7 @@ def _replace_atomically(target: Path, write) -> Path:
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
         raise
-    if not existed:
+    if not existed or os.path.abspath(target) in _created_here:
         _record("created", target)
     return target
 
