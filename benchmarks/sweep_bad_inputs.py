@@ -484,6 +484,9 @@ def scenarios() -> list[Scenario]:
         Scenario("synth over an existing sidecar",
                  _with({"s.csv.json": b"mine"}, ["synth", "m.fmu", "--stop-time", "1", "--signals", "h", "-o", "s.csv"]),
                  fragment="exists"),
+        Scenario("example --force into a folder whose README.md is a symbolic link",
+                 _with({"ex/README.md": lambda p: p.symlink_to("../thesis.txt")},
+                       ["example", "vldm", "-o", "ex", "--force"]), fragment="symbolic link"),
         # 5. the sidecar's start values in train
         Scenario("train starts from the sidecar's start values", _measured_with_e, expect="success",
                  check=_train_used_sidecar, refusal=False),

@@ -27,7 +27,7 @@ def parse_floats(items: list[str] | None, option: str) -> dict[str, float]:
             if not math.isfinite(values[name]):
                 raise ValueError
         except ValueError:
-            raise FmuBuilderError(f"{option} {name}={text}: the value must be a finite number, e.g. {option} {name}=0.05") from None
+            raise FmuBuilderError(f"{option} {name}={text}: the value must be a number (finite), e.g. {option} {name}=0.05") from None
     return values
 
 

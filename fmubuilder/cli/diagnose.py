@@ -6,7 +6,7 @@ import math
 
 from ..errors import FmuBuilderError
 from ..files import make_folder, refuse_existing, write_atomically
-from .common import parse_assignments, positive_number
+from .common import number, parse_assignments
 from .outputs import Plan, inputs_with_sidecars
 
 PLOT_NAMES = ("signals.png", "residuals.png", "residual_vs_inputs.png")   # diagnose/plots.py
@@ -26,7 +26,7 @@ def add_diagnose_parser(subparsers, common=None) -> None:
                    help="start value of a parameter or state (repeatable; added to the data's sidecar values)")
     p.add_argument("--json", metavar="OUT.json", help="write the full diagnosis as JSON")
     p.add_argument("--plots", metavar="DIR", help="write PNG plots into this folder")
-    p.add_argument("--time-budget", type=positive_number, default=None, metavar="SECONDS",
+    p.add_argument("--time-budget", type=number, default=None, metavar="SECONDS",
                    help="optional upper cap on the tracing's wall time; the report says when it cut the tracing "
                         "short (default: none; the tracing's work is fixed by the model and the data)")
     p.add_argument("--force", action="store_true", help="overwrite an existing JSON file and plots")

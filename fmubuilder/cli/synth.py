@@ -51,7 +51,18 @@ def add_example_parser(subparsers, common=None) -> None:
     p.add_argument("name", help="example name (available: vldm)")
     p.add_argument("--output", "-o", required=True, metavar="DIR", help="folder to write")
     p.add_argument("--force", action="store_true", help="overwrite the example's files in an existing folder")
-    p.set_defaults(func=cmd_example)
+    p.set_defaults(func=cmd_example, plan=_example_plan)
+
+
+def _example_plan(args) -> Plan:
+    """The example's files by name: each a regular file or nothing, replaced only with --force."""
+    from ..examples_zoo import EXAMPLES, example_data_sets, example_variants
+    if args.name not in EXAMPLES:
+        return Plan(args.force)     # the command names the examples
+    names = {f"{variant.fmu}.fmu" for variant in example_variants(args.name)} | {"README.md"}
+    for data_set in example_data_sets(args.name):
+        names |= {data_set.file_name, f"{data_set.file_name}.json"}
+    return Plan(args.force, into=[("--output", args.output, tuple(sorted(names)))])
 
 
 def cmd_synth(args) -> None:

@@ -5,7 +5,7 @@ import argparse
 import os
 
 from ..errors import FmuBuilderError
-from .common import (fraction, loss_evaluations, non_negative_number, parse_assignments, parse_names,
+from .common import (fraction, loss_evaluations, number, parse_assignments, parse_names,
                      positive_number, seed, whole_number)
 from .outputs import Plan, inputs_with_sidecars
 
@@ -47,7 +47,7 @@ def add_train_parser(subparsers, common=None) -> argparse.ArgumentParser:
     p.add_argument("--nipt", type=whole_number(0), default=400, metavar="ITERATIONS", help="neutral pre-training iterations (gates)")
     p.add_argument("--ccpt", type=whole_number(0), default=0, metavar="ITERATIONS", help="collocation pre-training iterations (default off)")
     p.add_argument("--loss", metavar="A,B", help="signals in the loss (default: all measured)")
-    p.add_argument("--sensor-lag", type=non_negative_number, metavar="SECONDS",
+    p.add_argument("--sensor-lag", type=number, metavar="SECONDS",
                    help="time constant of the sensors' first-order lag, applied to the simulated signals before "
                         "they meet the data (default: the bench's, recorded next to data from `fmubuilder synth`; else 0)")
     p.add_argument("--test-data", metavar="CSV", help="held-out data: its errors are added to the metrics")
