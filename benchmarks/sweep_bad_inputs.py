@@ -209,6 +209,7 @@ class Scenario:
     check: Callable | None = None
     refusal: bool = True          # refused before any work: within REFUSAL_SECONDS
     needs_root: bool = False
+    slow: bool = False            # runs the workflow (about 20 s)
 
 
 @dataclass
@@ -365,6 +366,22 @@ def _measured_with_e(here: Path, shared: Shared):
             "--json", "metrics.json"]
 
 
+A_REPORT = b"# the report of run A\n"
+
+
+def _run_a_finishes_meanwhile(here: Path, wrote: dict):
+    """Run A publishes h.fmu and rep/ while run B (the command) is still working: B fails at its end
+    ("h.fmu exists") and must leave A's outputs as they are."""
+    time.sleep(4.0)
+    if not (here / "h.fmu").exists():
+        (here / "rep").mkdir()
+        (here / "rep" / "report.md").write_bytes(A_REPORT)
+        shutil.copyfile(here / "m.fmu", here / "h.fmu")
+        wrote["rep/report.md"] = ("file", hashlib.sha256(A_REPORT).hexdigest())
+        wrote["h.fmu"] = ("file", hashlib.sha256((here / "m.fmu").read_bytes()).hexdigest())
+        wrote["rep"] = (stat.S_IFDIR, None)
+
+
 def _trained_here(here: Path, shared: Shared):
     """A NeuralFMU trained (0 epochs) on the user's m.fmu; the export is asked to write over m.fmu."""
     _user_folder(here, shared)
@@ -429,6 +446,10 @@ def scenarios() -> list[Scenario]:
                                        ["simulate", str(shared.hang()), "--stop-time", "1", "-o", "r.csv",
                                         "--call-timeout", "1"])[1],
                  during=_write_during_hang, fragment="", refusal=False),
+        Scenario("run B fails at its end after run A wrote the same outputs",
+                 _simple(hy("m.fmu", "-o", "h.fmu", "--report", "rep", "--budget", "0", "--no-ann-on-term",
+                            "--jobs", "1", "--quiet")),
+                 during=_run_a_finishes_meanwhile, fragment="h.fmu exists", refusal=False, slow=True),
         # 2. outputs are regular files, never an input
         Scenario("-o a FIFO, with --force", _with({"pipe": _fifo}, ["simulate", "m.fmu", "-o", "pipe", "--force"]),
                  fragment="FIFO"),

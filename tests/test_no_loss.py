@@ -29,7 +29,8 @@ def shared(tmp_path_factory):
     return sweep.Shared(tmp_path_factory.mktemp("shared"))
 
 
-@pytest.mark.parametrize("name", list(SCENARIOS))
+@pytest.mark.parametrize("name", [pytest.param(name, marks=[pytest.mark.slow] if scenario.slow else [])
+                                  for name, scenario in SCENARIOS.items()])
 def test_every_file_the_user_had_is_unchanged(name, shared, tmp_path):
     outcome = sweep.run_scenario(SCENARIOS[name], shared, tmp_path)
     if outcome.skipped:
@@ -45,7 +46,7 @@ def test_the_sweep_covers_every_case_of_the_issue():
     """The issue's cases by the words they are known by; a renamed scenario must keep its case."""
     names = " | ".join(SCENARIOS)
     for words in ("working folder", "did not write", "another program writes", "FIFO", "symbolic link",
-                  "device node", "own FMU", "the FMU it wraps", "--json its own data", "existing checkpoint",
+                  "device node", "run A wrote the same outputs", "own FMU", "the FMU it wraps", "--json its own data", "existing checkpoint",
                   "existing plots", "--resume without a checkpoint", ".partial", "sidecar's start values",
                   "/proc", "same path", "read-only mount", "--report an existing file", "modelIdentifier",
                   "NaN (rk4)", "--lag nan", "1_000", "e=0_5", 'start="nine"', "duplicate variable names",
