@@ -107,7 +107,7 @@ _created_here: set[str] = set()     # the outputs this process created, replaced
 
 def _record(kind: str, path: Path) -> None:
     """Note in the journal that this run made `path`: "staged" (a hidden .partial file or folder of
-    a unique name), or "created" (an output where nothing was before)."""
+    a unique name), "created" (an output where nothing was before) or "folder" (made to hold outputs)."""
     journal = os.environ.get(JOURNAL_ENV)
     if not journal:
         return
@@ -121,16 +121,16 @@ def _record(kind: str, path: Path) -> None:
         _created_here.add(os.path.abspath(path))
 
 
-def created_paths(journal: str | os.PathLike) -> list[Path]:
-    """The paths a run recorded in `journal` that are still the ones it made, newest first: what the
-    clean-up of a failed run may remove. The same device and inode; for a created file also its
-    status-change time (an inode number is reused: a file another program wrote there since has
-    its own). A staged path has a unique random name, and a folder fills after it was made."""
+def created_paths(journal: str | os.PathLike) -> list[tuple[str, Path]]:
+    """(kind, path) of the paths a run recorded in `journal` that are still the ones it made, newest
+    first: what the clean-up of a failed run may remove. The same device and inode; for a created
+    file also its status-change time (an inode number is reused: a file another program wrote there
+    since has its own). A staged path has a unique random name, and a folder fills after it was made."""
     try:
         lines = Path(journal).read_text(encoding="utf-8").splitlines()
     except OSError:
         return []
-    paths = []
+    found, seen = [], set()
     for line in reversed(lines):
         try:
             kind, path, device, inode, changed = json.loads(line)
@@ -140,16 +140,22 @@ def created_paths(journal: str | os.PathLike) -> list[Path]:
         same = (info.st_dev, info.st_ino) == (device, inode)
         if kind == "created" and stat.S_ISREG(info.st_mode):
             same = same and info.st_ctime_ns == changed
-        if same and Path(path) not in paths:
-            paths.append(Path(path))
-    return paths
+        if same and path not in seen:
+            seen.add(path)
+            found.append((kind, Path(path)))
+    return found
 
 
 def remove_created(journal: str | os.PathLike) -> list[Path]:
-    """Remove what a failed run created (`created_paths`); returns the paths removed."""
+    """Remove what a failed run created (`created_paths`); returns the paths removed. A staged or
+    published folder goes with its content (all the run's); a folder `make_folder` made only when
+    it is empty by then: files another program put there stay."""
     removed = []
-    for path in created_paths(journal):
-        if os.path.isdir(path) and not os.path.islink(path):
+    for kind, path in created_paths(journal):
+        if kind == "folder":
+            with _suppress_os_error():
+                os.rmdir(path)
+        elif os.path.isdir(path) and not os.path.islink(path):
             shutil.rmtree(path, ignore_errors=True)
         else:
             with _suppress_os_error():
@@ -180,7 +186,7 @@ def make_folder(path: str | os.PathLike) -> Path:
     except OSError as exc:
         raise FmuBuilderError(f"cannot create the folder {path}: {exc.strerror or exc}") from None
     for folder in reversed(missing):
-        _record("created", folder)
+        _record("folder", folder)
     return path
 
 

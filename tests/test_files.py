@@ -54,7 +54,7 @@ def test_file_sha256_matches_hashlib(tmp_path):
 # -- nothing but what the run created is removed; only fmubuilder's folders are replaced ---------
 
 def test_a_failed_run_removes_what_it_created_and_nothing_else(tmp_path, monkeypatch):
-    from fmubuilder.files import JOURNAL_ENV, remove_created, staging_folder
+    from fmubuilder.files import JOURNAL_ENV, make_folder, remove_created, staging_folder
     journal = tmp_path / "journal"
     monkeypatch.setenv(JOURNAL_ENV, str(journal))
     mine, theirs, kept = tmp_path / "new.csv", tmp_path / "other.csv", tmp_path / "old.csv"
@@ -66,8 +66,11 @@ def test_a_failed_run_removes_what_it_created_and_nothing_else(tmp_path, monkeyp
     theirs.write_text("... written anew by another program")
     staged = staging_folder(tmp_path / "report")
     (tmp_path / ".notes.txt.x.partial").write_text("the user's, named like a leftover")
+    empty, shared = make_folder(tmp_path / "plots" / "empty"), make_folder(tmp_path / "shared")
+    (shared / "theirs.txt").write_text("another program's, in a folder this run made")
     removed = remove_created(journal)
-    assert sorted(removed) == sorted([mine, staged])
+    assert sorted(removed) == sorted([mine, staged, empty, empty.parent])
+    assert (shared / "theirs.txt").is_file()
     assert kept.read_text() == "replaced by this run (with --force)"
     assert theirs.read_text() == "... written anew by another program"
     assert (tmp_path / ".notes.txt.x.partial").read_text() == "the user's, named like a leftover"
