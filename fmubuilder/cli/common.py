@@ -74,7 +74,7 @@ def _whole_number(text: str, least: int, unit: str) -> int:
 MAX_SEED = 2**32 - 1
 
 
-def _plain_number(text: str) -> float:
+def plain_number(text: str) -> float:
     """A decimal number as a user writes one: Python's float() also reads '1_000', which is a typo
     more often than a thousand; refused here."""
     if "_" in text:
@@ -87,7 +87,7 @@ def _plain_number(text: str) -> float:
 
 def number(text: str) -> float:
     """Any finite number."""
-    value = _plain_number(text)
+    value = plain_number(text)
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"'{text}': give a finite number")
     return value
