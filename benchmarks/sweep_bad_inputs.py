@@ -99,7 +99,7 @@ def bad_fmus(folder: Path, ball: Path) -> dict[str, Path]:
         "FMI 3.0": bad.rewrite_fmu(ball, folder / "fmi3.fmu", xml=bad.set_fmi_version("3.0")),
         "Co-Simulation only": bad.rewrite_fmu(ball, folder / "cs.fmu", xml=bad.co_simulation_only),
         "no modelDescription": bad.rewrite_fmu(ball, folder / "no_md.fmu", drop=("modelDescription.xml",)),
-        "no linux64 binary": bad.rewrite_fmu(ball, folder / "no_bin.fmu", drop=("binaries/linux64",)),
+        "no linux64 binary": bad.rewrite_fmu(ball, folder / "no_bin.fmu", drop=("binaries/linux64", "sources/")),
         "garbage binary": bad.replace_binary(ball, folder / "garbage.fmu", b"\x7fELF not a library"),
     }
     if foreign:

@@ -54,3 +54,11 @@ def test_the_sweep_covers_every_case_of_the_issue():
                   "--validation-start without --validation", "training file as test data", "no guid",
                   "unknown XML encoding", "2**70", "--lr nan", "sidecar bench.runs a string"):
         assert words in names, words
+
+
+def test_the_bad_input_sweep_in_short(tmp_path):
+    """The sweep's first part (bad FMUs, CSVs, arguments, misbehaving binaries), a few of its cases."""
+    outcomes = sweep.sweep(tmp_path, "--start", messages=False)
+    assert len(outcomes) >= 3
+    assert not any(o.defective for o in outcomes)
+    assert all(o.clean for o in outcomes), [(o.case, o.first_line) for o in outcomes if not o.clean]
