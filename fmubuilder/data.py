@@ -154,6 +154,7 @@ def load_data(path: str | os.PathLike, info, *, min_samples: int = 2) -> Measure
                               "e.g. time,speed")
     std = {name: np.abs(columns[column]) for name, column in uncertainty.items() if name in signals}
     sidecar = read_sidecar(path) or {}
+    _check_start_types(sidecar.get("start_values") or {}, info, sidecar_path(path))
     bench = sidecar.get("bench") or {}
     return MeasuredData(time, signals, std, inputs, source=str(path), sensor_lag=sensor_lag_of(sidecar, path),
                         runs=max(1, int(bench.get("runs", DEFAULT_RUNS))),
@@ -234,6 +235,28 @@ def _check_sidecar(meta: dict, where: Path) -> None:
     number("bench.fine_step", bench.get("fine_step"), 0.0, above=True)
     mapping("truth_model", meta.get("truth_model"))
     mapping("truth.parameters", mapping("truth", meta.get("truth")).get("parameters"))
+
+
+def _check_start_types(starts: dict, info, where: Path) -> None:
+    """Each start value of the sidecar names a model variable and fits its type (a number for a Real or
+    Integer, true/false for a Boolean, text for a String): one line, not a failure inside the FMU."""
+    for name, value in starts.items():
+        var = info.variables.get(name)
+        if var is None:
+            continue    # a name the model lacks is the stage's to report, as for --start
+        numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if var.type in ("Real", "Integer", "Enumeration"):
+            fits = numeric or (isinstance(value, str) and _reads_as_number(value))
+            if fits and var.type != "Real" and float(value) != int(float(value)):
+                fits = False
+        elif var.type == "Boolean":
+            fits = isinstance(value, bool) or value in (0, 1) or (isinstance(value, str) and value.strip().lower()
+                                                                   in ("true", "false", "0", "1"))
+        else:
+            fits = isinstance(value, str)
+        if not fits:
+            raise FmuBuilderError(f"{where}: start_values.{name} is {json.dumps(value)[:60]}, not a value of the "
+                                  f"{var.type} variable {name}; fix it or delete it")
 
 
 def _reads_as_number(text: str) -> bool:
