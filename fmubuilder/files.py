@@ -13,6 +13,7 @@ process created or what the user had.
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -153,24 +154,16 @@ def remove_created(journal: str | os.PathLike) -> list[Path]:
     removed = []
     for kind, path in created_paths(journal):
         if kind == "folder":
-            with _suppress_os_error():
+            with contextlib.suppress(OSError):
                 os.rmdir(path)
         elif os.path.isdir(path) and not os.path.islink(path):
             shutil.rmtree(path, ignore_errors=True)
         else:
-            with _suppress_os_error():
+            with contextlib.suppress(OSError):
                 os.unlink(path)
         if not os.path.lexists(path):
             removed.append(path)
     return removed
-
-
-class _suppress_os_error:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, kind, value, traceback):
-        return kind is not None and issubclass(kind, OSError)
 
 
 def make_folder(path: str | os.PathLike) -> Path:
