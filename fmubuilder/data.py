@@ -126,6 +126,7 @@ def load_data(path: str | os.PathLike, info, *, min_samples: int = 2) -> Measure
     from .simulation.inputs import read_csv_signals
     path = Path(path)
     time, columns = read_csv_signals(path)
+    check_plain_numbers(path)
     if time.size < min_samples:
         raise FmuBuilderError(f"{path} has {time.size} time stamp(s); give at least {min_samples}")
     names, uncertainty = split_uncertainty_columns(["time", *columns])
@@ -153,6 +154,7 @@ def load_data(path: str | os.PathLike, info, *, min_samples: int = 2) -> Measure
                               "e.g. time,speed")
     std = {name: np.abs(columns[column]) for name, column in uncertainty.items() if name in signals}
     sidecar = read_sidecar(path) or {}
+    _check_start_types(sidecar.get("start_values") or {}, info, sidecar_path(path))
     bench = sidecar.get("bench") or {}
     return MeasuredData(time, signals, std, inputs, source=str(path), sensor_lag=sensor_lag_of(sidecar, path),
                         runs=max(1, int(bench.get("runs", DEFAULT_RUNS))),
@@ -190,7 +192,95 @@ def read_sidecar(csv_path: str | os.PathLike) -> dict | None:
                               "`fmubuilder synth`") from None
     if not isinstance(meta, dict):
         raise FmuBuilderError(f"{meta_path} holds no JSON object; write {{\"start_values\": {{...}}}} or delete it")
+    _check_sidecar(meta, meta_path)
     return meta
+
+
+def _check_sidecar(meta: dict, where: Path) -> None:
+    """The fields fmubuilder reads, each of its type: one line naming the field, never an internal error."""
+    def fail(field: str, value, wanted: str):
+        raise FmuBuilderError(f"{where}: {field} is {json.dumps(value)[:60]}, not {wanted}; fix it or delete the field")
+
+    def number(field: str, value, least: float | None = None, whole: bool = False, above: bool = False):
+        if value is None:
+            return
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            fail(field, value, "a finite number")
+        if whole and value != int(value):
+            fail(field, value, "a whole number")
+        if least is not None and (value <= least if above else value < least):
+            fail(field, value, f"a number {'>' if above else '>='} {least:g}")
+
+    def mapping(field: str, value) -> dict:
+        if value is not None and not isinstance(value, dict):
+            fail(field, value, "a JSON object")
+        return value or {}
+
+    starts = mapping("start_values", meta.get("start_values"))
+    for name, value in starts.items():
+        field = f"start_values.{name}"
+        if isinstance(value, str):
+            if "_" in value and _reads_as_number(value):
+                fail(field, value, "a number (write it without '_')")
+        elif isinstance(value, bool):
+            pass
+        elif isinstance(value, (int, float)):
+            number(field, value)
+        else:
+            fail(field, value, "a number, true/false or a string")
+    number("sensor_lag", meta.get("sensor_lag"))     # its range: sensor_lag_of
+    bench = mapping("bench", meta.get("bench"))
+    number("bench.lag", bench.get("lag"))
+    number("bench.runs", bench.get("runs"), 1, whole=True)
+    number("bench.fine_step", bench.get("fine_step"), 0.0, above=True)
+    mapping("truth_model", meta.get("truth_model"))
+    mapping("truth.parameters", mapping("truth", meta.get("truth")).get("parameters"))
+
+
+def _check_start_types(starts: dict, info, where: Path) -> None:
+    """Each start value of the sidecar names a model variable and fits its type (a number for a Real or
+    Integer, true/false for a Boolean, text for a String): one line, not a failure inside the FMU."""
+    for name, value in starts.items():
+        var = info.variables.get(name)
+        if var is None:
+            continue    # a name the model lacks is the stage's to report, as for --start
+        numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if var.type in ("Real", "Integer", "Enumeration"):
+            fits = numeric or (isinstance(value, str) and _reads_as_number(value))
+            if fits and var.type != "Real" and float(value) != int(float(value)):
+                fits = False
+        elif var.type == "Boolean":
+            fits = isinstance(value, bool) or value in (0, 1) or (isinstance(value, str) and value.strip().lower()
+                                                                   in ("true", "false", "0", "1"))
+        else:
+            fits = isinstance(value, str)
+        if not fits:
+            raise FmuBuilderError(f"{where}: start_values.{name} is {json.dumps(value)[:60]}, not a value of the "
+                                  f"{var.type} variable {name}; fix it or delete it")
+
+
+def _reads_as_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def check_plain_numbers(path: str | os.PathLike) -> None:
+    """A data CSV's cells are numbers as written: Python (and numpy) read '1_000' as 1000, a typo far
+    more often than a thousand; refused with its row and column."""
+    import csv
+    with open(path, newline="", encoding="utf-8-sig", errors="replace") as file:
+        reader = csv.reader(file)
+        header = next(reader, [])
+        for number, row in enumerate(reader, start=2):
+            if not any("_" in cell for cell in row):
+                continue
+            for column, cell in zip(header, row):
+                if "_" in cell:
+                    raise FmuBuilderError(f"{path}, row {number}, column '{column.strip()}': '{cell.strip()}' is not "
+                                          "a plain number; write it without '_' (e.g. 1000, not 1_000)")
 
 
 def split_uncertainty_columns(names: Sequence[str]) -> tuple[list[str], dict[str, str]]:

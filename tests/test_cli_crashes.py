@@ -6,6 +6,7 @@ The FMUs are the bouncing ball with a misbehaving binary (tests/fmi/crashing/cra
 the data are the healthy bouncing ball's, simulated by fmubuilder.
 """
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -41,6 +42,9 @@ def run_cli(*args, tmpdir, cwd):
 
 
 def command_line(command, fmu, data, out):
+    test = data.with_name(f"test_{data.name}")     # data have one role each
+    if not test.exists():
+        shutil.copyfile(data, test)
     return {
         "simulate": ["simulate", fmu, "--stop-time", "1", "-o", out / "result.csv"],
         "diagnose": ["diagnose", fmu, "--data", data, "--json", out / "diagnosis.json", "--plots", out / "plots",
@@ -48,7 +52,7 @@ def command_line(command, fmu, data, out):
         "train": ["train", fmu, "--data", data, "--target", "der(v)", "--inputs", "h,v", "--epochs", "1",
                   "--element-length", "1", "--step-size", "0.01", "--quiet", "-o", out / "trained.nfmu",
                   "--json", out / "metrics.json"],
-        "hybridize": ["hybridize", fmu, "--train", data, "--test", data, "-o", out / "hybrid.fmu",
+        "hybridize": ["hybridize", fmu, "--train", data, "--test", test, "-o", out / "hybrid.fmu",
                       "--report", out / "report", "--time-budget", "10"],
     }[command]
 

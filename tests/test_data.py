@@ -1,5 +1,6 @@
 """The one data module: CSV checks, sidecars (start values, declared sensor lag), the sensor model."""
 import json
+import re
 
 import numpy as np
 import pytest
@@ -61,3 +62,28 @@ def test_the_sensor_model_matches_the_analytic_step_response():
     time = np.linspace(0.0, 1.0, 1001)
     lagged = first_order_lag(np.concatenate([[0.0], time]), np.concatenate([[0.0], np.ones_like(time)]), 0.1)[1:]
     np.testing.assert_allclose(lagged, 1.0 - np.exp(-time / 0.1), atol=1e-12)
+
+
+@pytest.mark.parametrize("sidecar, fragment", [
+    ({"start_values": [1, 2]}, "start_values is [1, 2], not a JSON object"),
+    ({"start_values": {"J": "0_02"}}, "without '_'"),
+    ({"start_values": {"inertia": True}}, "not a value of the Real variable inertia"),
+    ({"start_values": {"inertia": "heavy"}}, "not a value of the Real variable inertia"),
+    ({"start_values": {"J": {"value": 1}}}, "start_values.J"),
+    ('{"start_values": {"J": NaN}}', "start_values.J"),
+    ({"sensor_lag": "fast"}, "sensor_lag"),
+    ({"bench": 3}, "bench is 3"),
+    ({"bench": {"runs": "two"}}, "bench.runs"),
+    ({"bench": {"runs": 1.5}}, "bench.runs"),
+    ({"bench": {"fine_step": 0}}, "bench.fine_step"),
+    ({"truth": {"parameters": 7}}, "truth.parameters"),
+])
+def test_every_wrong_type_in_a_sidecar_is_one_line(info, tmp_path, sidecar, fragment):
+    with pytest.raises(FmuBuilderError, match=re.escape(fragment)):
+        load_data(write(tmp_path, ROWS, sidecar), info)
+
+
+def test_a_number_written_with_an_underscore_is_refused(info, tmp_path):
+    path = write(tmp_path, ROWS.replace("\n0.5,5,", "\n0.5,1_000,", 1))
+    with pytest.raises(FmuBuilderError, match="row 7, column 'speed': '1_000'"):
+        load_data(path, info)

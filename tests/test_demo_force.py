@@ -55,3 +55,27 @@ def test_without_force_an_existing_demo_is_an_error(previous):
     with pytest.raises(FmuBuilderError, match="--force"):
         run_demo(previous)
     assert (previous / "report" / "report.md").read_text() == "previous"
+
+
+def test_demo_force_replaces_only_a_folder_an_earlier_demo_wrote(tmp_path, monkeypatch, capsys):
+    """The command line marks the demo folder (its manifest) when the run succeeds; --force replaces
+    such a folder and refuses one that holds anything else, before any work."""
+    from fmubuilder import cli, demo
+    from fmubuilder.cli import demo as demo_command
+    runs = []
+
+    def quick_demo(output, force=False, time_budget=None):
+        runs.append(output)
+        (output / "report").mkdir(parents=True, exist_ok=True)
+        (output / "report" / "report.md").write_text(f"run {len(runs)}")
+        return "result", output / "example"
+    monkeypatch.setattr(demo, "run_demo", quick_demo)
+    monkeypatch.setattr(demo_command, "summary", lambda result: "summary")
+    folder = tmp_path / "demo"
+    assert cli.run(["demo", "-o", str(folder)]) == 0
+    assert cli.run(["demo", "-o", str(folder), "--force"]) == 0 and len(runs) == 2
+    (folder / "thesis.txt").write_text("years of work")
+    capsys.readouterr()
+    assert cli.run(["demo", "-o", str(folder), "--force"]) == 1 and len(runs) == 2
+    assert "thesis.txt" in capsys.readouterr().err
+    assert (folder / "thesis.txt").read_text() == "years of work"

@@ -60,7 +60,8 @@ def _add_run_options(parser: argparse.ArgumentParser, default) -> None:
                        help="show tracebacks of errors")
     group.add_argument("--quiet", "-q", action="store_true", default=default,
                        help="no progress bars (they show only on a terminal anyway, on stderr)")
-    group.add_argument("--call-timeout", type=float, metavar="SECONDS", default=default,
+    from .common import plain_number
+    group.add_argument("--call-timeout", type=plain_number, metavar="SECONDS", default=default,
                        help="stop when one call into the FMU's binary takes longer than this "
                             f"(default {DEFAULT_CALL_TIMEOUT:g}; 0: wait forever)")
 
@@ -99,6 +100,10 @@ def execute(args) -> int:
 
 def _call(args, caught: list) -> int:
     try:
+        plan = getattr(args, "plan", None)
+        if plan is not None:  # every output checked before any work
+            from .outputs import check
+            check(plan(args))
         args.func(args)
         sys.stdout.flush()
         if caught:  # kept back, but not lost: one line

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import guide
+from ..files import write_manifest
+from .common import guide, positive_number
 from .hybridize import summary
 
 
@@ -19,15 +20,21 @@ def add_demo_parser(subparsers, common) -> None:
                     "simulated once, then cached).")
     p.add_argument("--output", "-o", default="fmubuilder-demo", help="output folder (default: ./fmubuilder-demo)")
     p.add_argument("--force", action="store_true",
-                   help="replace an existing output folder; it is kept until the new run succeeds")
-    p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
+                   help="replace an output folder an earlier demo wrote; it is kept until the new run succeeds")
+    p.add_argument("--time-budget", type=positive_number, default=None, metavar="SECONDS",
                    help="optional wall-clock cap on the training (default: none; the work is counted in loss evaluations)")
-    p.set_defaults(func=cmd_demo, outputs=lambda args: [args.output])
+    p.set_defaults(func=cmd_demo, plan=_plan)
+
+
+def _plan(args):
+    from .outputs import Plan
+    return Plan(args.force, folders=[("--output", args.output)])   # --force replaces only an earlier demo
 
 
 def cmd_demo(args) -> None:
     from ..demo import run_demo
     result, example = run_demo(Path(args.output), force=args.force, time_budget=args.time_budget)
+    write_manifest(args.output)     # marks the folder as the demo's: a later --force may replace it
     print(summary(result))
     print(f"\nThe other data sets in {example}/ (extra_loss_*, no_effect_*) work the same way, e.g.\n"
           f"  fmubuilder hybridize {example}/vldm.fmu --train {example}/extra_loss_train_cadc.csv "

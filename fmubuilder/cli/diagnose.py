@@ -5,8 +5,11 @@ import json
 import math
 
 from ..errors import FmuBuilderError
-from ..files import refuse_existing, write_atomically
-from .common import guide, parse_assignments
+from ..files import make_folder, refuse_existing, write_atomically
+from .common import guide, number, parse_assignments
+from .outputs import Plan, inputs_with_sidecars
+
+PLOT_NAMES = ("signals.png", "residuals.png", "residual_vs_inputs.png")   # diagnose/plots.py
 
 
 def add_diagnose_parser(subparsers, common=None) -> None:
@@ -23,11 +26,14 @@ def add_diagnose_parser(subparsers, common=None) -> None:
                    help="start value of a parameter or state (repeatable; added to the data's sidecar values)")
     p.add_argument("--json", metavar="OUT.json", help="write the full diagnosis as JSON")
     p.add_argument("--plots", metavar="DIR", help="write PNG plots into this folder")
-    p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
+    p.add_argument("--time-budget", type=number, default=None, metavar="SECONDS",
                    help="optional upper cap on the tracing's wall time; the report says when it cut the tracing "
                         "short (default: none; the tracing's work is fixed by the model and the data)")
-    p.add_argument("--force", action="store_true", help="overwrite an existing JSON file")
-    p.set_defaults(func=cmd_diagnose, outputs=lambda args: [args.json, args.plots])
+    p.add_argument("--force", action="store_true", help="overwrite an existing JSON file and plots")
+    p.set_defaults(func=cmd_diagnose, plan=lambda args: Plan(
+        args.force, files=[("--json", args.json)] if args.json else [],
+        into=[("--plots", args.plots, PLOT_NAMES)] if args.plots else [],
+        inputs=inputs_with_sidecars(args.fmu, args.data)))
 
 
 def cmd_diagnose(args) -> None:
@@ -36,6 +42,8 @@ def cmd_diagnose(args) -> None:
     if args.time_budget is not None and not (math.isfinite(args.time_budget) and args.time_budget > 0):
         raise FmuBuilderError(f"--time-budget {args.time_budget:g}: give a positive number of seconds")
     json_path = refuse_existing(args.json, args.force) if args.json else None
+    if args.plots:
+        make_folder(args.plots)     # recorded: a failed run removes it again when it made it
     result = diagnose(args.fmu, args.data, start_values=parse_assignments(args.start), plots_dir=args.plots,
                       time_budget=args.time_budget)
     print(result.report())

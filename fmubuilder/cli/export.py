@@ -10,11 +10,13 @@ misses its tolerances.
 from __future__ import annotations
 
 import contextlib
+import os
 import tempfile
 from pathlib import Path
 
 from ..errors import FmuBuilderError
-from .common import guide, parse_assignments
+from .common import guide, parse_assignments, positive_number
+from .outputs import Plan
 
 
 def add_export_parsers(subparsers, common=None) -> None:
@@ -24,7 +26,7 @@ def add_export_parsers(subparsers, common=None) -> None:
     p.add_argument("trained", metavar="TRAINED", help="hybrid spec JSON or trained NeuralFMU file")
     p.add_argument("--output", "-o", required=True, metavar="HYBRID.fmu", help="the FMU to write")
     p.add_argument("--force", action="store_true", help="overwrite an existing output file")
-    p.set_defaults(func=cmd_export, outputs=lambda args: [args.output])
+    p.set_defaults(func=cmd_export, plan=_export_plan)
 
     p = subparsers.add_parser("validate", parents=parents, epilog=guide("docs/export.md"), help="check an exported hybrid FMU against the Python reference")
     p.add_argument("fmu", metavar="HYBRID.fmu", help="hybrid FMU written by `fmubuilder export`")
@@ -33,14 +35,44 @@ def add_export_parsers(subparsers, common=None) -> None:
     p.add_argument("--data", metavar="DATA.csv", help="input signals and time span: `time`, then FMU input columns")
     p.add_argument("--start", action="append", metavar="NAME=VALUE",
                    help="start value of a parameter, state or gate, e.g. hybrid.v.p_ann=0 (repeatable)")
-    p.add_argument("--stop-time", type=float, default=None, help="default: the FMU's DefaultExperiment")
-    p.add_argument("--step-size", type=float, default=None,
+    p.add_argument("--stop-time", type=positive_number, default=None, help="default: the FMU's DefaultExperiment")
+    p.add_argument("--step-size", type=positive_number, default=None,
                    help="fixed step and output interval (default: the FMU's DefaultExperiment stepSize)")
     p.set_defaults(func=cmd_validate)
 
 
+def _export_plan(args) -> Plan:
+    from ..export.wrapper import check_output_fmu
+    check_output_fmu(args.output, force=True)   # the name (.fmu); the existing file is the plan's check
+    return Plan(args.force, files=[("--output", args.output)], inputs=[args.trained])
+
+
+def _wrapped_fmus(trained: str) -> list[str]:
+    """The FMU a spec JSON or a trained NeuralFMU file wraps (an input too), when it names one."""
+    import json
+    path = Path(trained)
+    if not path.is_file():
+        return []
+    if _looks_like_json(path):
+        try:
+            data = json.loads(path.read_text())
+            return [str(path.resolve().parent / data["original_fmu"])]
+        except (OSError, ValueError, KeyError, TypeError):
+            return []   # the export reports what is wrong with the spec
+    from ..neural.io import read_neural_fmu
+    try:
+        return [str(read_neural_fmu(path)["fmu"]["path"])]
+    except (FmuBuilderError, KeyError, TypeError):
+        return []
+
+
 def cmd_export(args) -> None:
     from ..export.wrapper import export_hybrid, platform_note
+    from ..files import same_file
+    for fmu in _wrapped_fmus(args.trained):
+        if os.path.lexists(args.output) and same_file(args.output, fmu):
+            raise FmuBuilderError(f"--output {args.output} is the FMU {args.trained} wraps, an input of the export; "
+                                  "give the hybrid another path")
     with _spec_from(args.trained) as spec:
         output = export_hybrid(spec, args.output, force=args.force)
         print(f"wrote {output} ({platform_note(spec.original_fmu, output)})")

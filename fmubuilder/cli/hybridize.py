@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import os
 
-from .common import guide, loss_evaluations, parse_assignments, processes
+from ..errors import FmuBuilderError
+from .common import guide, loss_evaluations, parse_assignments, positive_number, processes, seed
+from .outputs import Plan, inputs_with_sidecars
 
 
 class _TrainFile(argparse.Action):
@@ -48,8 +51,8 @@ def add_hybridize_parser(subparsers, common=None) -> None:
                    help="the NeuralFMU training's work in loss evaluations, each a simulation of all training "
                         f"elements with its gradient (default {DEFAULT_BUDGET}); the same number gives the same "
                         "result on any machine")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the training (default 0)")
-    p.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
+    p.add_argument("--seed", type=seed, default=0, help="random seed of the training (0 to 2**32-1, default 0)")
+    p.add_argument("--time-budget", type=positive_number, default=None, metavar="SECONDS",
                    help="optional wall-clock cap on the training; the report says when it cut the training short "
                         "(the results then depend on the machine)")
     p.add_argument("--allow-insignificant", action="store_true",
@@ -64,12 +67,37 @@ def add_hybridize_parser(subparsers, common=None) -> None:
                         "term, 1 one after the other; the same numbers either way (default: 2 when the machine "
                         "has two cores)")
     p.add_argument("--force", action="store_true",
-                   help="overwrite the outputs; the old ones stay in place until the new ones are complete")
-    p.set_defaults(func=cmd_hybridize, outputs=lambda args: [args.output, args.report])
+                   help="overwrite the hybrid FMU and replace a report folder fmubuilder wrote; the old ones stay "
+                        "in place until the new ones are complete")
+    p.set_defaults(func=cmd_hybridize, plan=_plan)
+
+
+def _plan(args) -> Plan:
+    """The outputs and inputs, and what is wrong with the options, before any work."""
+    from ..export.wrapper import check_output_fmu
+    from ..files import same_file
+    if args.validation_start and not args.validation:
+        raise FmuBuilderError("--validation-start belongs to a --validation file; give --validation VAL.csv, or "
+                              "--train-start for the training file (its last part is the default validation data)")
+    train = [path for path, _ in args.train]
+    roles = [("--train", path) for path in train] + [("--validation", args.validation), ("--test", args.test)]
+    roles = [(option, path) for option, path in roles if path]
+    for i, (option, path) in enumerate(roles):
+        for other_option, other in roles[:i]:
+            if os.path.isfile(path) and os.path.isfile(other) and same_file(path, other):
+                raise FmuBuilderError(f"{option} {path} is also given as {other_option}: data have one role each "
+                                      "(the test data are held out of training and choice); give another file")
+    check_output_fmu(args.output, force=True)       # its name; the existing file is the plan's check
+    return Plan(args.force, files=[("--output", args.output)], folders=[("--report", args.report)],
+                inputs=inputs_with_sidecars(args.fmu, *train, args.validation, args.test))
 
 
 def cmd_hybridize(args) -> None:
+    from ..export.wrapper import check_model_identifier
+    from ..fmi import read_model_info
     from ..hybridize.workflow import hybridize
+    # a name the export refuses, found now rather than after the training
+    check_model_identifier(read_model_info(args.fmu).model_identifier, args.fmu)
     train = [path for path, _ in args.train]
     train_start = [parse_assignments(starts, "--train-start") for _, starts in args.train]
     result = hybridize(args.fmu, train, args.test, args.output, args.report, validation_csv=args.validation,

@@ -9,8 +9,10 @@ worker runs beside it (fmi/side_process.py) leaves its crumbs on a page of its o
 watches its calls the same way and stops it with the worker.
 
 The parent also owns the command's temporary folder (the worker's TMPDIR: extracted FMUs,
-build folders) and removes it on every exit path, together with the outputs the failed
-command created and the `.partial` leftovers of interrupted atomic writes.
+build folders) and removes it on every exit path. After a failure it removes what the command
+created, and only that: the paths the worker recorded in its journal (files.py: its staged files
+and folders, the outputs it created where nothing was), each only while it is still the one the
+command made; never a file another process wrote meanwhile or one the user had.
 """
 from __future__ import annotations
 
@@ -25,7 +27,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from ..files import PARTIAL_SUFFIX, partial_files
+from ..files import JOURNAL_ENV, remove_created
 from ..fmi import breadcrumb
 from ..fmi.breadcrumb import CALL, HELPER, PID_SLOT, PING_SLOT, REPORT_SLOT, REPORTED
 
@@ -39,7 +41,8 @@ def run_supervised(args, execute) -> int:
     outputs = _declared_outputs(args)
     before = {path: _fingerprint(path) for path in outputs}
     temp_root = Path(tempfile.mkdtemp(prefix="fmubuilder-run-"))
-    pid = None
+    journal = temp_root / "created.jsonl"
+    pid, code, message, hint = None, 2, "", ""
     try:
         breadcrumb.reset()
         sys.stdout.flush()
@@ -47,7 +50,7 @@ def run_supervised(args, execute) -> int:
         pid = os.fork()
         if pid == 0:
             try:
-                _worker(args, execute, temp_root)
+                _worker(args, execute, temp_root, journal)
             finally:
                 os._exit(2)  # never run the parent's code in the worker
         code, message, hint = _Supervisor(pid, args.call_timeout).wait()
@@ -58,9 +61,10 @@ def run_supervised(args, execute) -> int:
         code, message, hint = 130, "interrupted", ""
     finally:
         _stop_helper()   # a worker that died cannot stop its helper
+        if code != 0:
+            remove_created(journal)
         shutil.rmtree(temp_root, ignore_errors=True)
     if code != 0:
-        _remove_outputs_of_failed_run(before)
         changed = [str(path) for path, fingerprint in before.items() if _fingerprint(path) != fingerprint]
         if message:
             message += "; " + ("written before the failure: " + ", ".join(changed) if changed else "nothing was written")
@@ -73,10 +77,11 @@ def run_supervised(args, execute) -> int:
 
 # -- worker --------------------------------------------------------------------------------
 
-def _worker(args, execute, temp_root: Path) -> None:
+def _worker(args, execute, temp_root: Path, journal: Path) -> None:
     code = 2
     try:
         os.environ["TMPDIR"] = str(temp_root)  # for the worker and the tools it starts
+        os.environ[JOURNAL_ENV] = str(journal)  # what it creates, for the clean-up of a failure
         tempfile.tempdir = str(temp_root)
         signal.signal(signal.SIGUSR1, _answer_ping)
         signal.siginterrupt(signal.SIGUSR1, False)  # a ping must not fail the FMU's system calls
@@ -251,8 +256,12 @@ def _open_pidfd(pid: int):
 # -- outputs -------------------------------------------------------------------------------
 
 def _declared_outputs(args) -> list[Path]:
-    declare = getattr(args, "outputs", None)
-    return [Path(p) for p in (declare(args) if declare else []) if p]
+    from ..errors import FmuBuilderError
+    plan = getattr(args, "plan", None)
+    try:
+        return plan(args).paths() if plan else []
+    except FmuBuilderError:     # the worker reports it, before any work
+        return []
 
 
 def _fingerprint(path: Path):
@@ -261,22 +270,3 @@ def _fingerprint(path: Path):
     except OSError:
         return None
     return stat.st_mtime_ns, stat.st_size
-
-
-def _remove_outputs_of_failed_run(before: dict) -> None:
-    """Remove the outputs a failed command created and leftovers of its atomic writes."""
-    for path, fingerprint in before.items():
-        for partial in partial_files(path):     # files, or folders staged to replace a folder
-            _remove(partial)
-        if fingerprint is None:
-            _remove(path)
-        elif path.is_dir():
-            for partial in path.rglob(f".*{PARTIAL_SUFFIX}"):
-                _remove(partial)
-
-
-def _remove(path: Path) -> None:
-    if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path, ignore_errors=True)
-    else:
-        path.unlink(missing_ok=True)

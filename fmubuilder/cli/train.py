@@ -2,9 +2,12 @@
 from __future__ import annotations
 
 import argparse
+import os
 
 from ..errors import FmuBuilderError
-from .common import guide, loss_evaluations, parse_assignments, parse_names
+from .common import (guide, fraction, loss_evaluations, number, parse_assignments, parse_names,
+                     positive_number, seed, whole_number)
+from .outputs import Plan, inputs_with_sidecars
 
 
 def add_train_parser(subparsers, common=None) -> argparse.ArgumentParser:
@@ -26,29 +29,29 @@ def add_train_parser(subparsers, common=None) -> argparse.ArgumentParser:
     p.add_argument("--activation", default="tanh", choices=["tanh", "sigmoid", "relu"])
     p.add_argument("--parameters", metavar="A,B", help="tunable FMU parameters to train as well")
     work = p.add_mutually_exclusive_group()
-    work.add_argument("--epochs", type=int, help="default 30")
+    work.add_argument("--epochs", type=whole_number(0), help="default 30")
     work.add_argument("--budget", type=loss_evaluations, metavar="N",
                       help="train for N loss evaluations (each a simulation of a batch with its gradient) instead of "
                            "epochs")
     p.add_argument("--optimizer", default="adam", choices=["adam", "lbfgs"],
                    help="adam: one step per batch; lbfgs: one step over all elements per epoch, its line search "
                         "up to 10 loss evaluations (default adam)")
-    p.add_argument("--time-budget", type=float, metavar="SECONDS", help="stop training after this many seconds")
-    p.add_argument("--element-length", type=float, default=100.0, metavar="SECONDS", help="batch element length (default 100)")
-    p.add_argument("--batch-size", type=int, default=0, help="elements per optimizer step (default: all)")
+    p.add_argument("--time-budget", type=positive_number, metavar="SECONDS", help="stop training after this many seconds")
+    p.add_argument("--element-length", type=positive_number, default=100.0, metavar="SECONDS", help="batch element length (default 100)")
+    p.add_argument("--batch-size", type=whole_number(0), default=0, help="elements per optimizer step (default: all)")
     p.add_argument("--order", default="random", choices=["random", "sequential"])
-    p.add_argument("--step-size", type=float, help="solver step (default: the FMU's DefaultExperiment stepSize)")
+    p.add_argument("--step-size", type=positive_number, help="solver step (default: the FMU's DefaultExperiment stepSize)")
     p.add_argument("--solver", default="euler", choices=["euler", "rk4"])
-    p.add_argument("--lr", type=float, default=3e-3, help="Adam step size (default 3e-3)")
-    p.add_argument("--decay", type=float, default=0.95, help="step-size factor per epoch (default 0.95)")
-    p.add_argument("--nipt", type=int, default=400, metavar="ITERATIONS", help="neutral pre-training iterations (gates)")
-    p.add_argument("--ccpt", type=int, default=0, metavar="ITERATIONS", help="collocation pre-training iterations (default off)")
+    p.add_argument("--lr", type=positive_number, default=3e-3, help="Adam step size (default 3e-3)")
+    p.add_argument("--decay", type=fraction, default=0.95, help="step-size factor per epoch (default 0.95)")
+    p.add_argument("--nipt", type=whole_number(0), default=400, metavar="ITERATIONS", help="neutral pre-training iterations (gates)")
+    p.add_argument("--ccpt", type=whole_number(0), default=0, metavar="ITERATIONS", help="collocation pre-training iterations (default off)")
     p.add_argument("--loss", metavar="A,B", help="signals in the loss (default: all measured)")
-    p.add_argument("--sensor-lag", type=float, metavar="SECONDS",
+    p.add_argument("--sensor-lag", type=number, metavar="SECONDS",
                    help="time constant of the sensors' first-order lag, applied to the simulated signals before "
                         "they meet the data (default: the bench's, recorded next to data from `fmubuilder synth`; else 0)")
     p.add_argument("--test-data", metavar="CSV", help="held-out data: its errors are added to the metrics")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed, default=0, help=f"random seed (0 to 2**32-1, default 0)")
     p.add_argument("--resume", action="store_true",
                    help="continue from the checkpoint TRAINED.ckpt up to --epochs in all (same settings as before)")
     p.add_argument("--output", "-o", required=True, metavar="TRAINED",
@@ -57,8 +60,21 @@ def add_train_parser(subparsers, common=None) -> argparse.ArgumentParser:
                         "--resume; delete it when the training is done")
     p.add_argument("--json", metavar="METRICS.json", help="write the errors before/after training as JSON")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
-    p.set_defaults(func=cmd_train, outputs=lambda args: [] if args.resume else [args.output, args.json])
+    p.set_defaults(func=cmd_train, plan=_plan)
     return p
+
+
+def _plan(args) -> Plan:
+    checkpoint = f"{args.output}.ckpt"
+    files = [("--output", args.output)] + ([("--json", args.json)] if args.json else [])
+    if args.resume:
+        if not os.path.isfile(checkpoint):
+            raise FmuBuilderError(f"no checkpoint {checkpoint} to resume from; train without --resume "
+                                  "(with --force to replace the earlier output)")
+    else:
+        files.append(("the checkpoint of --output", checkpoint))
+    return Plan(args.force or args.resume, files=files,
+                inputs=inputs_with_sidecars(args.fmu, args.data, args.test_data) + ([checkpoint] if args.resume else []))
 
 
 def cmd_train(args) -> None:

@@ -16,7 +16,7 @@ import zlib
 from pathlib import Path
 
 from ..errors import FmuBuilderError, first_line
-from .model import ModelInfo, model_info_from_fmpy
+from .model import ModelInfo, check_model_description, model_info_from_fmpy
 
 PLATFORM = "linux64"
 # FMI 2.0.4 / 3.0 build description: which sources to compile with which definitions.
@@ -54,6 +54,7 @@ def read_model_info(path: str | Path) -> ModelInfo:
     _check_version(path)
     md = _parse_model_description(path)
     _check_kind(path, md)
+    check_model_description(md, path)
     binary = binary_entry(md.modelExchange.modelIdentifier)
     if binary not in names and not _ships_sources(names, md):
         platforms = binary_platforms(names)
@@ -114,8 +115,9 @@ def _check_version(path: Path) -> None:
     try:
         with zipfile.ZipFile(path) as zf, zf.open("modelDescription.xml") as xml:
             _, root = next(ET.iterparse(xml, events=("start",)))
-    except (ET.ParseError, StopIteration) as exc:
-        raise FmuBuilderError(f"{path}: cannot read modelDescription.xml ({exc})") from None
+    except (ET.ParseError, StopIteration, LookupError, ValueError) as exc:   # LookupError: unknown encoding
+        raise FmuBuilderError(f"{path}: cannot read modelDescription.xml ({first_line(exc)}); "
+                              "re-export the model (FMI 2.0 model descriptions are UTF-8)") from None
     except _CORRUPT as exc:
         raise corrupt(path, exc, "modelDescription.xml") from None
     version = root.get("fmiVersion", "unknown")

@@ -106,6 +106,77 @@ def _float(literal) -> float | None:
     return None if literal is None else float(literal)
 
 
+# FMI 2.0's enumerations (modelDescription schema, fmi2ScalarVariable)
+CAUSALITIES = ("parameter", "calculatedParameter", "input", "output", "local", "independent")
+VARIABILITIES = ("constant", "fixed", "tunable", "discrete", "continuous")
+INITIALS = ("exact", "approx", "calculated")
+
+
+def check_model_description(md, source) -> None:
+    """What fmpy reads without validating, checked: a GUID, unique variable names, the declared
+    enumerations (causality, variability, initial), start values that are values of their type, and
+    value references shared only by true aliases (never by two states or two derivatives, nor with
+    different start values). One FmuBuilderError naming the variable."""
+    where = f"{source}: modelDescription.xml"
+    if not (md.guid or "").strip():
+        raise FmuBuilderError(f"{where} has no guid attribute; FMI 2.0 requires one: re-export the model")
+    seen = {}
+    for sv in md.modelVariables:
+        if sv.name in seen:
+            raise FmuBuilderError(f"{where} declares the variable '{sv.name}' twice; variable names must be unique: "
+                                  "re-export the model")
+        seen[sv.name] = sv
+        for attribute, value, allowed in (("causality", sv.causality, CAUSALITIES),
+                                          ("variability", sv.variability, VARIABILITIES),
+                                          ("initial", sv.initial, INITIALS)):
+            if value is not None and value not in allowed:
+                raise FmuBuilderError(f"{where}: variable '{sv.name}' has {attribute}=\"{value}\", which FMI 2.0 does "
+                                      f"not define (one of {', '.join(allowed)}); fix the model description")
+        if sv.start is not None and not _is_value_of(sv.type, sv.start):
+            raise FmuBuilderError(f"{where}: variable '{sv.name}' ({sv.type}) has start=\"{sv.start}\", not a "
+                                  f"{sv.type} value; fix the model description")
+        try:
+            int(sv.valueReference)
+        except (TypeError, ValueError):
+            raise FmuBuilderError(f"{where}: variable '{sv.name}' has valueReference=\"{sv.valueReference}\", not a "
+                                  "whole number; fix the model description") from None
+    _check_aliases(md, where)
+
+
+def _is_value_of(kind: str, text) -> bool:
+    text = str(text).strip()
+    if kind in ("Real", "Integer", "Enumeration") and "_" in text:
+        return False
+    try:
+        if kind == "Real":
+            float(text)
+        elif kind in ("Integer", "Enumeration"):
+            int(text)
+        elif kind == "Boolean":
+            return text in ("true", "false", "1", "0")
+    except ValueError:
+        return False
+    return True
+
+
+def _check_aliases(md, where: str) -> None:
+    """Variables of one base type sharing a value reference are one value (aliases): two of them that
+    are different states, different derivatives, or start from different values are a wrong reference."""
+    states = {id(u.variable.derivative) for u in md.derivatives if u.variable.derivative is not None}
+    derivatives = {id(u.variable) for u in md.derivatives}
+    first = {}
+    for sv in md.modelVariables:
+        key = (API_TYPE.get(sv.type, sv.type), int(sv.valueReference))
+        other = first.setdefault(key, sv)
+        if other is sv:
+            continue
+        clash = ((id(sv) in states and id(other) in states) or (id(sv) in derivatives and id(other) in derivatives)
+                 or (sv.start is not None and other.start is not None and str(sv.start) != str(other.start)))
+        if clash:
+            raise FmuBuilderError(f"{where}: variables '{other.name}' and '{sv.name}' share the value reference "
+                                  f"{key[1]} but are different values; give each its own valueReference")
+
+
 def model_info_from_fmpy(md) -> ModelInfo:
     """Convert fmpy's ModelDescription of an FMI 2.0 ME FMU into a ModelInfo."""
     by_fmpy_var = {}

@@ -144,6 +144,12 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
     settings = _settings(settings, overrides)
     started = time.perf_counter()
     _check_outputs(output, metrics_path, force)
+    checkpoint = _checkpoint_path(settings, output)
+    if settings.resume and (checkpoint is None or not checkpoint.is_file()):
+        raise FmuBuilderError(f"no checkpoint {checkpoint} to resume from; train without --resume "
+                              "(with --force to replace the earlier output)")
+    if checkpoint is not None and not settings.resume:
+        refuse_existing(checkpoint, force)    # another training's state, kept for its --resume
     _seed(settings.seed)
     if settings.threads:
         torch.set_num_threads(settings.threads)
@@ -151,15 +157,18 @@ def train_neural_fmu(fmu: str | Path, data: str | Path | MeasuredData, *, target
                             activation=activation, kind=topology, parameters=list(parameters),
                             base_terms=[dict(t) for t in base_terms],
                             channel_inputs=[list(names) for names in channel_inputs])
+    if not isinstance(data, MeasuredData):     # a data file: its sidecar's start values, under the given ones
+        from ..fmi import read_model_info
+        data = load_data(data, read_model_info(fmu))
+        start_values = {**data.start_values, **(start_values or {})}
     model = NeuralFMU(fmu, config, start_values)
     try:
-        data = data if isinstance(data, MeasuredData) else load_data(data, model.info)
         if settings.sensor_lag is None:
             settings.sensor_lag = data.sensor_lag
         trainer = Trainer(model, data, settings, started, validation)
         trainer.prepare()
         before = trainer.errors(data, plain=True)
-        trainer.fit(checkpoint=_checkpoint_path(settings, output), on_epoch=on_epoch)
+        trainer.fit(checkpoint=checkpoint, on_epoch=on_epoch)
         metrics = {"errors": {"before": before, "after": trainer.errors(data)},
                    "seconds": time.perf_counter() - started, "epochs": trainer.epochs_done,
                    "epochs_planned": settings.epochs if settings.budget is None else None,

@@ -68,3 +68,38 @@ def test_broken_binary(tmp_path, bouncing_ball_fmu):
     proc = run_cli("simulate", path, "--stop-time", "0.1")
     assert_one_line_error(proc, "cannot load the FMU binary", "export the FMU again")
     assert os.fspath(tmp_path) not in proc.stderr.split("(")[1]  # the loader's reason, not the temp paths
+
+
+# -- what fmpy reads without validating, checked ------------------------------------------------
+
+def _alias_of_h(text: str) -> str:
+    """An output alias of the state h: the same valueReference and type, no start of its own."""
+    alias = ('<ScalarVariable name="height" valueReference="0" causality="local" variability="continuous">'
+             '<Real unit="m"/></ScalarVariable>\n  ')
+    return text.replace("</ModelVariables>", alias + "</ModelVariables>", 1)     # last: the indices stay
+
+
+def test_true_aliases_are_accepted(tmp_path, bouncing_ball_fmu):
+    from fmubuilder.fmi import read_model_info
+    info = read_model_info(rewrite_fmu(bouncing_ball_fmu, tmp_path / "alias.fmu", xml=_alias_of_h))
+    assert info.variables["height"].value_reference == info.variables["h"].value_reference == 0
+
+
+def test_an_alias_with_another_start_value_is_refused(tmp_path, bouncing_ball_fmu):
+    from fmubuilder.errors import FmuBuilderError
+    from fmubuilder.fmi import read_model_info
+    edit = lambda text: _alias_of_h(text).replace('<Real unit="m"/>', '<Real unit="m" start="2"/>', 1)  # noqa: E731
+    path = rewrite_fmu(bouncing_ball_fmu, tmp_path / "alias.fmu", xml=edit)
+    try:
+        read_model_info(path)
+    except FmuBuilderError as exc:
+        assert "'h' and 'height' share the value reference 0" in str(exc)
+    else:
+        raise AssertionError("an alias starting elsewhere was accepted")
+
+
+def test_every_bundled_example_passes_the_checks():
+    from fmubuilder.build import example_fmu, list_examples
+    from fmubuilder.fmi import read_model_info
+    for name in list_examples():
+        assert read_model_info(example_fmu(name)).guid

@@ -1,9 +1,10 @@
-"""--force only overwrites, and the old outputs stay until the new ones are complete;
---allow-insignificant (not --force) builds a hybrid without a significant effect."""
+"""--force only overwrites, only a report folder fmubuilder made, and the old outputs stay until the
+new ones are complete; --allow-insignificant (not --force) builds a hybrid without a significant effect."""
 import pytest
 
 from fmubuilder.build import example_fmu
 from fmubuilder.errors import FmuBuilderError
+from fmubuilder.files import MANIFEST_NAME, write_manifest
 from fmubuilder.hybridize import hybridize, report as report_module
 
 from .test_hybridize import assert_one_line_error, measure, run_cli
@@ -24,12 +25,14 @@ def old_results(tmp_path):
     fmu.write_bytes(OLD_FMU)
     report.mkdir()
     (report / "report.md").write_text(OLD_REPORT)
+    write_manifest(report)      # an earlier run's report: fmubuilder made it
     return fmu, report
 
 
 def assert_untouched(fmu, report):
     assert fmu.read_bytes() == OLD_FMU
-    assert [p.name for p in report.iterdir()] == ["report.md"] and (report / "report.md").read_text() == OLD_REPORT
+    assert sorted(p.name for p in report.iterdir()) == [MANIFEST_NAME, "report.md"]
+    assert (report / "report.md").read_text() == OLD_REPORT
     leftovers = [p.name for p in report.parent.iterdir() if p.name.startswith(".")]
     assert leftovers == [], leftovers
 
@@ -63,6 +66,15 @@ def test_force_replaces_the_report_when_the_run_succeeds(no_effect, old_results)
     assert result.report_dir == report and not result.report["diagnosis"]["significant"]
     assert "No significant effect" in (report / "report.md").read_text()
     assert (report / "report.json").is_file()
+    assert [p.name for p in report.parent.iterdir() if p.name.startswith(".")] == []
+
+
+def test_force_refuses_a_report_folder_fmubuilder_did_not_make(no_effect, old_results):
+    fmu, report = old_results
+    (report / "thesis.txt").write_text("years of work")
+    with pytest.raises(FmuBuilderError, match="thesis.txt"):
+        hybridize(example_fmu("dc_drive"), no_effect[0], no_effect[1], fmu, report, force=True, progress=False)
+    assert (report / "thesis.txt").read_text() == "years of work" and fmu.read_bytes() == OLD_FMU
     assert [p.name for p in report.parent.iterdir() if p.name.startswith(".")] == []
 
 
