@@ -53,15 +53,38 @@ def test_the_vldm_and_a_reference_fmu(capsys):
     assert not declared_not_needed(ball) and inspect_line(ball, capsys) == "yes"
 
 
+@pytest.mark.parametrize("engine", ["python", "compiled"])
 @pytest.mark.parametrize("value", ["true", "false"])
-def test_the_engine_calls_completed_integrator_step_only_when_needed(value, tmp_path, monkeypatch):
+def test_the_engine_calls_completed_integrator_step_only_when_needed(value, engine, tmp_path, monkeypatch):
     calls = []
-    original = FmuInstance.completed_integrator_step
+    if engine == "python":
+        monkeypatch.setenv("FMUBUILDER_ENGINE", "python")
+        original = FmuInstance.completed_integrator_step
 
-    def counting(self, *args, **kwargs):
-        calls.append(1)
-        return original(self, *args, **kwargs)
-    monkeypatch.setattr(FmuInstance, "completed_integrator_step", counting)
+        def counting(self, *args, **kwargs):
+            calls.append(1)
+            return original(self, *args, **kwargs)
+        monkeypatch.setattr(FmuInstance, "completed_integrator_step", counting)
+    else:
+        count_core_calls(monkeypatch, calls)
     result = simulate(declaring(tmp_path, value), stop_time=1.0, solver="rk4", step_size=0.01)
     assert len(result.time) > 10
     assert (len(calls) > 0) == (value == "false")
+
+
+def count_core_calls(monkeypatch, calls):
+    """The compiled core's fmi2CompletedIntegratorStep passes through a counting callback."""
+    from fmubuilder.simulation import core
+    original, kept = core._fmu, []
+
+    def with_counter(ffi, system, plan):
+        fmu = original(ffi, system, plan)
+        binary = fmu.completed_integrator_step
+
+        def counting(component, no_prior_state, enter_event_mode, terminate):
+            calls.append(1)
+            return binary(component, no_prior_state, enter_event_mode, terminate)
+        kept.append(ffi.callback("core_completed_step_fn", counting))
+        fmu.completed_integrator_step = kept[-1]
+        return fmu
+    monkeypatch.setattr(core, "_fmu", with_counter)
