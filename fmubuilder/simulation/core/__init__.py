@@ -28,9 +28,9 @@ from ...errors import FmuBuilderError, first_line
 from ...fmi import breadcrumb
 from ...fmi.binding import ffi as fmi_ffi
 from ...fmi.instance import FmuCallError
-from ..solvers import step_size_underflow
 from ..events import MAX_CUT_STEPS_IN_A_ROW, MAX_EVENTS_AT_ONE_TIME, RELATIVE_TIME_TOLERANCE, time_scale, \
     time_tolerance
+from ..solvers import step_size_underflow
 
 SOURCE_DIR = Path(__file__).resolve().parent
 SOURCES = ("CMakeLists.txt", "event_loop.c", "event_loop.h")
@@ -48,14 +48,18 @@ CALLS = (
     ("fmi2CompletedIntegratorStep", "completed_integrator_step"), ("fmi2EnterEventMode", "enter_event_mode"),
     ("fmi2EnterContinuousTimeMode", "enter_continuous_time_mode"), ("fmi2NewDiscreteStates", "new_discrete_states"),
 )
+# The values of event_loop.h's enums.
 SOLVERS = {"euler": 0, "rk4": 1, "dopri5": 2}
-COLUMN_STATE, COLUMN_DISCRETE, COLUMN_COMPUTED = 0, 1, 2
+COLUMN_STATE, COLUMN_DISCRETE, COLUMN_COMPUTED, COLUMN_DERIVATIVE = 0, 1, 2, 3
 TYPES = {"Real": 0, "Integer": 1, "Boolean": 2}
+SOURCE_STATE, SOURCE_DERIVATIVE, SOURCE_VARIABLE = 0, 1, 2
+ACTIVATIONS = {None: 0, "tanh": 1, "sigmoid": 2, "relu": 3}
 EVENT_KINDS = ("time", "state", "step")
 CORE_FMI_ERROR, CORE_EVENT_STORM, CORE_CHATTERING, CORE_NO_MEMORY, CORE_STEP_UNDERFLOW = 1, 2, 3, 4, 5
 
 
 def enabled() -> bool:
+    """Whether the core runs what it can (not with FMUBUILDER_ENGINE=python)."""
     return os.environ.get(ENGINE_VARIABLE, "").strip().lower() != "python"
 
 
@@ -104,10 +108,6 @@ class Correction:
     term_bias: float = 0.0
     term_gate: float = 0.0
 
-
-SOURCE_STATE, SOURCE_DERIVATIVE, SOURCE_VARIABLE = 0, 1, 2
-ACTIVATIONS = {None: 0, "tanh": 1, "sigmoid": 2, "relu": 3}
-COLUMN_DERIVATIVE = 3
 
 
 @dataclass
