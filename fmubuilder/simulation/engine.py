@@ -3,7 +3,8 @@ instance with any solver of solvers.py, recording the outputs on the way: the ou
 (after the events at that time) before each step and at the stop, those inside a step from the
 solver's dense output. A fixed-step solver also ends a step at each output time, every solver at
 each input kink (a breakpoint, where it restarts). Times within events.time_tolerance are one
-instant (docs/ARCHITECTURE.md, "Event handling").
+instant (docs/ARCHITECTURE.md, "Event handling"). `run` hands every run the compiled core can take
+(core.applies) to that loop in C, which is this one written again; the rest runs here.
 """
 from __future__ import annotations
 
