@@ -585,7 +585,9 @@ static int interpolate(Loop *loop, double t, double *out)
 
 /* ---- recording ---------------------------------------------------------------------------- */
 
-static int grow(void **array, size_t *capacity, size_t needed, size_t item)
+/* Room for `needed` entries in two arrays of one capacity (times and rows, event times and
+ * kinds): both grow together, by doubling, only when full. */
+static int grow(Loop *loop, size_t *capacity, size_t needed, void **a, size_t a_item, void **b, size_t b_item)
 {
     if (needed <= *capacity) {
         return 0;
@@ -594,11 +596,16 @@ static int grow(void **array, size_t *capacity, size_t needed, size_t item)
     while (wanted < needed) {
         wanted *= 2;
     }
-    void *bigger = realloc(*array, wanted * item);
-    if (bigger == NULL) {
+    void *bigger_a = realloc(*a, wanted * a_item);
+    if (bigger_a != NULL) {
+        *a = bigger_a;
+    }
+    void *bigger_b = bigger_a != NULL ? realloc(*b, wanted * b_item) : NULL;
+    if (bigger_b == NULL) {
+        loop->res->error = CORE_NO_MEMORY;
         return 1;
     }
-    *array = bigger;
+    *b = bigger_b;
     *capacity = wanted;
     return 0;
 }
@@ -658,16 +665,8 @@ static int record(Loop *loop, const double *times, size_t count, double t, const
         loop->row[j] = kind == COLUMN_STATE ? x[index] : kind == COLUMN_DISCRETE ? loop->discrete_cache[index]
                        : kind == COLUMN_COMPUTED ? loop->computed[index] : loop->recorded_dx[index];
     }
-    if (grow((void **)&r->times, &r->row_capacity, r->n_rows + count, sizeof(double))) {
-        r->error = CORE_NO_MEMORY;
-        return 1;
-    }
-    double *rows = realloc(r->rows, r->row_capacity * (p->n_columns ? p->n_columns : 1) * sizeof(double));
-    if (rows == NULL) {
-        r->error = CORE_NO_MEMORY;
-        return 1;
-    }
-    r->rows = rows;
+    TRY(grow(loop, &r->row_capacity, r->n_rows + count, (void **)&r->times, sizeof(double), (void **)&r->rows,
+             (p->n_columns ? p->n_columns : 1) * sizeof(double)));
     for (size_t k = 0; k < count; ++k) {
         r->times[r->n_rows] = times[k];
         memcpy(r->rows + r->n_rows * p->n_columns, loop->row, p->n_columns * sizeof(double));
@@ -919,16 +918,8 @@ static int event(Loop *loop, int kind)
     const CorePlan *p = loop->plan;
     CoreResult *r = loop->res;
     double t = loop->t;
-    if (grow((void **)&r->event_times, &r->event_capacity, r->n_events + 1, sizeof(double))) {
-        r->error = CORE_NO_MEMORY;
-        return 1;
-    }
-    int *kinds = realloc(r->event_kinds, r->event_capacity * sizeof(int));
-    if (kinds == NULL) {
-        r->error = CORE_NO_MEMORY;
-        return 1;
-    }
-    r->event_kinds = kinds;
+    TRY(grow(loop, &r->event_capacity, r->n_events + 1, (void **)&r->event_times, sizeof(double),
+             (void **)&r->event_kinds, sizeof(int)));
     r->event_times[r->n_events] = t;
     r->event_kinds[r->n_events] = kind;
     r->n_events += 1;
