@@ -8,8 +8,10 @@ output goes to `log.txt` there, which also holds the command, to rerun the case 
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -26,6 +28,9 @@ LOG_NAME = "log.txt"
 # the stage lines hybridize prints: "[2/5] training a NeuralFMU ..."
 STAGE_LINE = re.compile(r"^\[(\d+)/(\d+)\] (.*?)(?: \.\.\.)?$")
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+# seconds an interrupted case's command gets to clean up, within the 5 that the batch's own
+# supervisor gives the batch (cli/supervise.py INTERRUPT_GRACE); one still running then is killed
+INTERRUPT_WAIT = 3.0
 PACKAGE_ROOT = Path(__file__).resolve().parents[2]      # the folder that holds fmubuilder/
 
 
@@ -88,9 +93,12 @@ class Run:
         self.log = open(folder / LOG_NAME, "w", encoding="utf-8")
         self.log.write(f"$ {shown(argv)}\n")
         self.log.flush()
+        # a process group of its own: the case's supervisor, its worker and the worker's helper are
+        # interrupted, or killed, as one (run.stop)
         self.process = subprocess.Popen([sys.executable, "-m", "fmubuilder.cli", *argv], cwd=folder,
                                         env=_environment(threads), stdin=subprocess.DEVNULL,
-                                        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                                        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                        start_new_session=True)
 
     def finish(self) -> Outcome:
         """Read its output to the end, keeping the stage up to date; the outcome when it has ended."""
@@ -114,9 +122,34 @@ class Run:
         return Outcome("failed", last_error or _exit_reason(code), seconds)
 
 
+def interrupt(runs: list[Run], wait: float) -> None:
+    """Interrupt the cases' commands as Ctrl-C does (each cleans up what it wrote); kill the process
+    group of one that has not ended after `wait` seconds (an FMU stuck in a call cannot see it)."""
+    for run in runs:
+        _signal_group(run.process, signal.SIGINT)
+    deadline = time.monotonic() + wait
+    for run in runs:
+        try:
+            run.process.wait(max(deadline - time.monotonic(), 0.01))
+        except subprocess.TimeoutExpired:
+            _signal_group(run.process, signal.SIGKILL)
+            run.process.wait()
+
+
+def _signal_group(process: subprocess.Popen, sig: int) -> None:
+    with contextlib.suppress(ProcessLookupError, PermissionError):
+        os.killpg(process.pid, sig)
+
+
 def run_case(argv: list[str], folder: Path, threads: int = 1) -> Outcome:
-    """Run a case's command in `folder` to its end (a Ray worker's way)."""
-    return Run(argv, folder, threads).finish()
+    """Run a case's command in `folder` to its end (a Ray task's way); when the caller is interrupted
+    (a cancelled task), the command is too."""
+    run = Run(argv, folder, threads)
+    try:
+        return run.finish()
+    except BaseException:
+        interrupt([run], INTERRUPT_WAIT)
+        raise
 
 
 def _environment(threads: int) -> dict:
@@ -134,6 +167,5 @@ def _environment(threads: int) -> dict:
 
 def _exit_reason(code: int) -> str:
     if code < 0:
-        import signal
         return f"the case's process was killed ({signal.Signals(-code).name})"
     return f"the case's command ended with exit code {code} and no message; see its {LOG_NAME}"

@@ -5,20 +5,15 @@ does everything else (staging folders, publishing), one case after the other as 
 """
 from __future__ import annotations
 
-import signal
-import subprocess
 import threading
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from typing import Callable, Iterator
 
 from ..errors import first_line
-from .case import Outcome, Run
+from .case import INTERRUPT_WAIT, Outcome, Run, interrupt
 from .jobs import Job
 
 WAIT = 0.5                  # seconds between redraws of the stage line
-# seconds an interrupted case's command gets to clean up, within the 5 the batch's own supervisor
-# gives the batch (cli/supervise.py INTERRUPT_GRACE); one still running then is killed
-INTERRUPT_WAIT = 4.0
 
 
 def run_locally(jobs: list[Job], processes: int, threads: int,
@@ -60,19 +55,5 @@ def run_locally(jobs: list[Job], processes: int, threads: int,
         stopping.set()
         with lock:
             runs = list(running.values())
-        _stop(runs)
+        interrupt(runs, INTERRUPT_WAIT)
         pool.shutdown(wait=True, cancel_futures=True)
-
-
-def _stop(runs: list[Run]) -> None:
-    """Interrupt the cases' commands as Ctrl-C does (each cleans up what it wrote), then wait; kill
-    one that does not end in time."""
-    for run in runs:
-        if run.process.poll() is None:
-            run.process.send_signal(signal.SIGINT)
-    for run in runs:
-        try:
-            run.process.wait(INTERRUPT_WAIT)
-        except subprocess.TimeoutExpired:
-            run.process.kill()
-            run.process.wait()

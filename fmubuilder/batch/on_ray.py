@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from ..errors import FmuBuilderError, first_line
-from .case import Outcome, command_line, run_case
+from .case import INTERRUPT_WAIT, Outcome, command_line, run_case
 from .jobs import Job
 from .manifest import Case
 
@@ -61,10 +61,18 @@ def run_on_ray(jobs: list[Job], processes: int, threads: int, address: str | Non
                 job = pending.pop(ref)
                 yield job, _collect(ray, ref, job)
     finally:
-        for ref in pending:
-            ray.cancel(ref, force=True)
+        _cancel(ray, list(pending))
         if started_here:
             ray.shutdown()
+
+
+def _cancel(ray, refs: list) -> None:
+    """Stop the tasks still queued or running; a running one interrupts its case's command (run_case)
+    and gets the time to clean up."""
+    for ref in refs:
+        ray.cancel(ref)
+    if refs:
+        ray.wait(refs, num_returns=len(refs), timeout=INTERRUPT_WAIT + 1)
 
 
 def _start(ray, address: str | None, processes: int) -> None:
@@ -86,8 +94,9 @@ def _collect(ray, ref, job: Job) -> Outcome:
     except ray.exceptions.RayError as exc:
         return Outcome("failed", f"the Ray task failed ({type(exc).__name__}: {first_line(exc)}), "
                                  f"also when retried {RETRIES} time(s)")
+    safe = {"filter": "data"} if hasattr(tarfile, "data_filter") else {}   # Python 3.11.4 and later
     with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
-        tar.extractall(job.staging(), filter="data")
+        tar.extractall(job.staging(), **safe)
     return outcome
 
 
