@@ -296,3 +296,17 @@ def test_the_manifest_gives_each_case_its_files_starts_and_options(cases):
     assert no_effect.train == [cases / "data" / "plain_train.csv"]
     assert crash.train_start == [{"h": "1.0"}] and crash.test_start == {}
     assert cases / "data" / "plain_train.csv.json" in no_effect.input_files()
+
+
+def test_the_guide_manifest_reads_as_written(tmp_path):
+    """docs/batch.md's manifest, its files stood in by empty ones."""
+    import re
+    page = Path(__file__).resolve().parents[1] / "docs" / "batch.md"
+    [text] = re.findall(r"```toml\n(.*?)```", page.read_text(), flags=re.S)
+    (tmp_path / "seed-1000").mkdir()
+    for name in ("declared.fmu", "train.csv", "validation.csv", "test.csv"):
+        (tmp_path / "seed-1000" / name).write_bytes(b"")
+    (tmp_path / "cases.toml").write_text(text)
+    [case] = read_manifest(tmp_path / "cases.toml")
+    assert case.name == "seed-1000" and case.options == {"budget": 5, "seed": 0}
+    assert case.train_start == [{"x0": "1.0"}] and case.validation == tmp_path / "seed-1000" / "validation.csv"
