@@ -93,12 +93,19 @@ class Run:
         self.log = open(folder / LOG_NAME, "w", encoding="utf-8")
         self.log.write(f"$ {shown(argv)}\n")
         self.log.flush()
+        try:
+            self.process = self._start(argv, folder, threads)
+        except BaseException:
+            self.log.close()
+            raise
+
+    @staticmethod
+    def _start(argv: list[str], folder: Path, threads: int) -> subprocess.Popen:
         # a process group of its own: the case's supervisor, its worker and the worker's helper are
-        # interrupted, or killed, as one (run.stop)
-        self.process = subprocess.Popen([sys.executable, "-m", "fmubuilder.cli", *argv], cwd=folder,
-                                        env=_environment(threads), stdin=subprocess.DEVNULL,
-                                        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                        start_new_session=True)
+        # interrupted, or killed, as one (interrupt)
+        return subprocess.Popen([sys.executable, "-m", "fmubuilder.cli", *argv], cwd=folder, env=_environment(threads),
+                                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                start_new_session=True)
 
     def finish(self) -> Outcome:
         """Read its output to the end, keeping the stage up to date; the outcome when it has ended."""
@@ -154,14 +161,14 @@ def run_case(argv: list[str], folder: Path, threads: int = 1) -> Outcome:
 
 def _environment(threads: int) -> dict:
     """The command's environment: its output unbuffered (the stage lines arrive as they are printed),
-    each case's numeric libraries to its share of the cores (unless set already), no journal of
-    the batch's own (a case's command keeps one of its own)."""
+    its numeric libraries on its share of the cores (the same on every executor: Ray sets its own
+    otherwise), no journal of the batch's own (a case's command keeps one of its own)."""
     env = {key: value for key, value in os.environ.items() if key != JOURNAL_ENV}
     env["PYTHONUNBUFFERED"] = "1"
     # this fmubuilder, also when it was found through the current folder (the case runs in another)
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(PACKAGE_ROOT), env.get("PYTHONPATH")]))
     for variable in THREAD_VARIABLES:
-        env.setdefault(variable, str(threads))
+        env[variable] = str(threads)
     return env
 
 

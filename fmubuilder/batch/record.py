@@ -13,6 +13,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..data import sidecar_path
 from ..errors import FmuBuilderError
 from ..files import file_sha256, foreign_content, kind_of
 from .case import HYBRID_NAME, REPORT_NAME, Outcome
@@ -27,7 +28,7 @@ def case_key(case: Case) -> str:
     the start values and the options (not the case's name, not where the files lie)."""
     roles = [("model", case.model), *(("train", p) for p in case.train),
              *([("validation", case.validation)] if case.validation else []), ("test", case.test)]
-    sidecars = [(f"{role} sidecar", path.with_name(path.name + ".json")) for role, path in roles if role != "model"]
+    sidecars = [(f"{role} sidecar", sidecar_path(path)) for role, path in roles if role != "model"]
     content = {
         "files": [[role, file_sha256(path) if path.is_file() else None] for role, path in [*roles, *sidecars]],
         "starts": {"train": case.train_start, "validation": case.validation_start, "test": case.test_start},

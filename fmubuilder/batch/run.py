@@ -44,33 +44,49 @@ def run_batch(manifest, out, *, jobs: int | None = None, executor: str = "local"
               force: bool = False, call_timeout: float = 60.0, progress: bool = True) -> BatchResult:
     """Run the manifest's cases into the folder `out`. jobs: cases at once (default: one per core);
     executor: "local" processes or "ray" tasks (address: an existing cluster; default: a local
-    one); force: redo the cases an earlier run completed. progress: a line per finished case."""
+    one); force: redo the cases an earlier run completed; call_timeout: each case's --call-timeout;
+    progress: the bars, and a line per finished case."""
     manifest, out = Path(manifest), Path(out)
     processes = _processes(jobs)
     _check_executor(executor, address)
     cases = read_manifest(manifest)
     _check_output_folder(out, cases)
     keys = {case.name: case_key(case) for case in cases}
-    found = {case.name: inspect_folder(out / case.name, keys[case.name]) for case in cases}
-    todo = [case for case in cases if force or found[case.name].state != "done"]
-    for case in todo:
-        refuse_replacing(out / case.name, found[case.name], force)
-    with kept_on_failure():
-        make_folder(out)
-        write_atomically(out / MARKER_NAME, json.dumps({"format": MARKER_FORMAT, "manifest": str(manifest.resolve())}) + "\n")
-    statuses = {case.name: ("pending" if case in todo else "skipped") for case in cases}
+    todo = _cases_to_run(cases, keys, out, force)
+    _mark_output_folder(out, manifest)
+    statuses = {case.name: "pending" if case.name in todo else "skipped" for case in cases}
     batch = _Batch(cases, out, statuses, f"fmubuilder batch: {manifest.name}", progress)
+    batch.write_summary()
     side_by_side = min(processes, len(todo))
     work = [Job(case, keys[case.name], command_line(case, _absolute, call_timeout, side_by_side), out / case.name,
-                side_by_side, call_timeout) for case in todo]
+                side_by_side, call_timeout) for case in cases if case.name in todo]
     threads = max(1, cores() // max(side_by_side, 1))   # each case's share of the cores for its numeric libraries
-    batch.write_summary()
-    with progress_bar(len(cases), "batch: cases", "case", initial=len(cases) - len(todo), show=progress) as bar, \
+    with progress_bar(len(cases), "batch: cases", "case", initial=len(cases) - len(work), show=progress) as bar, \
             StatusLine(show=progress) as line:
         for job, outcome in _execute(work, executor, processes, threads, address, line.show):
             batch.publish(job, outcome)
             bar.advance()
     return BatchResult(batch.rows(), out)
+
+
+def _cases_to_run(cases: list[Case], keys: dict, out: Path, force: bool) -> set[str]:
+    """The names of the cases to run: all with `force`, else those not done under the same key; an
+    error, before any work, for a case folder that may not be replaced (record.refuse_replacing)."""
+    todo = set()
+    for case in cases:
+        found = inspect_folder(out / case.name, keys[case.name])
+        if force or found.state != "done":
+            refuse_replacing(out / case.name, found, force)
+            todo.add(case.name)
+    return todo
+
+
+def _mark_output_folder(out: Path, manifest: Path) -> None:
+    """OUT made and marked as a batch's, so that a re-run may write into it."""
+    with kept_on_failure():
+        make_folder(out)
+        marker = {"format": MARKER_FORMAT, "manifest": str(manifest.resolve())}
+        write_atomically(out / MARKER_NAME, json.dumps(marker) + "\n")
 
 
 def _processes(jobs: int | None) -> int:
