@@ -2,13 +2,14 @@
 
 The cases: the DC drive against its windage truth, each with its own noise seeds (train 0-6 s,
 test 20.5-24 s), budget 0 and no ANN on the term (the fitted term and the calibrations: about 20 s
-of one core each). Printed: the wall seconds of each run, as a ratio against one local process;
+of one core each); `--truth dc_drive`: against its own model (a diagnosis that finds nothing,
+about 4 s each: the batch's own cost, and Ray's, weigh more). Printed: the wall seconds of each run, as a ratio against one local process;
 Ray's cluster start (once per batch without --address) and its overhead per case (the Ray run
 against two local processes, the same two CPUs, its cluster already up); and whether the three
 summaries hold the same results (they must: each case runs the same command). Measure on an
 otherwise idle machine with two cores; the ratios are the point, not the seconds.
 
-    python benchmarks/bench_batch.py [--cases N] [--budget N]
+    python benchmarks/bench_batch.py [--cases N] [--budget N] [--truth dc_drive]
 """
 from __future__ import annotations
 
@@ -33,11 +34,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", type=int, default=4, help="cases in the batch (default 4)")
     parser.add_argument("--budget", type=int, default=0, help="NeuralFMU loss evaluations per case (default 0)")
+    parser.add_argument("--truth", default="dc_drive_truth_windage", help="the example FMU that makes the data")
     args = parser.parse_args()
     if cores() < 2:
         sys.exit("error: two local processes need two cores; nothing to compare on this machine")
     folder = Path(tempfile.mkdtemp(prefix="bench_batch_"))
-    manifest = write_cases(folder, args.cases, args.budget)
+    manifest = write_cases(folder, args.cases, args.budget, args.truth)
     print(f"{args.cases} cases in {manifest}", flush=True)
     walls, summaries = {}, {}
     for label, options in (("local, 1 process", dict(jobs=1)), ("local, 2 processes", dict(jobs=2))):
@@ -56,10 +58,10 @@ def main() -> None:
     report(walls, summaries, ray_start, args.cases)
 
 
-def write_cases(folder: Path, count: int, budget: int) -> Path:
+def write_cases(folder: Path, count: int, budget: int, truth: str) -> Path:
     data = folder / "data"
     data.mkdir()
-    truth = example_fmu("dc_drive_truth_windage")
+    truth = example_fmu(truth)
     lines = [f"[defaults]\nbudget = {budget}\nann_on_term = false\n"]
     for i in range(count):
         for role, window, seed in (("train", TRAIN, i), ("test", TEST, 1000 + i)):
