@@ -26,7 +26,7 @@ def add_batch_parser(subparsers, common) -> None:
                         "local cluster of --jobs CPUs, started for the batch")
     p.add_argument("--force", action="store_true",
                    help="redo the cases an earlier run completed (their folders are replaced when the new run "
-                        "of the case ends)")
+                        "of the case succeeds)")
     p.set_defaults(func=cmd_batch)
 
 
