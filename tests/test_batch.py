@@ -279,6 +279,20 @@ def test_an_output_folder_the_batch_did_not_write_is_refused(cases, tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["thesis.txt"]
 
 
+def test_an_input_inside_a_case_folder_is_refused(cases, tmp_path):
+    out = tmp_path / "out"
+    (out / "no-effect").mkdir(parents=True)
+    (out / ".fmubuilder-batch.json").write_text("{}")      # an earlier batch's folder
+    for name in ("plain_train.csv", "plain_train.csv.json"):
+        shutil.copy(cases / "data" / name, out / "no-effect" / name)
+    manifest = tmp_path / "cases.toml"
+    manifest.write_text(MANIFEST.replace('"data/', f'"{cases / "data"}/').replace(
+        f'{cases / "data"}/plain_train.csv', "out/no-effect/plain_train.csv"))
+    proc = run_batch_cli(manifest, "-o", out, timeout=60)
+    [line] = error_lines(proc)
+    assert "case 'no-effect' reads" in line and "keep the inputs outside the output folder" in line, line
+
+
 def test_the_ray_executor_without_ray_or_an_address_without_ray(cases, tmp_path, monkeypatch):
     from fmubuilder.batch import run_batch
     with pytest.raises(FmuBuilderError, match="--address names a Ray cluster"):

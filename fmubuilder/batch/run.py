@@ -117,16 +117,20 @@ def _check_output_folder(out: Path, cases: list[Case]) -> None:
                               "a new or empty folder with -o")
     for name in NAMES:
         refuse_non_regular(out / name)
+    _refuse_inputs_in_case_folders(out, cases)
+    nearest = out.resolve()
+    while not nearest.exists():     # the folder, or the one it is created in, must take a new file
+        nearest = nearest.parent
+    check_writable_folder(nearest, out)
+
+
+def _refuse_inputs_in_case_folders(out: Path, cases: list[Case]) -> None:
     for case in cases:
         for path in case.input_files():
             for other in cases:
                 if inside(path, out / other.name):
                     raise FmuBuilderError(f"case '{case.name}' reads {path}, inside the case folder {out / other.name} "
                                           "that the batch writes; keep the inputs outside the output folder")
-    nearest = out.resolve()
-    while not nearest.exists():
-        nearest = nearest.parent
-    check_writable_folder(nearest, out)
 
 
 def _absolute(path: Path) -> str:
