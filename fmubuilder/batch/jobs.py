@@ -1,6 +1,7 @@
 """A case as the executors run it."""
 from __future__ import annotations
 
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,3 +24,8 @@ class Job:
         if self._staging is None:
             self._staging = staging_folder(self.folder)
         return self._staging
+
+    def discard(self) -> None:
+        """Remove the staged folder if it was not published (a batch that stopped early)."""
+        if self._staging is not None:
+            shutil.rmtree(self._staging, ignore_errors=True)

@@ -63,9 +63,15 @@ def run_batch(manifest, out, *, jobs: int | None = None, executor: str = "local"
     threads = max(1, cores() // max(side_by_side, 1))   # each case's share of the cores for its numeric libraries
     with progress_bar(len(cases), "batch: cases", "case", initial=len(cases) - len(work), show=progress) as bar, \
             StatusLine(show=progress) as line:
-        for job, outcome in _execute(work, executor, processes, threads, address, line.show):
-            batch.publish(job, outcome)
-            bar.advance()
+        results = _execute(work, executor, processes, threads, address, line.show)
+        try:
+            for job, outcome in results:
+                batch.publish(job, outcome)
+                bar.advance()
+        finally:
+            results.close()     # on the way out early: the cases still running are stopped
+            for job in work:    # and their staged folders removed (a published one is gone from there)
+                job.discard()
     return BatchResult(batch.rows(), out)
 
 
@@ -139,9 +145,9 @@ def _absolute(path: Path) -> str:
 
 
 def _execute(work: list[Job], executor: str, processes: int, threads: int, address: str | None, show):
-    if not work:
-        return iter(())
-    if executor == "ray":
+    """The executor's results as the cases finish: a generator, whose close() stops the cases still
+    running."""
+    if executor == "ray" and work:
         from .on_ray import run_on_ray
         return run_on_ray(work, processes, threads, address, show)
     from .local import run_locally
