@@ -66,6 +66,21 @@ train = ["data/ball.csv"]
 test = "data/ball_test.csv"
 """
 
+# a case that fails in seconds beside one that never ends (no call timeout)
+STUCK = """\
+[[case]]
+name = "crash"
+model = "data/segfault.fmu"
+train = ["data/ball.csv"]
+test = "data/ball_test.csv"
+
+[[case]]
+name = "hang"
+model = "data/hang.fmu"
+train = ["data/ball.csv"]
+test = "data/ball_test.csv"
+"""
+
 
 @pytest.fixture(scope="module")
 def cases(tmp_path_factory):
@@ -225,6 +240,23 @@ def test_an_interrupted_batch_resumes_without_redoing_the_finished_cases(local, 
     assert "did not return from fmi2GetDerivatives" in hang["reason"] and "within 1 s" in hang["reason"], hang
     [uninterrupted] = [r for r in without_time(summary_rows(local[1])) if r["name"] == "no-effect"]
     assert without_time([no_effect])[0] == {**uninterrupted, "status": "skipped"}
+
+
+def test_a_batch_that_stops_early_stops_its_running_cases_and_leaves_no_staged_folder(cases, tmp_path, monkeypatch):
+    """From Python: publishing the first case to finish (the crash) fails; the other, stuck in its
+    FMU, is stopped, and neither leaves a staged folder."""
+    from fmubuilder.batch import run as batch_run
+    manifest = cases / "stuck.toml"
+    manifest.write_text(STUCK)
+
+    def failing(staging, target):
+        raise FmuBuilderError("disk full")
+    monkeypatch.setattr(batch_run, "replace_folder", failing)
+    out = tmp_path / "out"
+    with pytest.raises(FmuBuilderError, match="disk full"):
+        batch_run.run_batch(manifest, out, jobs=2, call_timeout=0, progress=False)
+    assert running_commands_reading(cases / "data" / "hang.fmu") == []
+    assert [p.name for p in out.iterdir() if p.name.endswith(".partial")] == []
 
 
 def test_a_changed_case_is_redone_only_with_force(local, cases, tmp_path):
