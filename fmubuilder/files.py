@@ -122,6 +122,18 @@ def _record(kind: str, path: Path) -> None:
         _created_here.add(os.path.abspath(path))
 
 
+@contextlib.contextmanager
+def kept_on_failure():
+    """Paths created inside the block are not journaled: they stay when the run fails later (a batch
+    keeps each case it completed, and its summary, when a later case or an interrupt ends it)."""
+    journal = os.environ.pop(JOURNAL_ENV, None)
+    try:
+        yield
+    finally:
+        if journal is not None:
+            os.environ[JOURNAL_ENV] = journal
+
+
 def created_paths(journal: str | os.PathLike) -> list[tuple[str, Path]]:
     """(kind, path) of the paths a run recorded in `journal` that are still the ones it made, newest
     first: what the clean-up of a failed run may remove. The same device and inode; for a created

@@ -121,3 +121,34 @@ def progress(total: int, description: str, unit: str = "step", initial: int = 0,
 
 def _plural(unit: str) -> str:
     return unit if unit == "%" else unit + ("es" if unit.endswith(("s", "sh", "ch", "x")) else "s")
+
+
+class StatusLine:
+    """A line of text under a bar, redrawn in place: what each running job is doing. Shows when the
+    bars do; a context manager that clears the line on the way out."""
+
+    def __init__(self, show: bool = True):
+        self._tqdm = None
+        self._text = None
+        if show and enabled():
+            from tqdm import tqdm
+            size = shutil.get_terminal_size((100, 24))
+            self._tqdm = tqdm(total=0, bar_format="{desc}", position=1, leave=False, file=sys.stderr,
+                              ncols=size.columns, nrows=size.lines)
+
+    def show(self, parts: list[str]) -> None:
+        text = "; ".join(parts)
+        if self._tqdm is not None and text != self._text:
+            self._text = text
+            self._tqdm.set_description_str(text[:max(self._tqdm.ncols - 1, 10)])
+
+    def close(self) -> None:
+        if self._tqdm is not None:
+            self._tqdm.close()
+            self._tqdm = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

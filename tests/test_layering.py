@@ -19,7 +19,7 @@ RANKS = {
     "neural": 5, "diagnose": 5,
     "export": 6, "synth": 6,
     "hybridize": 7, "examples_zoo": 7,
-    "demo": 8,
+    "demo": 8, "batch": 8,
     "cli": 9, "__main__": 9,
 }
 

@@ -72,3 +72,20 @@ def test_a_loop_left_early_closes_its_bar_with_a_note(shown, capsys):
     assert seen == [1, 2]
     line = last_line(capsys.readouterr().err)
     assert line.startswith("items (stopped: cut short):  25%") and "| 1/4 [" in line
+
+
+def test_a_status_line_shows_under_a_bar_and_is_cleared(shown, capsys):
+    with progress.progress(2, "batch: cases", unit="case") as bar, progress.StatusLine() as line:
+        line.show(["a: 1/5 diagnosing", "b: 2/5 training"])
+        bar.advance(2)
+    err = capsys.readouterr().err
+    assert "a: 1/5 diagnosing; b: 2/5 training" in err
+    assert last_line(err).startswith("batch: cases: 100%")      # the line went with the work
+
+
+def test_no_status_line_when_bars_are_off(capsys):
+    progress.set_enabled(False)
+    with progress.StatusLine() as line:
+        line.show(["a: starting"])
+    progress.set_enabled(None)
+    assert capsys.readouterr().err == ""

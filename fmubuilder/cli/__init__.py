@@ -26,6 +26,7 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
+    from .batch import add_batch_parser
     from .diagnose import add_diagnose_parser
     from .demo import add_demo_parser
     from .export import add_export_parsers
@@ -50,6 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_diagnose_parser(sub, common)
     add_export_parsers(sub, common)
     add_hybridize_parser(sub, common)
+    add_batch_parser(sub, common)
     add_demo_parser(sub, common)
     return parser
 
