@@ -168,7 +168,7 @@ def diagnose(model_fmu, data_csv, start_values: dict | None = None, plots_dir=No
 def _runner(model_fmu, start_values, data: MeasuredData, start, stop, variables) -> ModelRunner:
     return ModelRunner(model_fmu, start_values=start_values, data_time=data.time, start=start, stop=stop,
                        measured=data.names, recorded=variables, sensor_lag=data.sensor_lag,
-                       fine_step=data.fine_step)
+                       fine_step=data.fine_step, inputs=data.inputs)
 
 
 def _check_finite(run: ModelRun, model_fmu) -> None:

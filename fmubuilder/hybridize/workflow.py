@@ -448,17 +448,19 @@ def _aliases_of(ctx: _Context, channel: str) -> dict[str, str]:
         data = ctx.roles.train[0].samples()
         start = float(data.time[0])
         ctx.aliases[channel] = channel_aliases(ctx.model_fmu, ctx.info, channel, ctx.roles.train[0].start_values, data.time,
-                                               start, min(float(data.time[-1]), start + ALIAS_SPAN))
+                                               start, min(float(data.time[-1]), start + ALIAS_SPAN),
+                                               inputs=data.inputs)
         if ctx.aliases[channel]:
             ctx.say(f"      corrected with {channel} too: {', '.join(ctx.aliases[channel])} (equal to it in the model)")
     return ctx.aliases[channel]
 
 
 def channel_aliases(model_fmu, info, channel: str, start_values: dict, data_time, start: float,
-                    stop: float) -> dict[str, str]:
+                    stop: float, inputs: dict | None = None) -> dict[str, str]:
     """{output: channel} for the outputs of the plain model equal to `channel` along its run
     (the diagnosis' test: within 1e-9 relative), e.g. a power whose integral is an energy state.
-    The hybrid must correct them with the derivative, or they contradict the corrected state."""
+    The hybrid must correct them with the derivative, or they contradict the corrected state.
+    inputs: the data's FMU input columns at `data_time`, which drive the run."""
     from ..diagnose.diagnosis import derivative_aliases
     from ..diagnose.runs import ModelRunner
     states = {s.name for s in info.states}
@@ -467,7 +469,7 @@ def channel_aliases(model_fmu, info, channel: str, start_values: dict, data_time
     if not outputs:
         return {}
     runner = ModelRunner(model_fmu, start_values=start_values, data_time=np.asarray(data_time), start=start,
-                         stop=stop, measured=[], recorded=[*outputs, channel])
+                         stop=stop, measured=[], recorded=[*outputs, channel], inputs=inputs)
     try:
         run = runner.simulate()
     finally:
