@@ -117,6 +117,7 @@ class NoiseFit:
 @dataclass
 class SignalTest:
     noise: float          # standard deviation of the measured value's noise (per sample)
+    noise_dof: float      # degrees of freedom of its variance estimate (relative std sqrt(2 / dof))
     floor: float          # numerical agreement tolerance
     chi2: float           # Q of this signal alone
     dof: int
@@ -220,11 +221,19 @@ def fit_noise(residual: np.ndarray, model_values: np.ndarray | None = None,
     dft, norm = _tapered_dft(residual)
     omega, periodogram, weight = _binned(2.0 * math.pi * band / n, np.abs(dft[band]) ** 2 / norm)
     effective = max(band.size / _HANN_VARIANCE_INFLATION, 1.0)
-    poles = 1.0 - np.geomspace(1.0, SLOWEST_CORNER * float(omega[0]), POLE_COUNT) if omega.size else np.zeros(1)
+    # Corners reach below the lowest frequency the noise band would have without the model's: where
+    # the model's frequencies are left out, the fits must still be free to put noise there.
+    reach = 2.0 * math.pi * min(int(band[0]), GUARD * effect_band(n) + 1) / n if band.size else 0.0
+    poles = 1.0 - np.geomspace(1.0, SLOWEST_CORNER * reach, POLE_COUNT) if omega.size else np.zeros(1)
     spectra = _plausible_spectra(omega, periodogram, weight / _HANN_VARIANCE_INFLATION, poles)
     fit = NoiseFit(spectra=spectra, marginal=0.0, excused=0.0, floor=NUMERICAL_FLOOR * span,
                    dof=2.0 * effective)
-    fit.marginal = math.sqrt(_marginal_variance(spectra[0])) if spectra else 0.0
+    # The noise level (per sample) from the fits the noise band itself pins down (corners within
+    # it): the test's envelope may put much more noise where the model's frequencies left a hole,
+    # which keeps the test calibrated but would overstate the noise floor of the scores.
+    own = poles[poles <= 1.0 - SLOWEST_CORNER * float(omega[0])] if omega.size else poles
+    pinned = _plausible_spectra(omega, periodogram, weight / _HANN_VARIANCE_INFLATION, own) if own.size else spectra
+    fit.marginal = math.sqrt(_marginal_variance(pinned[0])) if pinned else 0.0
     if spread is not None and np.size(spread) and runs > 1:
         _apply_spread(fit, np.asarray(spread, dtype=float), runs)
     return fit
@@ -354,7 +363,7 @@ def signal_test(residual: np.ndarray, model_values: np.ndarray, spread: np.ndarr
     """The test of one signal's residual alone (for the per-signal columns of the report)."""
     fit = fit_noise(residual, model_values, spread, runs)
     joint = joint_test([residual], [model_values], [spread], runs, fits=[fit])   # fit's band: the same
-    return SignalTest(noise=fit.marginal, floor=fit.floor, chi2=joint.chi2, dof=joint.dof, p_value=joint.p_value)
+    return SignalTest(noise=fit.marginal, noise_dof=fit.dof, floor=fit.floor, chi2=joint.chi2, dof=joint.dof, p_value=joint.p_value)
 
 
 def _noise_coherence(residuals: list[np.ndarray], fits: list[NoiseFit], band: np.ndarray) -> np.ndarray:
