@@ -235,7 +235,7 @@ def _diagnosis_section(report: dict) -> list[str]:
         lines.append(f"No significant effect: the residual is at the level of the measurement noise "
                      f"(joint p = {d['p_value']:.2g})."
                      + ("" if report["models"] else " No hybrid FMU was written."))
-    estimated = [e for e in d["errors"] if not e.get("noise_from_spread", True) and e["noise"] > 0]
+    estimated = [e for e in d.get("errors", []) if not e.get("noise_from_spread", True) and e["noise"] > 0]
     if estimated:
         lines += ["", "Noise estimated from the data (no `_std` column: the noise fit of the declared model's "
                   "residual, away from the frequencies the model moves at); every score is measured against it: "
