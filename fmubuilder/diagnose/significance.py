@@ -10,9 +10,13 @@ estimated from the residual itself and the model's own run (no sensor settings a
    SAMPLES_PER_FREQUENCY`` within [1, MAX_EFFECT_FREQUENCIES]: drifts and slow effects) plus the
    frequencies that carry MODEL_ENERGY of the model's own signals (a straight line removed, Hann
    tapered) with LEAKAGE neighbours on each side, at most 1 / EFFECT_SHARE_LIMIT of all frequencies. The noise band
-   is the rest, GUARD neighbours away from the effect band. The model's run is noise-free, so the
-   bands do not depend on the noise and the test stays calibrated. Without the model's values
-   the effect band is the lowest ``m`` frequencies alone.
+   is the rest above ``GUARD * m``, LEAKAGE neighbours away from the effect band. The model's run
+   is noise-free, so the bands do not depend on the noise. Without the model's values the effect
+   band is the lowest ``m`` frequencies alone. The noise spectrum must bridge the holes the
+   model's frequencies leave and extrapolate below them, so the fits on the whole band above
+   ``GUARD * m`` (which an effect there can only inflate) join its envelope (step 2): the test is
+   never less cautious than one that ignores the model, and finds an effect at the model's
+   frequencies where the model leaves noise-only frequencies around them (an oscillation).
 2. **Noise spectrum per signal.** The residual, a straight line removed and a Hann taper
    applied (so that a drift does not leak into the noise band), gives a periodogram on the
    noise band. The family ``S(w) = a + b g(w)^k`` with ``g = (1 - rho)^2 / |1 - rho e^{-iw}|^2``
@@ -221,20 +225,20 @@ def fit_noise(residual: np.ndarray, model_values: np.ndarray | None = None,
     if band is None:
         band = bands(n, [model_values]).noise
     dft, norm = _tapered_dft(residual)
-    omega, periodogram, weight = _binned(2.0 * math.pi * band / n, np.abs(dft[band]) ** 2 / norm)
-    effective = max(band.size / _HANN_VARIANCE_INFLATION, 1.0)
-    # Corners reach below the lowest frequency the noise band would have without the model's: where
-    # the model's frequencies are left out, the fits must still be free to put noise there.
-    reach = 2.0 * math.pi * min(int(band[0]), GUARD * effect_band(n) + 1) / n if band.size else 0.0
-    poles = 1.0 - np.geomspace(1.0, SLOWEST_CORNER * reach, POLE_COUNT) if omega.size else np.zeros(1)
-    spectra = _plausible_spectra(omega, periodogram, weight / _HANN_VARIANCE_INFLATION, poles)
+    # Where the model's frequencies leave holes in the noise band, the fits must bridge them, and
+    # below the band's lowest frequency they extrapolate: the fits on the whole band above the lowest
+    # frequencies (which an effect at the model's frequencies can only inflate) join the envelope,
+    # so that the test is never less cautious than without the holes.
+    whole = np.arange(min(GUARD * effect_band(n) + 1, max((n - 1) // 2, 1)), (n - 1) // 2 + 1)
+    spectra, pinned, effective = [], [], max(band.size / _HANN_VARIANCE_INFLATION, 1.0)
+    for frequencies in ([band] if np.array_equal(band, whole) else [band, whole]):
+        omega, periodogram, weight = _binned(2.0 * math.pi * frequencies / n, np.abs(dft[frequencies]) ** 2 / norm)
+        poles = 1.0 - np.geomspace(1.0, SLOWEST_CORNER * float(omega[0]), POLE_COUNT) if omega.size else np.zeros(1)
+        found = _plausible_spectra(omega, periodogram, weight / _HANN_VARIANCE_INFLATION, poles)
+        spectra += found
+        pinned = pinned or found      # the noise level: from the band without the model's frequencies
     fit = NoiseFit(spectra=spectra, marginal=0.0, excused=0.0, floor=NUMERICAL_FLOOR * span,
                    dof=2.0 * effective)
-    # The noise level (per sample) from the fits the noise band itself pins down (corners within
-    # it): the test's envelope may put much more noise where the model's frequencies left a hole,
-    # which keeps the test calibrated but would overstate the noise floor of the scores.
-    own = poles[poles <= 1.0 - SLOWEST_CORNER * float(omega[0])] if omega.size else poles
-    pinned = _plausible_spectra(omega, periodogram, weight / _HANN_VARIANCE_INFLATION, own) if own.size else spectra
     fit.marginal = math.sqrt(_marginal_variance(pinned[0])) if pinned else 0.0
     if spread is not None and np.size(spread) and runs > 1:
         _apply_spread(fit, np.asarray(spread, dtype=float), runs)

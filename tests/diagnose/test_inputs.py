@@ -2,7 +2,7 @@
 
 The data are simulated by fmpy (CVode, an independent simulator) from the sampled speed drive
 (examples/sampled_plant), whose set point is an FMU input, with white noise added. On the model's
-own data the diagnosis must find nothing; with a wrong parameter in the truth it must find it.
+own data the diagnosis must find nothing; with twice the viscous friction in the truth it must find it.
 Without the inputs the declared model would hold its default set point, and its own data would look
 like a large effect.
 """
@@ -55,5 +55,5 @@ def test_the_models_own_data_driven_by_an_input_show_no_effect(folder):
 
 
 def test_a_parameter_error_under_an_input_is_found(folder):
-    d = diagnose(example_fmu("sampled_plant"), _measure(folder, "heavier", start_values={"J": 0.13}))
+    d = diagnose(example_fmu("sampled_plant"), _measure(folder, "more_friction", start_values={"b": 0.1}))
     assert d.significant
