@@ -22,7 +22,7 @@ import numpy as np
 from fmubuilder import synth
 from fmubuilder.build import example_fmu
 from fmubuilder.diagnose import diagnosis, significance
-from fmubuilder.diagnose.data import MeasuredData
+from fmubuilder.data import MeasuredData
 
 NOISE_MODELS = {
     "white": dict(noise_model="white"),
@@ -73,7 +73,7 @@ def noise_free(case: Case, truth: str, parameters) -> tuple[np.ndarray, dict]:
 def declared_prediction(case: Case, stamps: np.ndarray, lag: float) -> dict:
     """The declared model as the diagnosis simulates it for these stamps."""
     fmu = example_fmu(case.model)
-    data = MeasuredData(path=None, time=stamps, signals={s: stamps for s in case.signals}, spread={},
+    data = MeasuredData(time=stamps, signals={s: stamps for s in case.signals},
                         sensor_lag=lag, fine_step=0.01, start_values=dict(case.start_values or {}))
     from fmubuilder.fmi.archive import read_model_info
     runner = diagnosis._runner(fmu, data.start_values, data, float(stamps[0]), float(stamps[-1]),

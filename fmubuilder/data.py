@@ -50,6 +50,9 @@ class MeasuredData:
     fine_step: float | None = None                               # s, grid the bench simulated on
     start_values: dict = field(default_factory=dict)             # from the sidecar
     path: Path | None = None
+    # Noise variance of the measured value of signals without a spread column, estimated from the
+    # data (the significance test's noise fit of the declared model's residual); set by the caller.
+    noise_estimate: dict = field(default_factory=dict)
 
     @property
     def names(self) -> list[str]:
@@ -81,9 +84,10 @@ class MeasuredData:
 
     def noise_variance(self, name: str) -> float | None:
         """Noise variance of the measured value (the mean over the runs): the spread's mean square
-        over the runs, as the significance test takes it; None without a spread column."""
+        over the runs, as the significance test takes it; without a spread column the estimate from
+        the data (noise_estimate), else None."""
         if name not in self.std or not np.size(self.std[name]):
-            return None
+            return self.noise_estimate.get(name)
         return float(np.mean(np.asarray(self.std[name], dtype=float) ** 2)) / self.runs
 
     def start_estimate(self, name: str, t0: float, model_value: float | None = None, model_run=None) -> float:

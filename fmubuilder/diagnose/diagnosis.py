@@ -48,6 +48,8 @@ class SignalErrors:
     max_abs: float
     final: float               # measured - model at the last sample
     noise: float               # noise level of the measured value (per sample)
+    noise_dof: float           # degrees of freedom of the noise's variance estimate
+    noise_from_spread: bool    # the noise level is capped by the data's spread column
     chi2_per_dof: float
     p_value: float
     significant: bool
@@ -168,7 +170,7 @@ def diagnose(model_fmu, data_csv, start_values: dict | None = None, plots_dir=No
 def _runner(model_fmu, start_values, data: MeasuredData, start, stop, variables) -> ModelRunner:
     return ModelRunner(model_fmu, start_values=start_values, data_time=data.time, start=start, stop=stop,
                        measured=data.names, recorded=variables, sensor_lag=data.sensor_lag,
-                       fine_step=data.fine_step)
+                       fine_step=data.fine_step, inputs=data.inputs)
 
 
 def _check_finite(run: ModelRun, model_fmu) -> None:
@@ -237,6 +239,7 @@ def signal_errors(data: MeasuredData, nominal: ModelRun):
         errors.append(SignalErrors(
             signal=name, mse=float(np.mean(residual ** 2)), rms=rms(residual),
             max_abs=float(np.max(np.abs(residual))), final=float(residual[-1]), noise=test.noise,
+            noise_dof=test.noise_dof, noise_from_spread=name in data.std,
             chi2_per_dof=test.chi2 / test.dof, p_value=test.p_value, significant=test.significant))
     return errors, tests, _joint_test(data, nominal)
 

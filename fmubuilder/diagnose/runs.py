@@ -21,6 +21,7 @@ import numpy as np
 from ..errors import FmuBuilderError
 from ..fmi.instance import Fmu
 from ..simulation.engine import output_grid, run
+from ..simulation.inputs import input_signals_from
 from ..simulation.results import sample_settled
 from ..simulation.solvers import make_solver
 from ..simulation.system import FmuSystem
@@ -143,9 +144,13 @@ class ModelRunner:
 
     def __init__(self, fmu_path, *, start_values: dict, data_time: np.ndarray, start: float, stop: float,
                  measured: Sequence[str], recorded: Sequence[str], sensor_lag: float = 0.0,
-                 fine_step: float | None = None, rtol: float = 1e-6):
+                 fine_step: float | None = None, rtol: float = 1e-6, inputs: dict | None = None):
         self.fmu = Fmu(fmu_path)
         self.info = self.fmu.info
+        # The data's FMU input columns ({name: values at data_time}) drive every run, as in every
+        # other stage: without them a model driven by inputs shows its own mistake as the residual.
+        self.inputs = (input_signals_from({"time": np.asarray(data_time, dtype=float), **inputs}, self.info)
+                       if inputs else None)
         self.start_values = dict(start_values)
         self.start, self.stop = float(start), float(stop)
         self.data_time = data_time[(data_time >= self.start) & (data_time <= self.stop)]
@@ -176,7 +181,8 @@ class ModelRunner:
         recorded = self.recorded if trajectories else self.measured
         if terms and self.output_aliases:   # the terms' variables, to add them to aliased outputs
             recorded = list(dict.fromkeys([*recorded, *(t.variable for t in terms if t.variable != TIME)]))
-        base = FmuSystem(self.fmu, variables=recorded, start_values=self.start_values, tolerance=self.rtol)
+        base = FmuSystem(self.fmu, variables=recorded, start_values=self.start_values, inputs=self.inputs,
+                         tolerance=self.rtol)
         system = TermSystem(base, terms, started + time_limit, max_calls) if terms else base
         solver = make_solver("dopri5", rtol=self.rtol, atol=1e-9, max_step=(self.stop - self.start) / 50)
         try:

@@ -1,11 +1,22 @@
 """Is a residual more than measurement noise? One joint test that coloured noise does not fool.
 
 Why the frequency domain: the README's "Is it an effect or coloured noise?". Everything is
-estimated from the residual itself (no sensor settings are read):
+estimated from the residual itself and the model's own run (no sensor settings are read):
 
-1. **Bands.** Of the residual's Fourier frequencies ``j = 0 .. n/2`` the lowest ``m`` (the
-   effect band, ``m = n // SAMPLES_PER_FREQUENCY`` within [1, MAX_EFFECT_FREQUENCIES]) are
-   where an effect would show; those from ``GUARD * m`` on (the noise band) are taken as noise.
+1. **Bands.** A model error shows where the model itself moves: its residual is, to first order,
+   the response of the model's trajectory to a change in its equations, so it shares the
+   trajectory's frequencies (an oscillator whose damping or period is off shows at its own
+   frequency). The effect band is therefore the lowest ``m`` Fourier frequencies (``m = n //
+   SAMPLES_PER_FREQUENCY`` within [1, MAX_EFFECT_FREQUENCIES]: drifts and slow effects) plus the
+   frequencies that carry MODEL_ENERGY of the model's own signals (a straight line removed, Hann
+   tapered) with LEAKAGE neighbours on each side, at most 1 / EFFECT_SHARE_LIMIT of all frequencies. The noise band
+   is the rest above ``GUARD * m``, LEAKAGE neighbours away from the effect band. The model's run
+   is noise-free, so the bands do not depend on the noise. Without the model's values the effect
+   band is the lowest ``m`` frequencies alone. The noise spectrum must bridge the holes the
+   model's frequencies leave and extrapolate below them, so the fits on the whole band above
+   ``GUARD * m`` (which an effect there can only inflate) join its envelope (step 2): the test is
+   never less cautious than one that ignores the model, and finds an effect at the model's
+   frequencies where the model leaves noise-only frequencies around them (an oscillation).
 2. **Noise spectrum per signal.** The residual, a straight line removed and a Hann taper
    applied (so that a drift does not leak into the noise band), gives a periodogram on the
    noise band. The family ``S(w) = a + b g(w)^k`` with ``g = (1 - rho)^2 / |1 - rho e^{-iw}|^2``
@@ -29,12 +40,14 @@ estimated from the residual itself (no sensor settings are read):
 5. **Joint statistic.** With ``z_j`` the DFT vector of all signals at frequency j, each
    divided by the square root of its spectrum, and ``C_j`` its covariance under "no effect"
    (the noise coherence, plus the numerical floor ``NUMERICAL_FLOOR * range`` of each signal
-   and the excused spread), ``Q = z_0^T C_0^-1 z_0 + sum_{j=1..m} 2 z_j^H C_j^-1 z_j`` is
-   chi-square with ``S (2m + 1)`` degrees of freedom for S signals. With the noise estimated,
+   and the excused spread), ``Q = z_0^T C_0^-1 z_0 + sum_{j in effect band} 2 z_j^H C_j^-1 z_j`` is
+   chi-square with ``S (2K + 1)`` degrees of freedom for S signals and K effect frequencies. With the noise estimated,
    ``Q / dof`` is taken F-distributed with (dof, noise-band degrees of freedom). The residual
    is a significant effect when the p-value is below SIGNIFICANCE_LEVEL (1e-6, strict because
    real noise has heavier tails than a Gaussian). The same statistic for one signal alone
-   gives the per-signal p-values of the report.
+   gives the per-signal p-values of the report. Q is taken twice, over the lowest ``m`` frequencies
+   alone and over the whole effect band, and the smaller p-value doubled (each look is calibrated;
+   the union bound keeps the pair so): a slow effect keeps the power of the narrow look.
 """
 from __future__ import annotations
 
@@ -48,7 +61,12 @@ SIGNIFICANCE_LEVEL = 1e-6
 NUMERICAL_FLOOR = 1e-5
 SAMPLES_PER_FREQUENCY = 125    # effect band: one Fourier frequency per this many samples ...
 MAX_EFFECT_FREQUENCIES = 25    # ... at most this many (a few dozen degrees of freedom per signal)
-GUARD = 2                      # the noise band starts at GUARD times the effect band's edge
+GUARD = 2                      # the noise band starts at GUARD times the lowest band's edge ...
+MODEL_ENERGY = 0.99            # the effect band holds this share of the model signals' variance ...
+LEAKAGE = 2                    # ... with the Hann window's main lobe (2 bins) on each side; the noise
+                               # band keeps LEAKAGE more bins away, so no effect leaks into it
+EFFECT_SHARE_LIMIT = 4         # ... and at most a quarter of all frequencies: every added frequency
+                               # dilutes the test (2 dof each), and the noise fit needs the rest
 MIN_NOISE_FREQUENCIES = 8
 CONFIDENCE = 2.5               # BIC units (x2) within which a noise fit counts as plausible
 POLE_COUNT = 30               # poles on the grid, from white (rho = 0) ...
@@ -105,6 +123,7 @@ class NoiseFit:
 @dataclass
 class SignalTest:
     noise: float          # standard deviation of the measured value's noise (per sample)
+    noise_dof: float      # degrees of freedom of its variance estimate (relative std sqrt(2 / dof))
     floor: float          # numerical agreement tolerance
     chi2: float           # Q of this signal alone
     dof: int
@@ -132,14 +151,57 @@ class JointTest:
 
 
 def effect_band(n: int) -> int:
-    """m: how many non-zero Fourier frequencies form the effect band of n samples."""
+    """m: how many of the lowest non-zero Fourier frequencies always belong to the effect band of n samples."""
     noise_room = (n - 1) // 2 - MIN_NOISE_FREQUENCIES
     return int(max(1, min(n // SAMPLES_PER_FREQUENCY, MAX_EFFECT_FREQUENCIES, noise_room // GUARD)))
 
 
-def _noise_band(n: int) -> np.ndarray:
-    m = effect_band(n)
-    return np.arange(min(GUARD * m + 1, max((n - 1) // 2, 1)), (n - 1) // 2 + 1)
+@dataclass(frozen=True)
+class Bands:
+    """The non-zero Fourier frequencies (indices j of n samples) of the effect and of the noise."""
+    effect: np.ndarray
+    noise: np.ndarray
+
+
+def bands(n: int, model_values=()) -> Bands:
+    """The effect and noise bands of n samples (module docstring, step 1); model_values: the model's
+    runs of the signals tested together (entries may be None)."""
+    highest = (n - 1) // 2
+    lowest = effect_band(n)
+    effect = set(range(1, lowest + 1))
+    for values in model_values:
+        effect |= _carrying(values, n)
+    room = max(highest // EFFECT_SHARE_LIMIT, lowest)
+    if len(effect) > room:     # keep room for the noise and power for the test: the lowest ones
+        effect = set(range(1, lowest + 1)) | set(sorted(effect - set(range(1, lowest + 1)))[:room - lowest])
+    effect_indices = np.array(sorted(j for j in effect if j <= highest), dtype=int)
+    near = set()
+    for j in effect_indices.tolist():
+        near.update(range(j - LEAKAGE, j + LEAKAGE + 1))
+    start = min(GUARD * lowest + 1, max(highest, 1))
+    noise = np.array([j for j in range(start, highest + 1) if j not in near], dtype=int)
+    if noise.size < MIN_NOISE_FREQUENCIES:          # too short to spare: the old split
+        effect_indices = np.arange(1, lowest + 1)
+        noise = np.arange(start, highest + 1)
+    return Bands(effect_indices, noise)
+
+
+def _carrying(values, n: int) -> set[int]:
+    """Frequencies carrying MODEL_ENERGY of a model signal's variance, with their LEAKAGE neighbours."""
+    if values is None or np.size(values) != n or not np.all(np.isfinite(values)):
+        return set()
+    values = np.asarray(values, dtype=float)
+    dft, norm = _tapered_dft(values)
+    power = np.abs(dft[1:(n - 1) // 2 + 1]) ** 2
+    total = float(np.sum(power))
+    if not total > n * norm * (NUMERICAL_FLOOR * float(np.ptp(values))) ** 2:
+        return set()        # a straight line (or round-off about one) carries nothing
+    order = np.argsort(power)[::-1]
+    count = int(np.searchsorted(np.cumsum(power[order]), MODEL_ENERGY * total)) + 1
+    carrying = set()
+    for j in (order[:count] + 1).tolist():
+        carrying.update(range(max(1, j - LEAKAGE), j + LEAKAGE + 1))
+    return carrying
 
 
 def _tapered_dft(residual: np.ndarray) -> tuple[np.ndarray, float]:
@@ -154,20 +216,30 @@ def _tapered_dft(residual: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def fit_noise(residual: np.ndarray, model_values: np.ndarray | None = None,
-              spread: np.ndarray | None = None, runs: int = 2) -> NoiseFit:
-    """The noise of a residual (see the module docstring, steps 2 and 4)."""
+              spread: np.ndarray | None = None, runs: int = 2, band: np.ndarray | None = None) -> NoiseFit:
+    """The noise of a residual (see the module docstring, steps 2 and 4) on the noise band `band`
+    (default: the one of this signal's model values)."""
     residual = np.asarray(residual, dtype=float)
     n = residual.size
     span = float(np.ptp(model_values)) if model_values is not None and np.size(model_values) else 0.0
-    band = _noise_band(n)
+    if band is None:
+        band = bands(n, [model_values]).noise
     dft, norm = _tapered_dft(residual)
-    omega, periodogram, weight = _binned(2.0 * math.pi * band / n, np.abs(dft[band]) ** 2 / norm)
-    effective = max(band.size / _HANN_VARIANCE_INFLATION, 1.0)
-    poles = 1.0 - np.geomspace(1.0, SLOWEST_CORNER * float(omega[0]), POLE_COUNT) if omega.size else np.zeros(1)
-    spectra = _plausible_spectra(omega, periodogram, weight / _HANN_VARIANCE_INFLATION, poles)
+    # Where the model's frequencies leave holes in the noise band, the fits must bridge them, and
+    # below the band's lowest frequency they extrapolate: the fits on the whole band above the lowest
+    # frequencies (which an effect at the model's frequencies can only inflate) join the envelope,
+    # so that the test is never less cautious than without the holes.
+    whole = np.arange(min(GUARD * effect_band(n) + 1, max((n - 1) // 2, 1)), (n - 1) // 2 + 1)
+    spectra, pinned, effective = [], [], max(band.size / _HANN_VARIANCE_INFLATION, 1.0)
+    for frequencies in ([band] if np.array_equal(band, whole) else [band, whole]):
+        omega, periodogram, weight = _binned(2.0 * math.pi * frequencies / n, np.abs(dft[frequencies]) ** 2 / norm)
+        poles = 1.0 - np.geomspace(1.0, SLOWEST_CORNER * float(omega[0]), POLE_COUNT) if omega.size else np.zeros(1)
+        found = _plausible_spectra(omega, periodogram, weight / _HANN_VARIANCE_INFLATION, poles)
+        spectra += found
+        pinned = pinned or found      # the noise level: from the band without the model's frequencies
     fit = NoiseFit(spectra=spectra, marginal=0.0, excused=0.0, floor=NUMERICAL_FLOOR * span,
                    dof=2.0 * effective)
-    fit.marginal = math.sqrt(_marginal_variance(spectra[0])) if spectra else 0.0
+    fit.marginal = math.sqrt(_marginal_variance(pinned[0])) if pinned else 0.0
     if spread is not None and np.size(spread) and runs > 1:
         _apply_spread(fit, np.asarray(spread, dtype=float), runs)
     return fit
@@ -262,51 +334,64 @@ def joint_test(residuals, model_values=None, spreads=None, runs: int = 2,
     count = len(residuals)
     model_values = model_values or [None] * count
     spreads = spreads or [None] * count
-    if fits is None:
-        fits = [fit_noise(r, v, s, runs) for r, v, s in zip(residuals, model_values, spreads)]
     n = residuals[0].size
-    m = effect_band(n)
-    coherence = _noise_coherence(residuals, fits)
-    omega = 2.0 * math.pi * np.arange(m + 1) / n
-    spectra = np.array([f.spectrum(omega) for f in fits])                     # (S, m + 1)
+    band = bands(n, model_values)
+    if fits is None:
+        fits = [fit_noise(r, v, s, runs, band.noise) for r, v, s in zip(residuals, model_values, spreads)]
+    coherence = _noise_coherence(residuals, fits, band.noise)
+    noise_dof = min(f.dof for f in fits) - count
+    # Two looks, each calibrated, the smaller p doubled (a union bound): the lowest frequencies alone
+    # keep the full power against slow effects, the model's frequencies find the others.
+    lowest = np.arange(1, effect_band(n) + 1)
+    looks = [(_statistic(residuals, fits, coherence, frequencies), count * (2 * frequencies.size + 1))
+             for frequencies in (lowest, band.effect)]
+    (chi2, dof), p_value = min(((look, _p_value(look[0], look[1], noise_dof)) for look in looks),
+                               key=lambda pair: pair[1])
+    p_value = p_value if np.array_equal(lowest, band.effect) else min(1.0, 2.0 * p_value)
+    return JointTest(chi2=float(chi2), dof=dof, p_value=p_value, signals=count)
+
+
+def _statistic(residuals: list[np.ndarray], fits: list[NoiseFit], coherence: np.ndarray,
+               effect: np.ndarray) -> float:
+    """Q over the zero frequency and the `effect` frequencies (module docstring, step 5)."""
+    n = residuals[0].size
+    frequencies = np.concatenate([[0], effect]).astype(int)
+    omega = 2.0 * math.pi * frequencies / n
+    spectra = np.array([f.spectrum(omega) for f in fits])                     # (S, 1 + K)
     with np.errstate(divide="ignore", invalid="ignore"):
         root = np.where(spectra > 0, 1.0 / np.sqrt(spectra), 0.0)
-        z = np.array([np.fft.rfft(r)[: m + 1] for r in residuals]) * root
+        z = np.array([np.fft.rfft(r)[frequencies] for r in residuals]) * root
         systematic = np.array([f.floor ** 2 + f.excused ** 2 for f in fits])[:, None] * root ** 2
     silent = spectra <= 0          # no noise at all: any residual beyond the floor is an effect
     chi2 = 0.0
-    for j in range(m + 1):
+    for j, frequency in enumerate(frequencies.tolist()):
         if np.any(silent[:, j]):
-            raw = np.fft.rfft(np.array(residuals)[silent[:, j]], axis=1)[:, j]
+            raw = np.fft.rfft(np.array(residuals)[silent[:, j]], axis=1)[:, frequency]
             floors = np.array([f.floor for f in fits])[silent[:, j]]
             if np.any(np.abs(raw) > n * floors * (1.0 + 1e-9)):
-                chi2 = math.inf
-                break
+                return math.inf
         keep = ~silent[:, j]
         covariance = n * coherence[np.ix_(keep, keep)] + n ** 2 * np.diag(systematic[keep, j])
-        weight = 1.0 if j == 0 else 2.0
+        weight = 1.0 if frequency == 0 else 2.0
         chi2 += weight * _quadratic_form(z[keep, j], covariance)
-    dof = count * (2 * m + 1)
-    noise_dof = min(f.dof for f in fits) - count
-    return JointTest(chi2=float(chi2), dof=dof, p_value=_p_value(chi2, dof, noise_dof), signals=count)
+    return chi2
 
 
 def signal_test(residual: np.ndarray, model_values: np.ndarray, spread: np.ndarray | None,
                 runs: int) -> SignalTest:
     """The test of one signal's residual alone (for the per-signal columns of the report)."""
     fit = fit_noise(residual, model_values, spread, runs)
-    joint = joint_test([residual], [model_values], [spread], runs, fits=[fit])
-    return SignalTest(noise=fit.marginal, floor=fit.floor, chi2=joint.chi2, dof=joint.dof, p_value=joint.p_value)
+    joint = joint_test([residual], [model_values], [spread], runs, fits=[fit])   # fit's band: the same
+    return SignalTest(noise=fit.marginal, noise_dof=fit.dof, floor=fit.floor, chi2=joint.chi2, dof=joint.dof, p_value=joint.p_value)
 
 
-def _noise_coherence(residuals: list[np.ndarray], fits: list[NoiseFit]) -> np.ndarray:
+def _noise_coherence(residuals: list[np.ndarray], fits: list[NoiseFit], band: np.ndarray) -> np.ndarray:
     """Correlation of the signals' noise: their tapered DFTs on the noise band, each divided
     by the square root of its best-fit spectrum."""
     count = len(residuals)
     if count == 1:
         return np.ones((1, 1))
     n = residuals[0].size
-    band = _noise_band(n)
     omega = 2.0 * math.pi * band / n
     normalised = []
     for r, f in zip(residuals, fits):

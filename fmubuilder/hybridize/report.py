@@ -144,7 +144,9 @@ def _test_floors(plain, roles) -> dict:
 
 def summary_line(report: dict) -> str:
     d, units = report["diagnosis"], report["units"]
-    if d["significant"]:
+    if d["significant"] and d["channel"] is None:
+        found = f"**Found** an effect no term form traced to one derivative (joint p = {d['p_value']:.2g})."
+    elif d["significant"]:
         leading = f" depending most likely on {_with_unit(d['inputs'][0], units)}" if d["inputs"] else ""
         found = f"**Found** an effect on {_with_unit(d['channel'], units)}{leading} (joint p = {d['p_value']:.2g})."
     else:
@@ -220,7 +222,10 @@ def _data_section(report: dict) -> list[str]:
 def _diagnosis_section(report: dict) -> list[str]:
     d, units = report["diagnosis"], report["units"]
     lines = ["## Diagnosis", ""]
-    if d["significant"]:
+    if d["significant"] and d["channel"] is None:
+        lines.append(f"The residual exceeds the measurement noise (joint p = {d['p_value']:.2g}). No term form traced "
+                     "it to one derivative; the NeuralFMU's search over the derivatives decided on the validation data.")
+    elif d["significant"]:
         lines.append(f"The residual exceeds the measurement noise (joint p = {d['p_value']:.2g}). It is traced to "
                      f"**{_with_unit(d['channel'], units)}**, depending most likely on "
                      f"{', '.join(_with_unit(v, units) for v in d['inputs'][:3])}.")
@@ -230,6 +235,12 @@ def _diagnosis_section(report: dict) -> list[str]:
         lines.append(f"No significant effect: the residual is at the level of the measurement noise "
                      f"(joint p = {d['p_value']:.2g})."
                      + ("" if report["models"] else " No hybrid FMU was written."))
+    estimated = [e for e in d.get("errors", []) if not e.get("noise_from_spread", True) and e["noise"] > 0]
+    if estimated:
+        lines += ["", "Noise estimated from the data (no `_std` column: the noise fit of the declared model's "
+                  "residual, away from the frequencies the model moves at); every score is measured against it: "
+                  + ", ".join(f"{_with_unit(e['signal'], units)} σ = {e['noise']:.3g} (variance "
+                              f"±{(2.0 / max(e['noise_dof'], 1.0)) ** 0.5:.0%})" for e in estimated) + "."]
     training = report.get("training")
     if training:
         cut = (" The wall-clock cap of {:g} s cut it short.".format(training["time_budget"])
@@ -334,6 +345,11 @@ def _candidate_note(model: dict, training: dict | None) -> str:
                 notes.append("cut short by the wall-clock cap")
         if model.get("warm_start"):
             notes.append(_warm_start_note(model["warm_start"]))
+        search = model.get("channel_search")
+        if search:
+            notes.append(f"its derivative chosen on the validation data after {search['budget_each']} loss evaluation(s) "
+                         "each: " + "; ".join(f"{', '.join(f'`{c}`' for c in row['channels'])} "
+                                             f"{row['validation_score']:.3g}" for row in search["screened"]))
         refined = model.get("last_layer")
         if refined and refined["kept"]:
             notes.append(f"last layer refined through the simulation: training loss {refined['loss_before']:.4g} -> "

@@ -34,6 +34,13 @@ DEFAULT_BUDGET = 10
 # The optimizer through the solver: "adam" or "lbfgs" (on the DC drive's truths L-BFGS wins on three
 # of five effects: docs/MEASUREMENTS.md, "The DC drive effects table against earlier versions").
 OPTIMIZER = "lbfgs"
+# The NeuralFMU's derivative is searched, not only traced: every derivative the diagnosis cannot rule
+# out (those whose change moves a measured signal, the traced one first) gets a short screening
+# training of SCREEN_BUDGET loss evaluations after its warm start, and the one with the lowest
+# validation score gets the full budget. One evaluation is the least that trains through the solver;
+# at most SEARCH_CHANNELS derivatives keep the search's work within a few times the budget of 10.
+SCREEN_BUDGET = 1
+SEARCH_CHANNELS = 4
 # Seconds of the test data replayed by the round-trip validation (fmpy Euler and CVode).
 ROUNDTRIP_SPAN = 60.0
 # ANN inputs when they cannot be chosen on held-out data (hybridize.inputs, which decides how many
@@ -194,6 +201,9 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
             if part.data is first.data:
                 part.start_values = {**part.start_values, **diagnosis.start_values}
         say(f"      {_diagnosis_line(diagnosis)}")
+        estimated = _estimate_noise(roles, diagnosis)
+        if estimated:
+            say(f"      noise estimated from the data (no spread column): {estimated}")
         # Every model, and the NeuralFMU's training, at an RK4 step whose error lies below the noise.
         scoring = Scoring.checked(model_fmu, first.samples(), first.start_values)
         say(f"      scoring: {scoring.describe()}")
@@ -202,9 +212,6 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
         candidates: list[Candidate] = []
         training, not_trained = None, {}
         if diagnosis.significant or allow_insignificant:
-            if diagnosis.channel is None:
-                raise FmuBuilderError("the diagnosis found an effect but could not trace it to a state derivative; "
-                                      "see the diagnosis in the report folder")
             context = _Context(model_fmu, info, roles, scoring, work, say, budget, seed, time_budget, started, plain,
                                progress=progress, ann_on_term=ann_on_term, jobs=jobs)
             candidates_started = time.perf_counter()
@@ -265,6 +272,17 @@ def _whole_run(info, path, start_values: dict | None) -> Part:
     """All samples of a data file, its sidecar's start values overridden by `start_values`."""
     data = read_data(Path(path), info)
     return Part(data, {**data.start_values, **(start_values or {})}, (data.start, data.stop))
+
+
+def _estimate_noise(roles: Roles, diagnosis) -> str:
+    """Give every signal without a spread column the noise variance the diagnosis estimated from the
+    training data's residual (the significance test's noise fit), in every role: the sensors are
+    the same, and the scores measure each model against the noise. Returns the estimates as text."""
+    estimates = {e.signal: e.noise ** 2 for e in diagnosis.errors if not e.noise_from_spread and e.noise > 0}
+    for part in (*roles.train, *roles.validation, roles.test):
+        part.data.noise_estimate.update({name: v for name, v in estimates.items() if name not in part.data.std})
+    uncertainty = {e.signal: (2.0 / max(e.noise_dof, 1.0)) ** 0.5 for e in diagnosis.errors}
+    return ", ".join(f"{name} σ = {v ** 0.5:.3g} (variance ±{uncertainty[name]:.0%})" for name, v in estimates.items())
 
 
 def _split_time(data: MeasuredData) -> float:
@@ -360,14 +378,16 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
     the calibrations depend on none of the others: with a second core they are built in a second
     process meanwhile; the ANN on the term starts from the fitted term, so the two follow each other
     in this one."""
-    channels, inputs, channel_inputs = _ann_channels_and_inputs(ctx, diagnosis)
-    aliases = {name: c for channel in channels for name, c in _aliases_of(ctx, channel).items()}
+    wirings = _ann_wirings(ctx, diagnosis)
+    channels, inputs, channel_inputs = wirings[0].channels, wirings[0].inputs, wirings[0].channel_inputs
     settings = _training_settings(ctx.roles.train[0].samples(), diagnosis, ctx.budget)
     beside = ctx.jobs > 1 and can_run_beside()
+    searched = "" if len(wirings) == 1 else \
+        f" after screening {len(wirings)} derivatives ({SCREEN_BUDGET} loss evaluation each)"
     ctx.say(f"[2/5] training a NeuralFMU: ANN on {_wiring(channels, inputs, channel_inputs)} "
-            f"({ctx.budget} loss evaluations){', and calibrating, in a second process' if beside else ''} ...")
+            f"({ctx.budget} loss evaluations){searched}{', and calibrating, in a second process' if beside else ''} ...")
     with SideProcess("training the NeuralFMU and calibrating", _beside_work,
-                     (ctx, beside, channels, inputs, aliases, settings), {"channel_inputs": channel_inputs},
+                     (ctx, beside, wirings, settings), {},
                      in_caller=not beside) as helper:
         candidates = _term_candidate(ctx, diagnosis)
         term = next((c for c in candidates if c.name == "fitted term"), None)
@@ -433,7 +453,7 @@ def _beside_work(ctx: _Context, beside: bool, *args, **kwargs) -> tuple[list[Can
     if beside:
         ctx = replace(ctx, say=said.append, progress=False)
         set_progress_enabled(False)     # this process's bars only
-    neural = _neural_candidate(ctx, *args, **kwargs)
+    neural = _searched_neural_candidate(ctx, *args, **kwargs)
     return _calibrated_candidates(ctx), neural, ctx.training, said
 
 
@@ -448,17 +468,19 @@ def _aliases_of(ctx: _Context, channel: str) -> dict[str, str]:
         data = ctx.roles.train[0].samples()
         start = float(data.time[0])
         ctx.aliases[channel] = channel_aliases(ctx.model_fmu, ctx.info, channel, ctx.roles.train[0].start_values, data.time,
-                                               start, min(float(data.time[-1]), start + ALIAS_SPAN))
+                                               start, min(float(data.time[-1]), start + ALIAS_SPAN),
+                                               inputs=data.inputs)
         if ctx.aliases[channel]:
             ctx.say(f"      corrected with {channel} too: {', '.join(ctx.aliases[channel])} (equal to it in the model)")
     return ctx.aliases[channel]
 
 
 def channel_aliases(model_fmu, info, channel: str, start_values: dict, data_time, start: float,
-                    stop: float) -> dict[str, str]:
+                    stop: float, inputs: dict | None = None) -> dict[str, str]:
     """{output: channel} for the outputs of the plain model equal to `channel` along its run
     (the diagnosis' test: within 1e-9 relative), e.g. a power whose integral is an energy state.
-    The hybrid must correct them with the derivative, or they contradict the corrected state."""
+    The hybrid must correct them with the derivative, or they contradict the corrected state.
+    inputs: the data's FMU input columns at `data_time`, which drive the run."""
     from ..diagnose.diagnosis import derivative_aliases
     from ..diagnose.runs import ModelRunner
     states = {s.name for s in info.states}
@@ -467,7 +489,7 @@ def channel_aliases(model_fmu, info, channel: str, start_values: dict, data_time
     if not outputs:
         return {}
     runner = ModelRunner(model_fmu, start_values=start_values, data_time=np.asarray(data_time), start=start,
-                         stop=stop, measured=[], recorded=[*outputs, channel])
+                         stop=stop, measured=[], recorded=[*outputs, channel], inputs=inputs)
     try:
         run = runner.simulate()
     finally:
@@ -478,25 +500,61 @@ def channel_aliases(model_fmu, info, channel: str, start_values: dict, data_time
             if index in channels and np.any(run.trajectories[name] != 0.0)}
 
 
-def _ann_channels_and_inputs(ctx: _Context, diagnosis) -> tuple[list[str], list[str], list[list[str]]]:
-    """The derivatives the ANN corrects, the variables it reads and per derivative those its
-    correction reads, chosen on held-out error (hybridize.inputs); the diagnosis' leading variable
-    when that choice has nothing to go on."""
+@dataclass
+class _Wiring:
+    """A NeuralFMU's derivatives, the variables its ANN reads (per derivative) and how they were chosen."""
+    channels: list[str]
+    inputs: list[str]
+    channel_inputs: list[list[str]]
+    aliases: dict
+    choice: dict
+
+
+def _ann_wirings(ctx: _Context, diagnosis) -> list[_Wiring]:
+    """The NeuralFMU's wiring for each derivative the search tries (_channel_options), inputs chosen
+    as for the traced one; duplicates dropped."""
+    wirings = []
+    for channel in _channel_options(ctx.info, diagnosis):
+        further = list(diagnosis.ambiguous_channels) if channel == diagnosis.channel else []
+        channels, inputs, channel_inputs, choice = _ann_channels_and_inputs(ctx, diagnosis, channel, further)
+        aliases = {name: c for ch in channels for name, c in _aliases_of(ctx, ch).items()}
+        wiring = _Wiring(channels, inputs, channel_inputs, aliases, choice)
+        if all((w.channels, w.inputs) != (channels, inputs) for w in wirings):
+            wirings.append(wiring)
+    return wirings
+
+
+def _channel_options(info, diagnosis) -> list[str]:
+    """The derivatives the diagnosis cannot rule out, the traced one first: those whose change moved
+    a measured signal in its screening (a positive score), by score; every derivative when it did not
+    screen them (no tracing); at most SEARCH_CHANNELS."""
+    scored = sorted((c for c, score in diagnosis.channel_scores.items() if score > 0),
+                    key=lambda c: -diagnosis.channel_scores[c])
+    options = scored or [d.name for d in info.derivatives]
+    if diagnosis.channel is not None:
+        options = [diagnosis.channel, *(c for c in options if c != diagnosis.channel)]
+    return options[:SEARCH_CHANNELS]
+
+
+def _ann_channels_and_inputs(ctx: _Context, diagnosis, channel: str, further: list[str]):
+    """The derivatives the ANN corrects (`channel` and those of `further` the inputs explain), the
+    variables it reads, per derivative those its correction reads, and how they were chosen: on
+    held-out error (hybridize.inputs); the diagnosis' leading variables when that choice has nothing
+    to go on."""
     from .inputs import choose_ann
-    choice = choose_ann(ctx.model_fmu, ctx.info, ctx.roles.train, ctx.roles.validation, diagnosis.channel,
-                        list(diagnosis.ambiguous_channels), ctx.scoring.step, ctx.scoring.solver)
+    choice = choose_ann(ctx.model_fmu, ctx.info, ctx.roles.train, ctx.roles.validation, channel,
+                        further, ctx.scoring.step, ctx.scoring.solver)
     if choice is None:
-        ctx.input_choice = {"rule": "the diagnosis' leading variable (the channel's state is not measured, or no "
-                                    "variable predicted its estimated missing term under cross-validation beyond "
-                                    "the noise)"}
-        inputs = _ann_inputs(diagnosis, ctx.info)
-        return [diagnosis.channel], inputs, [inputs]
-    ctx.input_choice = choice.to_dict()
+        inputs = _ann_inputs(diagnosis, ctx.info, channel)
+        return [channel], inputs, [inputs], {
+            "rule": "the diagnosis' leading variable, or the measured states without one (the channel's state is "
+                    "not measured, or no variable predicted its estimated missing term under cross-validation "
+                    "beyond the noise)"}
     seen_in = f" (on the missing term of {choice.through.channel}, where the loop's compensation shows)" \
         if choice.through is not None else ""
-    ctx.say(f"      ANN inputs chosen by cross-validation on the training and validation data{seen_in}: "
+    ctx.say(f"      ANN inputs for {channel} chosen by cross-validation on the training and validation data{seen_in}: "
             f"{', '.join(choice.inputs)}")
-    return choice.channels, choice.inputs, choice.channel_inputs
+    return choice.channels, choice.inputs, choice.channel_inputs, choice.to_dict()
 
 
 def _wiring(channels: list[str], inputs: list[str], channel_inputs: list[list[str]]) -> str:
@@ -506,12 +564,16 @@ def _wiring(channels: list[str], inputs: list[str], channel_inputs: list[list[st
     return "; ".join(f"{c} with inputs {', '.join(names)}" for c, names in zip(channels, channel_inputs))
 
 
-def _ann_inputs(diagnosis, info) -> list[str]:
-    """The leading traced variables that an ANN can read (Real FMU variables, not time)."""
+def _ann_inputs(diagnosis, info, channel: str) -> list[str]:
+    """The leading traced variables that an ANN can read (Real FMU variables, not time), or without
+    them the measured states: what the missing term most plausibly depends on."""
     usable = [name for name in diagnosis.inputs
-              if name in info.variables and info.variables[name].type == "Real" and name != diagnosis.channel]
+              if name in info.variables and info.variables[name].type == "Real" and name != channel]
     if not usable:
-        raise FmuBuilderError(f"the diagnosis named no FMU variable the ANN at {diagnosis.channel} could read")
+        states = {s.name for s in info.states}
+        usable = [e.signal for e in diagnosis.errors if e.signal in states] or sorted(states)
+    if not usable:
+        raise FmuBuilderError(f"the diagnosis named no FMU variable the ANN at {channel} could read")
     return usable[:MAX_ANN_INPUTS]
 
 
@@ -591,6 +653,56 @@ def _calibrated_candidates(ctx: _Context) -> list[Candidate]:
     return candidates
 
 
+def _searched_neural_candidate(ctx: _Context, wirings: list[_Wiring], settings: dict) -> Candidate:
+    """The NeuralFMU on the derivative the validation data choose: each wiring screened with
+    SCREEN_BUDGET loss evaluations (its warm start included), the best validation score trained with
+    the full budget. One wiring: trained at once."""
+    screening = []
+    if len(wirings) > 1:
+        for k, wiring in enumerate(wirings):
+            trained = _train_neural(ctx, wiring.channels, wiring.inputs, wiring.aliases, settings,
+                                    f"screen_{k}", channel_inputs=wiring.channel_inputs, budget=SCREEN_BUDGET)
+            trained.model.close()
+            summary = trained.metrics.get("validation") or {}
+            screening.append({"channels": wiring.channels, "inputs": wiring.inputs,
+                              "validation_score": summary.get("best_score", float("inf"))})
+            ctx.say(f"      screened {_wiring(wiring.channels, wiring.inputs, wiring.channel_inputs)}: validation "
+                    f"score {screening[-1]['validation_score']:.4g}")
+    best = wirings[min(range(len(wirings)), key=lambda k: screening[k]["validation_score"]) if screening else 0]
+    ctx.input_choice = best.choice
+    candidate = _neural_candidate(ctx, best.channels, best.inputs, best.aliases, settings,
+                                  channel_inputs=best.channel_inputs)
+    candidate.details["channel_search"] = {"screened": screening, "budget_each": SCREEN_BUDGET} if screening else None
+    return candidate
+
+
+def _train_neural(ctx: _Context, channels: list[str], inputs: list[str], aliases: dict[str, str], settings: dict,
+                  name: str, base_terms: list[dict] = (), channel_inputs: list[list[str]] = (), budget: int | None = None):
+    """A NeuralFMU trained on the first training run, checkpointed on the validation data."""
+    from ..neural import train_neural_fmu
+    from ..neural.train import Validation
+    folder = ctx.work / name.replace(" ", "_")
+    folder.mkdir()
+    first = ctx.roles.train[0]
+    cap = None if ctx.time_budget is None else max(1.0, ctx.time_budget - (time.perf_counter() - ctx.started))
+    budget = ctx.budget if budget is None else budget
+    # The training sees the model through the data's sensor lag (from the sidecar), at the step and
+    # with the solver every model is scored with, and the outputs equal to a corrected derivative
+    # through it, as the exported hybrid shows them.
+    # Each ANN candidate ends with its best epoch on the validation data, in the score the choice
+    # makes (score.py), the start included: an ANN on a fitted term is never worse there than the
+    # term, a NeuralFMU never worse than its warm start.
+    held_out = ctx.roles.validation[0]
+    validation = Validation(held_out.data, held_out.window, held_out.start_values)
+    settings = {**settings, "last_layer_simulations": settings["last_layer_simulations"] * budget // max(ctx.budget, 1)}
+    return train_neural_fmu(ctx.model_fmu, first.samples(), targets=channels, inputs=inputs,
+                            start_values=first.start_values, topology="residual", budget=budget,
+                            base_terms=base_terms, channel_inputs=channel_inputs, validation=validation,
+                            seed=ctx.seed, time_budget=cap, solver=ctx.scoring.solver,
+                            step_size=ctx.scoring.step, output=folder / "trained.neuralfmu",
+                            progress=ctx.progress, aliases=dict(aliases), **settings)
+
+
 def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], aliases: dict[str, str],
                       settings: dict, name: str = "neural", base_terms: list[dict] = (),
                       channel_inputs: list[list[str]] = ()) -> Candidate:
@@ -598,29 +710,10 @@ def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], ali
     channel_inputs: per channel the inputs its correction reads (empty: all)."""
     channel_inputs = [list(names) for names in channel_inputs] or [list(inputs) for _ in channels]
     from ..export import export_hybrid
-    from ..neural import train_neural_fmu
-    from ..neural.train import Validation
     from .terms import spec_from_neural
-    folder = ctx.work / name.replace(" ", "_")
-    folder.mkdir()
     first = ctx.roles.train[0]
-    cap = None if ctx.time_budget is None else max(1.0, ctx.time_budget - (time.perf_counter() - ctx.started))
-    # The training sees the model through the data's sensor lag (from the sidecar), at the step and
-    # with the solver every model is scored with, and the outputs equal to a corrected derivative
-    # through it, as the exported hybrid shows them.
-    # Each ANN candidate ends with its best epoch on the validation data, in the score the choice
-    # makes (score.py), the start included: an ANN on a fitted term is never worse there than the
-    # term, a NeuralFMU never worse than its warm start. (Before that score, the plain NeuralFMU kept
-    # its lowest training loss: the arithmetic mean of MSE / MSE plain, which speed and power at the
-    # noise level decided, picked an epoch with 7 times the test energy error on the VLDM.)
-    held_out = ctx.roles.validation[0]
-    validation = Validation(held_out.data, held_out.window, held_out.start_values)
-    trained = train_neural_fmu(ctx.model_fmu, first.samples(), targets=channels, inputs=inputs,
-                               start_values=first.start_values, topology="residual", budget=ctx.budget,
-                               base_terms=base_terms, channel_inputs=channel_inputs, validation=validation,
-                               seed=ctx.seed, time_budget=cap, solver=ctx.scoring.solver,
-                               step_size=ctx.scoring.step, output=folder / "trained.neuralfmu",
-                               progress=ctx.progress, aliases=dict(aliases), **settings)
+    trained = _train_neural(ctx, channels, inputs, aliases, settings, name, base_terms, channel_inputs)
+    folder = ctx.work / name.replace(" ", "_")
     try:
         spec = spec_from_neural(trained.model, folder, aliases)
     finally:
@@ -702,5 +795,8 @@ def _check_outputs(output_fmu: Path, report_dir: Path, force: bool) -> None:
 def _diagnosis_line(diagnosis) -> str:
     if not diagnosis.significant:
         return f"no significant effect (joint p = {diagnosis.p_value:.3g})"
+    if diagnosis.channel is None:
+        return (f"significant effect (joint p = {diagnosis.p_value:.3g}), no term form traced it to one derivative: "
+                "the NeuralFMU's search decides")
     return (f"significant effect (joint p = {diagnosis.p_value:.3g}), traced to {diagnosis.channel}; "
             f"inputs: {', '.join(diagnosis.inputs[:3])}")
