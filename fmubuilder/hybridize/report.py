@@ -179,6 +179,8 @@ def summary_line(report: dict) -> str:
             return f"{found} **Shipped: nothing**, the declared FMU explains the data."
         found += " The candidates were built anyway (`--allow-insignificant`)."
     chosen = next((m for m in report["models"] if m["chosen"]), None)
+    if not report["models"] and report["selection"].get("failed"):
+        return f"{found} **Shipped: nothing**: no candidate could be built (their reasons under Candidates)."
     if chosen is None:
         best = min((m["validation_relative_mse"] for m in report["models"]), default=float("nan"))
         return (f"{found} **Shipped: nothing**: no candidate beat the declared FMU on the validation data "
@@ -272,9 +274,10 @@ def _diagnosis_section(report: dict) -> list[str]:
 
 
 def _candidates_section(report: dict) -> list[str]:
-    if not report["models"]:
-        return []
     selection = report["selection"]
+    failed = [f"\nFailed: {_text(name)}; {_text(why)}." for name, why in (selection.get("failed") or {}).items()]
+    if not report["models"]:
+        return ["## Candidates", "", "No candidate could be built.", *failed] if failed else []
     scores = selection.get("scores", {})
     lines = ["## Candidates", "",
              "Train, validation, test: MSE after / MSE before, mean over the signals (below 1: better than the "
@@ -292,7 +295,7 @@ def _candidates_section(report: dict) -> list[str]:
     chosen = _text(selection["chosen"]) if selection["chosen"] else "none (no candidate improved it)"
     lines.append(f"\nChosen on the validation data: **{chosen}** ({_text(selection['rule'])}). {report['test_note']}")
     lines += [f"\nNot trained: {_text(name)}; {_text(why)}." for name, why in (selection.get("not_trained") or {}).items()]
-    return lines
+    return lines + failed
 
 
 def _code_list(names) -> str:
@@ -341,7 +344,7 @@ def _candidate_note(model: dict, training: dict | None) -> str:
         done, asked = model["loss_evaluations"], training.get("budget")
         floor = model.get("at_noise_floor")
         if floor:
-            ratios = ", ".join(f"{_code(name)} {ratio:.3g}" for name, ratio in floor["ratios"].items())
+            ratios = ", ".join(f"{_text(name)} {ratio:.3g}" for name, ratio in floor["ratios"].items())
             notes.append(f"not trained through the solver ({done} of {asked} loss evaluations): after the warm start "
                          f"every training signal lay at its noise floor (MSE / noise variance {ratios}; the noise "
                          f"alone gives up to {floor['factor']:.3g}), where a step can fit only the noise")

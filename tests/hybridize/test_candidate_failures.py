@@ -1,0 +1,72 @@
+"""One candidate that fails does not sink the run: the others are chosen among as usual, and the
+report and the console name the failure with its reason. When no candidate can be built, the run
+ends with an error that gives the reasons and points to the report it kept.
+
+The data: the DC drive's windage truth (examples/dc_drive), whose fitted term the choice takes;
+the failures are made on purpose by replacing a candidate's builder.
+"""
+import json
+
+import pytest
+
+from fmubuilder import synth
+from fmubuilder.build import example_fmu
+from fmubuilder.errors import FmuBuilderError
+from fmubuilder.hybridize import hybridize, workflow
+from fmubuilder.cli.hybridize import summary
+
+BENCH = dict(signals=("speed", "current", "power", "temperature"),
+             noise_std={"speed": 0.1, "current": 0.02, "power": 1.0, "temperature": 0.02})
+TRUTH = "dc_drive_truth_windage"
+BROKEN = "the network could not be built on purpose"
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("failures_data")
+
+    def measure(window, seed):
+        settings = synth.BenchSettings(seed=seed, **BENCH)
+        measurement = synth.measure(example_fmu(TRUTH), start_time=window[0], stop_time=window[1],
+                                    settings=settings)
+        return synth.write_measurement(measurement, folder / f"{seed}.csv")
+    return measure((0.0, 10.0), 0), measure((20.5, 26.0), 1)
+
+
+def fail(*args, **kwargs):
+    raise RuntimeError(BROKEN)
+
+
+def run(files, folder):
+    return hybridize(example_fmu("dc_drive"), *files, folder / "hybrid.fmu", folder / "report", budget=1,
+                     ann_on_term=False, progress=False, jobs=1)
+
+
+def test_a_failing_candidate_is_reported_and_the_others_are_chosen_among(files, tmp_path, monkeypatch):
+    monkeypatch.setattr(workflow, "_neural_candidate", fail)
+    result = run(files, tmp_path)
+    assert result.hybrid_fmu is not None and result.hybrid_fmu.is_file()
+    assert result.report["chosen"] == "fitted term"
+    assert result.report["selection"]["failed"] == {"neural": f"RuntimeError: {BROKEN}"}
+    assert "neural" not in [m["name"] for m in result.report["models"]]
+    markdown = (result.report_dir / "report.md").read_text()
+    assert f"Failed: neural; RuntimeError: {BROKEN}." in markdown
+    assert f"failed: neural; RuntimeError: {BROKEN}" in summary(result)
+
+
+def test_when_no_candidate_can_be_built_the_error_gives_the_reasons_and_keeps_the_report(files, tmp_path,
+                                                                                          monkeypatch):
+    for builder in ("_neural_candidate", "_term_candidate", "_calibrated_candidates"):
+        monkeypatch.setattr(workflow, builder, fail)
+    with pytest.raises(FmuBuilderError) as error:
+        run(files, tmp_path)
+    message = str(error.value)
+    assert "no candidate could be built" in message
+    for name in ("fitted term", "neural", "calibrated"):
+        assert f"{name}: RuntimeError: {BROKEN}" in message
+    report = tmp_path / "report" / "report.md"
+    assert str(report) in message and report.is_file()
+    assert "no candidate could be built" in report.read_text()
+    assert json.loads((tmp_path / "report" / "report.json").read_text())["selection"]["failed"].keys() == \
+        {"fitted term", "neural", "calibrated"}
+    assert not (tmp_path / "hybrid.fmu").exists()
