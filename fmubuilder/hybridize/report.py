@@ -479,7 +479,7 @@ def _plots(folder: Path, diagnosis, plain, chosen, roles, scoring, model_fmu, un
     paths = [signals("train.png", first, f"Training run {first.file_name}", held_out),
              signals("test.png", test, f"Test run {test.file_name} (touched once)")]
     notes = []
-    if chosen is not None:
+    if chosen is not None and not chosen.details.get("calibrated"):     # a calibration adds no term to draw
         try:
             from .effect import effects_of
             effects = effects_of(chosen.spec_dir / "spec.json", Path(model_fmu), first.data, first.start_values,
