@@ -185,6 +185,9 @@ def summary_line(report: dict) -> str:
         best = min((m["validation_relative_mse"] for m in report["models"]), default=float("nan"))
         return (f"{found} **Shipped: nothing**: no candidate beat the declared FMU on the validation data "
                 f"(best MSE ratio {best:.3g}).")
+    if report["hybrid_fmu"] is None:
+        return (f"{found} **Shipped: nothing**: the chosen {_text(chosen['name'])} hybrid failed its round trip "
+                "(below); a hybrid that does not compute what was scored is not published.")
     if chosen["name"] == "fitted term":
         what = f"the fitted term {_code(chosen['description'])}"
     elif chosen.get("calibrated"):
@@ -438,11 +441,14 @@ def _factor(value: float) -> str:
 def _roundtrip_section(report: dict, roundtrip: dict | None) -> list[str]:
     if not roundtrip:
         return []
-    verdict = "passed" if roundtrip["passed"] else "FAILED"
-    lines = ["## Round trip of the published FMU", "",
-             f"The published FMU {_code(report['hybrid_fmu'])} against the Python reference (the network or term run "
-             f"by onnxruntime) over {roundtrip['span'][0]:g} to {roundtrip['span'][1]:g} s of the test data: "
-             f"max relative difference {roundtrip['max_rel_error']:.2g} over the rows compared ({verdict})."]
+    verdict = "passed" if roundtrip["passed"] else "FAILED: not published"
+    which = (f"The published FMU {_code(report['hybrid_fmu'])}" if report["hybrid_fmu"]
+             else f"The chosen {_text(report['chosen'])} hybrid")
+    worst = roundtrip["max_rel_error"]
+    lines = [f"## Round trip of the {'published FMU' if report['hybrid_fmu'] else 'chosen hybrid'}", "",
+             f"{which} against the Python reference (the original with the network, term or overrides, the network "
+             f"run by onnxruntime) over {roundtrip['span'][0]:g} to {roundtrip['span'][1]:g} s of the test data: "
+             f"max relative difference {'-' if worst is None else f'{worst:.2g}'} over the rows compared ({verdict})."]
     if roundtrip["not_compared"]:
         lines.append(f"Not compared (no samples left): {_text('; '.join(roundtrip['not_compared']))}.")
     return lines + ["", "Each comparison, signal by signal: in the appendix."]

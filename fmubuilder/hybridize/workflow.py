@@ -18,7 +18,7 @@ import numpy as np
 
 from ..data import MeasuredData
 from ..errors import FmuBuilderError
-from ..files import copy_atomically, refuse_existing, replace_folder, staging_folder
+from ..files import copy_atomically, keep_for_the_user, refuse_existing, replace_folder, staging_folder
 from ..fmi import read_model_info
 from ..fmi.side_process import SideProcess, can_run_beside, cores
 from ..progress import counted
@@ -203,8 +203,9 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
         training, not_trained, failed = None, {}, {}
         if diagnosis.significant or allow_insignificant:
             if diagnosis.channel is None:
+                kept = _keep_diagnosis(diagnosis, report_dir, final_report_dir)
                 raise FmuBuilderError("the diagnosis found an effect but could not trace it to a state derivative; "
-                                      "see the diagnosis in the report folder")
+                                      f"see the diagnosis in {kept}")
             context = _Context(model_fmu, info, roles, scoring, work, say, budget, seed, time_budget, started, plain,
                                progress=progress, ann_on_term=ann_on_term, jobs=jobs)
             candidates_started = time.perf_counter()
@@ -223,16 +224,21 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
             roundtrip_started = time.perf_counter()
             roundtrip = _roundtrip(chosen, roles.test)
             timings["roundtrip"] = time.perf_counter() - roundtrip_started
-            hybrid_path = output_fmu
+            hybrid_path = output_fmu if roundtrip["passed"] else None     # what was scored, or nothing
         say("[5/5] writing the report ...")
         from .report import write_report
         report = write_report(report_dir, model_fmu=model_fmu, diagnosis=diagnosis, plain=plain,
                               candidates=candidates, chosen=chosen, selection=selection, roundtrip=roundtrip,
                               hybrid_fmu=hybrid_path, roles=roles, scoring=scoring, training=training,
                               seconds=time.perf_counter() - started, timings=timings)
-        if chosen is not None:      # published with its report, once both are complete
+        if hybrid_path is not None:     # published with its report, once both are complete
             _publish(chosen.fmu, output_fmu, force)
         replace_folder(report_dir, final_report_dir)
+        if (chosen is not None and hybrid_path is None) or (failed and not candidates):
+            keep_for_the_user(final_report_dir)     # the errors below point to it
+        if chosen is not None and hybrid_path is None:
+            raise FmuBuilderError(f"the chosen {chosen.name} hybrid failed its round trip, so nothing was written; "
+                                  f"see its comparisons in the report: {final_report_dir / 'report.md'}")
         if failed and not candidates:
             raise FmuBuilderError(f"no candidate could be built: {_reasons(failed)}; the report: "
                                   f"{final_report_dir / 'report.md'}")
@@ -240,6 +246,17 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
     finally:
         shutil.rmtree(work, ignore_errors=True)
         shutil.rmtree(report_dir, ignore_errors=True)   # the staged report of a failed run
+
+
+def _keep_diagnosis(diagnosis, staged: Path, final: Path) -> Path:
+    """The diagnosis (text and plots) in the report folder, for an error that points to it; the
+    rest of the run's outputs go. Returns the text's path."""
+    from ..diagnose.report import format_report
+    from ..files import write_atomically
+    (staged / "diagnosis").mkdir(parents=True, exist_ok=True)
+    write_atomically(staged / "diagnosis" / "diagnosis.txt", format_report(diagnosis) + "\n")
+    replace_folder(staged, final)
+    return keep_for_the_user(final) / "diagnosis" / "diagnosis.txt"
 
 
 # -- roles of the data ----------------------------------------------------------------------------

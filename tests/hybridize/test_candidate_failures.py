@@ -70,3 +70,39 @@ def test_when_no_candidate_can_be_built_the_error_gives_the_reasons_and_keeps_th
     assert json.loads((tmp_path / "report" / "report.json").read_text())["selection"]["failed"].keys() == \
         {"fitted term", "neural", "calibrated"}
     assert not (tmp_path / "hybrid.fmu").exists()
+
+
+def test_a_hybrid_that_fails_its_round_trip_is_not_published(files, tmp_path, monkeypatch):
+    checked = workflow._roundtrip
+
+    def failed_round_trip(chosen, test):
+        return {**checked(chosen, test), "passed": False}
+    monkeypatch.setattr(workflow, "_roundtrip", failed_round_trip)
+    monkeypatch.setattr(workflow, "_neural_candidate", fail)        # not needed here: saves its training
+    with pytest.raises(FmuBuilderError, match="the chosen fitted term hybrid failed its round trip") as error:
+        run(files, tmp_path)
+    report = tmp_path / "report" / "report.md"
+    assert str(report) in str(error.value)
+    assert not (tmp_path / "hybrid.fmu").exists()
+    markdown = report.read_text()
+    assert "**Shipped: nothing**: the chosen fitted term hybrid failed its round trip" in markdown
+    assert "(FAILED: not published)" in markdown
+    assert json.loads((tmp_path / "report" / "report.json").read_text())["hybrid_fmu"] is None
+
+
+def test_a_diagnosis_the_error_points_to_is_kept_where_it_says(files, tmp_path, monkeypatch):
+    import fmubuilder.diagnose as diagnose_package
+    diagnose = diagnose_package.diagnose
+
+    def untraced(*args, **kwargs):
+        diagnosis = diagnose(*args, **kwargs)
+        diagnosis.channel = None
+        return diagnosis
+    monkeypatch.setattr(diagnose_package, "diagnose", untraced)
+    with pytest.raises(FmuBuilderError, match="could not trace it to a state derivative") as error:
+        run(files, tmp_path)
+    kept = tmp_path / "report" / "diagnosis" / "diagnosis.txt"
+    assert str(kept) in str(error.value)
+    assert kept.read_text().startswith("Diagnosis of ")
+    assert list(kept.parent.glob("*.png"))
+    assert not (tmp_path / "hybrid.fmu").exists()
