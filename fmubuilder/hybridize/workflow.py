@@ -376,14 +376,15 @@ class _Context:
     failed: dict = field(default_factory=dict)        # candidate -> why it could not be built, trained or scored
 
 
-def _isolated(ctx: _Context, name: str, build, *args, **kwargs):
+def _isolated(ctx: _Context, candidate: str, build, /, *args, **kwargs):
     """What `build` returns, or None when it fails: one candidate that cannot be built, trained or
-    scored is reported with its reason, and the others are still chosen among."""
+    scored is reported with its reason, and the others are still chosen among. (Positional-only:
+    `build` may take a `name` of its own.)"""
     try:
         return build(*args, **kwargs)
     except Exception as exc:    # any failure of one candidate's own work is that candidate's
-        ctx.failed[name] = _reason(exc)
-        ctx.say(f"      the {name} candidate failed: {ctx.failed[name]}")
+        ctx.failed[candidate] = _reason(exc)
+        ctx.say(f"      the {candidate} candidate failed: {ctx.failed[candidate]}")
         return None
 
 

@@ -106,3 +106,12 @@ def test_a_diagnosis_the_error_points_to_is_kept_where_it_says(files, tmp_path, 
     assert kept.read_text().startswith("Diagnosis of ")
     assert list(kept.parent.glob("*.png"))
     assert not (tmp_path / "hybrid.fmu").exists()
+
+
+def test_a_builder_keeps_its_own_keyword_arguments():
+    """The ANN on the fitted term is built by a function that takes a `name` of its own."""
+    from types import SimpleNamespace
+    context = SimpleNamespace(failed={}, say=lambda line: None)
+    assert workflow._isolated(context, "ANN on the term", lambda name: name, name="inner") == "inner"
+    assert workflow._isolated(context, "ANN on the term", fail, name="inner") is None
+    assert context.failed == {"ANN on the term": f"RuntimeError: {BROKEN}"}
