@@ -293,3 +293,16 @@ def test_hybridize_chooses_and_publishes_the_calibration_when_it_is_best_on_vali
     chosen = next(m for m in report["models"] if m["chosen"])
     assert chosen["calibrated"]["b"] == pytest.approx(TRUE_FRICTION, rel=0.01)
     assert chosen["test_relative_mse"] < 0.01
+
+
+def test_a_calibration_of_an_fmu_without_fmu_state_functions(tmp_path):
+    """canGetAndSetFMUstate="false" and a binary that refuses the calls: the wrapper looks none up."""
+    original = example_fmu("sampled_plant_no_fmu_state")
+    calibrated = export_calibrated(original, {"b": TRUE_FRICTION}, tmp_path / "plant_calibrated.fmu")
+    assert validate_fmu(str(calibrated)) == []
+    kwargs = dict(fmi_type="ModelExchange", solver="CVode", stop_time=3.0, output=["w"], relative_tolerance=1e-8,
+                  output_interval=0.01)
+    mine = simulate_fmu(str(calibrated), **kwargs)
+    reference = simulate_fmu(str(original), start_values={"b": TRUE_FRICTION}, **kwargs)
+    np.testing.assert_allclose(mine["w"], reference["w"], rtol=1e-12, atol=1e-14)
+    assert read_model_description(str(calibrated)).modelExchange.canGetAndSetFMUstate is False
