@@ -24,7 +24,9 @@
  *     a power whose integral is an energy state) returns it corrected the same way;
  *   - the gates p_ann, p_fmu are tunable Real parameters owned by the wrapper, and the raw
  *     network output is a Real local (value references beyond the original's);
- *   - FMU state snapshots hold the original's snapshot plus the gates.
+ *   - FMU state snapshots hold the original's snapshot plus the gates;
+ *   - parameters with overrides (a calibration) get their new values at instantiation and reset.
+ * A hybrid may have no channels (overrides alone): then it runs no network.
  */
 #ifdef _WIN32
 #define WIN32_LEAN_AND_MEAN
@@ -134,10 +136,10 @@ typedef struct Hybrid {
     WrapperState state;
     InnerApi inner;
     fmi2Component inner_component;
-    double p_ann[N_CHANNELS];
-    double p_fmu[N_CHANNELS];
-    double ann_input[N_ANN_INPUTS];
-    double ann_output[N_CHANNELS];
+    double p_ann[SLOTS(N_CHANNELS)];
+    double p_fmu[SLOTS(N_CHANNELS)];
+    double ann_input[SLOTS(N_ANN_INPUTS)];
+    double ann_output[SLOTS(N_CHANNELS)];
     fmi2Real real_inputs[SLOTS(N_REAL_INPUTS)];
     fmi2Integer integer_inputs[SLOTS(N_INTEGER_INPUTS)];
     fmi2Boolean boolean_inputs[SLOTS(N_BOOLEAN_INPUTS)];
@@ -365,6 +367,13 @@ static void reset_gates(Hybrid *h) {
         h->p_ann[c] = CHANNELS[c].p_ann_start;
         h->p_fmu[c] = CHANNELS[c].p_fmu_start;
     }
+}
+
+/* The overrides' values in the original, which starts from its own (an importer may set them
+ * again afterwards, as any start value). */
+static fmi2Status apply_overrides(Hybrid *h) {
+    return N_OVERRIDES > 0 ? h->inner.setReal(h->inner_component, OVERRIDE_VRS, N_OVERRIDES, OVERRIDE_VALUES)
+                           : fmi2OK;
 }
 
 /* ---------------------------------------------------------------------------------------
@@ -700,8 +709,9 @@ fmi2Component fmi2Instantiate(fmi2String instanceName, fmi2Type fmuType, fmi2Str
     }
     h->inner_component = h->inner.instantiate(name, fmi2ModelExchange, INNER_GUID, fmuResourceLocation,
                                               &h->callbacks, visible, loggingOn);
-    if (h->inner_component == NULL) {
-        LOG_ERROR(h, "fmi2Instantiate: the original FMU failed to instantiate.");
+    if (h->inner_component == NULL || apply_overrides(h) > fmi2Warning) {
+        LOG_ERROR(h, "fmi2Instantiate: the original FMU failed to %s.",
+                  h->inner_component == NULL ? "instantiate" : "take the overridden parameter values");
         free_hybrid(h);
         return NULL;
     }
@@ -770,6 +780,7 @@ fmi2Status fmi2Reset(fmi2Component c) {
     status = h->inner.reset(h->inner_component);
     if (status <= fmi2Warning) {
         reset_gates(h);
+        status = worst(status, apply_overrides(h));
     }
     return ENTER_STATE(h, status, STATE_INSTANTIATED);
 }
@@ -883,8 +894,8 @@ typedef struct {
     const Hybrid *owner;    /* the instance that made it */
     fmi2FMUstate inner;
     WrapperState state;
-    double p_ann[N_CHANNELS];
-    double p_fmu[N_CHANNELS];
+    double p_ann[SLOTS(N_CHANNELS)];
+    double p_fmu[SLOTS(N_CHANNELS)];
 } Snapshot;
 
 #define SNAPSHOT_TAG 0x48594253u
@@ -1011,7 +1022,8 @@ fmi2Status fmi2FreeFMUstate(fmi2Component c, fmi2FMUstate *FMUstate) {
 /* Serialized layout: magic, wrapper state, number of channels, gates, then the original's
  * serialized snapshot. */
 static const char SERIAL_MAGIC[8] = {'F', 'M', 'B', 'H', 'Y', 'B', '0', '2'};
-#define SERIAL_HEADER_SIZE (sizeof(SERIAL_MAGIC) + 2 * sizeof(int32_t) + 2 * N_CHANNELS * sizeof(double))
+#define GATES_SIZE (N_CHANNELS * sizeof(double)) /* the used slots of p_ann or p_fmu */
+#define SERIAL_HEADER_SIZE (sizeof(SERIAL_MAGIC) + 2 * sizeof(int32_t) + 2 * GATES_SIZE)
 
 fmi2Status fmi2SerializedFMUstateSize(fmi2Component c, fmi2FMUstate FMUstate, size_t *size) {
     const char *fn = "fmi2SerializedFMUstateSize";
@@ -1049,10 +1061,10 @@ fmi2Status fmi2SerializeFMUstate(fmi2Component c, fmi2FMUstate FMUstate, fmi2Byt
     at += sizeof(SERIAL_MAGIC);
     memcpy(at, header, sizeof(header));
     at += sizeof(header);
-    memcpy(at, s->p_ann, sizeof(s->p_ann));
-    at += sizeof(s->p_ann);
-    memcpy(at, s->p_fmu, sizeof(s->p_fmu));
-    at += sizeof(s->p_fmu);
+    memcpy(at, s->p_ann, GATES_SIZE);
+    at += GATES_SIZE;
+    memcpy(at, s->p_fmu, GATES_SIZE);
+    at += GATES_SIZE;
     return FORWARDED(h, h->inner.serializeFMUstate(h->inner_component, s->inner, at, size - SERIAL_HEADER_SIZE));
 }
 
@@ -1067,9 +1079,9 @@ static bool read_serial_header(Hybrid *h, const fmi2Byte *at, size_t size, Snaps
     at += sizeof(SERIAL_MAGIC);
     memcpy(header, at, sizeof(header));
     at += sizeof(header);
-    memcpy(s->p_ann, at, sizeof(s->p_ann));
-    at += sizeof(s->p_ann);
-    memcpy(s->p_fmu, at, sizeof(s->p_fmu));
+    memcpy(s->p_ann, at, GATES_SIZE);
+    at += GATES_SIZE;
+    memcpy(s->p_fmu, at, GATES_SIZE);
     if (header[1] != N_CHANNELS) {
         LOG_ERROR(h, "%s: the serialized state has %d channels, this hybrid FMU %d.", function, (int)header[1],
                   N_CHANNELS);

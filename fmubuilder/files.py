@@ -159,12 +159,24 @@ def created_paths(journal: str | os.PathLike) -> list[tuple[str, Path]]:
     return found
 
 
+def keep_for_the_user(path: str | os.PathLike) -> Path:
+    """Mark an output of a run that then fails as one its error message points to: the clean-up of
+    the failed run leaves it (and what lies in it). Returns `path`."""
+    _record("kept", Path(path))
+    return Path(path)
+
+
 def remove_created(journal: str | os.PathLike) -> list[Path]:
-    """Remove what a failed run created (`created_paths`); returns the paths removed. A staged or
-    published folder goes with its content (all the run's); a folder `make_folder` made only when
-    it is empty by then: files another program put there stay."""
+    """Remove what a failed run created (`created_paths`), except what it kept for the user
+    (`keep_for_the_user`); returns the paths removed. A staged or published folder goes with its
+    content (all the run's); a folder `make_folder` made only when it is empty by then: files
+    another program put there stay."""
     removed = []
-    for kind, path in created_paths(journal):
+    created = created_paths(journal)
+    kept = [path for kind, path in created if kind == "kept"]
+    for kind, path in created:
+        if kind == "kept" or any(path == k or k in path.parents for k in kept):
+            continue
         if kind == "folder":
             with contextlib.suppress(OSError):
                 os.rmdir(path)

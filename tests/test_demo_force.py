@@ -79,3 +79,48 @@ def test_demo_force_replaces_only_a_folder_an_earlier_demo_wrote(tmp_path, monke
     assert cli.run(["demo", "-o", str(folder), "--force"]) == 1 and len(runs) == 2
     assert "thesis.txt" in capsys.readouterr().err
     assert (folder / "thesis.txt").read_text() == "years of work"
+
+
+# The command line with quick stand-ins: argv[1] the demo folder, argv[2] "first" (a quick run) or
+# "terminated" (a run with --force that waits until it is terminated).
+STAND_IN = '''
+import sys, time
+from fmubuilder import cli, examples_zoo
+from fmubuilder.cli import demo as demo_command
+from fmubuilder.hybridize import workflow
+
+def write_example(name, output, force=False):
+    output.mkdir(parents=True)
+    (output / "vldm.fmu").write_bytes(b"new")
+
+def hybridize(model, train, test, output, report, **kwargs):
+    report.mkdir()
+    (report / "report.md").write_text(sys.argv[2])
+    if sys.argv[2] == "terminated":
+        print("working", flush=True)
+        time.sleep(600)
+    return "result"
+
+examples_zoo.write_example, workflow.hybridize = write_example, hybridize
+demo_command.summary = lambda result: "summary"
+sys.exit(cli.main(["demo", "-o", sys.argv[1], *(["--force"] if sys.argv[2] == "terminated" else [])]))
+'''
+
+
+def test_a_terminated_demo_force_puts_the_previous_demo_back(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    script, folder = tmp_path / "stand_in.py", tmp_path / "demo"
+    script.write_text(STAND_IN)
+    assert subprocess.run([sys.executable, str(script), str(folder), "first"], capture_output=True).returncode == 0
+    run = subprocess.Popen([sys.executable, str(script), str(folder), "terminated"], stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True)
+    for line in run.stdout:
+        if line.strip() == "working":
+            break
+    run.send_signal(signal.SIGTERM)
+    _, stderr = run.communicate(timeout=60)
+    assert run.returncode == 143 and len(stderr.strip().splitlines()) == 1, stderr
+    assert (folder / "report" / "report.md").read_text() == "first"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["demo", "stand_in.py"]

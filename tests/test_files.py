@@ -76,6 +76,20 @@ def test_a_failed_run_removes_what_it_created_and_nothing_else(tmp_path, monkeyp
     assert (tmp_path / ".notes.txt.x.partial").read_text() == "the user's, named like a leftover"
 
 
+def test_what_a_failed_run_keeps_for_the_user_stays(tmp_path, monkeypatch):
+    """An error that points to a report of the failed run: the clean-up leaves that report."""
+    from fmubuilder.files import JOURNAL_ENV, keep_for_the_user, remove_created, replace_folder, staging_folder
+    journal = tmp_path / "journal"
+    monkeypatch.setenv(JOURNAL_ENV, str(journal))
+    staged = staging_folder(tmp_path / "report")
+    (staged / "report.md").write_text("why the run failed")
+    report = keep_for_the_user(replace_folder(staged, tmp_path / "report"))
+    other = tmp_path / "hybrid.fmu"
+    write_atomically(other, "created by this run")
+    assert remove_created(journal) == [other]
+    assert (report / "report.md").read_text() == "why the run failed"
+
+
 def test_without_a_journal_nothing_is_recorded(tmp_path, monkeypatch):
     from fmubuilder.files import JOURNAL_ENV
     monkeypatch.delenv(JOURNAL_ENV, raising=False)

@@ -884,8 +884,11 @@ fmi2Status fmi2GetNominalsOfContinuousStates(fmi2Component c, fmi2Real x_nominal
 
 /* ---------------------------------------------------------------------------------------
  * Co-Simulation is not supported: fmi2Instantiate refuses fmi2CoSimulation, so these are
- * only reachable with a Model Exchange instance and always fail with a message.
+ * only reachable with a Model Exchange instance and always fail with a message. With
+ * WITHOUT_CO_SIMULATION_SYMBOLS they are left out, as a tool may leave them out of an FMU that
+ * declares Model Exchange only (FMI 2.0.5, p. 69).
  */
+#ifndef WITHOUT_CO_SIMULATION_SYMBOLS
 static fmi2Status not_co_simulation(fmi2Component c, const char *function) {
     ModelInstance *m = (ModelInstance *)c;
     model_log(m, fmi2Error, "logStatusError", "%s: %s is a Model Exchange FMU only.", function,
@@ -938,3 +941,4 @@ fmi2Status fmi2GetStringStatus(fmi2Component c, const fmi2StatusKind s, fmi2Stri
     (void)s, (void)value;
     return not_co_simulation(c, "fmi2GetStringStatus");
 }
+#endif

@@ -124,6 +124,8 @@ def summary(result) -> str:
                      f"x{selection.get('margin', 1.0):.3g}): {scores}")
     for name, why in report.get("selection", {}).get("not_trained", {}).items():
         lines.append(f"  not trained: {name}; {why}")
+    for name, why in report.get("selection", {}).get("failed", {}).items():
+        lines.append(f"  failed: {name}; {why}")
     if report["models"]:
         lines.append("  test MSE relative to the plain FMU, mean over the signals (touched once, after the choice): " +
                      ", ".join(f"{m['name']} {m['test_relative_mse']:.3g}" for m in report["models"]))

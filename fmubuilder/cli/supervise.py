@@ -144,7 +144,7 @@ class _Supervisor:
                     return EXIT_HANG, hang, "raise --call-timeout if the model needs longer (0 waits forever)"
                 if self.interrupted_at is not None and time.monotonic() - self.interrupted_at > INTERRUPT_GRACE:
                     self._kill()  # stuck inside the FMU: it cannot see the interrupt
-                    return 130, "interrupted", ""
+                    return (143, "terminated", "") if self.terminated else (130, "interrupted", "")
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
@@ -152,14 +152,15 @@ class _Supervisor:
                 os.close(self.pidfd)
 
     def _on_signal(self, signum, frame) -> None:
-        if signum == signal.SIGINT and self.interrupted_at is None:
+        # The first Ctrl-C or termination lets the worker stop as on an error, within the grace (an
+        # interrupted --force puts the old outputs back); a second one stops it now.
+        if self.interrupted_at is None:
             self.interrupted_at = time.monotonic()
+            self.terminated = signum != signal.SIGINT
             _send(self.pid, signal.SIGINT)
-        elif signum == signal.SIGINT:  # a second Ctrl-C: stop now
-            self.interrupted_at = -math.inf
         else:
-            self.terminated = True
-            _send(self.pid, signal.SIGKILL)
+            self.terminated = self.terminated or signum != signal.SIGINT
+            self.interrupted_at = -math.inf
 
     def _wait_for_exit(self, timeout: float):
         if self.pidfd is not None:
@@ -188,8 +189,8 @@ class _Supervisor:
 
     def _verdict(self, status: int) -> tuple[int, str, str]:
         reported = CALL[REPORT_SLOT]
-        if self.terminated:
-            return 143, "terminated", ""
+        if self.terminated:     # the worker's own line ("interrupted") when it stopped cleanly
+            return 143, "" if reported >= REPORTED and os.WIFEXITED(status) else "terminated", ""
         if os.WIFSIGNALED(status):
             sig = os.WTERMSIG(status)
             if self.interrupted_at is not None:

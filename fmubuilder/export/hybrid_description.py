@@ -13,6 +13,7 @@ the hybrid. Changed or added:
   ``hybrid.<x>.ann`` (local: the network output before gating); for a fitted term
   ``hybrid.<x>.p_term``, ``hybrid.<x>.p_fmu`` and ``hybrid.<x>.term``, and the names and
   descriptions speak of the term, not of a network;
+* the spec's overrides as the start values of their parameters;
 * ModelStructure: the dependencies of each channel's derivative gain those of the network
   inputs; where they are not known (e.g. a local variable feeds the network) the attribute is
   dropped, which per FMI 2.0 means "depends on everything". An output listed in the spec's
@@ -98,7 +99,9 @@ def derive_model_description(original_xml: bytes, spec: HybridSpec, info) -> Hyb
     log_categories = _log_categories(root)
     variables = root.find("ModelVariables")
     layout = _add_channel_variables(variables, spec, info)
-    _define_dimensionless_unit(root)
+    _set_overrides(variables, spec.overrides)
+    if layout:
+        _define_dimensionless_unit(root)
     _update_structure(root, spec, info)
     etree.indent(root, space="  ")
     xml = etree.tostring(root, xml_declaration=True, encoding="UTF-8", pretty_print=True)
@@ -127,9 +130,18 @@ def new_identity(root) -> str:
 def _set_header(root, info, spec: HybridSpec) -> str:
     words = _words(spec)
     root.set("modelName", f"{info.model_name}_hybrid")
-    root.set("description", f"{info.model_name} with {', '.join(spec.channels)} corrected by {words.thing} "
-                            f"(gates {words.gate}, p_fmu per corrected derivative)")
+    changes = [f"{', '.join(spec.channels)} corrected by {words.thing} (gates {words.gate}, p_fmu per corrected "
+               "derivative)"] if spec.channels else []
+    if spec.overrides:
+        changes.append("calibrated " + ", ".join(f"{name} = {value:.6g}" for name, value in spec.overrides.items()))
+    root.set("description", f"{info.model_name} with {' and '.join(changes)}")
     return new_identity(root)
+
+
+def _set_overrides(variables, overrides: dict[str, float]) -> None:
+    for variable in variables.findall("ScalarVariable"):
+        if variable.get("name") in overrides:
+            variable.find("Real").set("start", repr(overrides[variable.get("name")]))
 
 
 def _set_model_exchange(root, identifier: str) -> None:

@@ -39,7 +39,7 @@ class HybridReference(FmuSystem):
                  p_fmu: Sequence[float] | None = None):
         super().__init__(fmu, variables=variables, start_values=start_values, inputs=inputs, tolerance=tolerance)
         info = fmu.info
-        self.network = OnnxNetwork(spec.onnx)
+        self.network = OnnxNetwork(spec.onnx) if spec.channels else None
         self.p_ann = [float(g) for g in (p_ann if p_ann is not None else spec.p_ann)]
         self.p_fmu = [float(g) for g in (p_fmu if p_fmu is not None else spec.p_fmu)]
         self.channel_index = [info.state_index(c) for c in spec.channels]

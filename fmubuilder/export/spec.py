@@ -14,6 +14,11 @@ switches its term off completely (so p_ann = 0, p_fmu = 1 reproduces the origina
 even if the network returned NaN). The gates are tunable parameters of the exported FMU;
 the values here are their start values.
 
+``overrides`` gives parameters of the original new values ({name: value}): the hybrid declares them
+as its start values and sets them in the original at instantiation and reset, so that an importer
+that sets no start values simulates them too. A calibrated parameter is a hybrid with overrides and
+no channels (then neither inputs nor a network).
+
 ``aliases`` maps an output of the original that is the same quantity as a channel's
 derivative (e.g. a power whose integral is the energy state) to that channel. The hybrid
 corrects it like the derivative, y = p_fmu_c * y_original + p_ann_c * net(u)_c, so that the
@@ -29,11 +34,13 @@ JSON form (paths relative to the JSON file's folder)::
       "onnx": "network.onnx",
       "p_ann": [1.0], "p_fmu": [1.0],
       "aliases": {"acceleration": "der(speed)"},
+      "overrides": {"mass": 1100.0},
       "term": "network"
     }
 
-("aliases" may be left out.) ``term`` says what the ONNX graph holds, so that the exported FMU names
-it truthfully: "network" (the default) or "fitted term", with its ``expression`` for the description.
+("aliases" and "overrides" may be left out; "onnx" too when there are no channels.) ``term`` says
+what the ONNX graph holds, so that the exported FMU names it truthfully: "network" (the default) or
+"fitted term", with its ``expression`` for the description.
 """
 from __future__ import annotations
 
@@ -65,32 +72,44 @@ class HybridSpec:
     original_guid: str
     channels: list[str]
     inputs: list[str]
-    onnx: Path
+    onnx: Path | None
     p_ann: list[float] = field(default_factory=list)
     p_fmu: list[float] = field(default_factory=list)
     aliases: dict[str, str] = field(default_factory=dict)   # output name -> channel der(x)
     term: str = "network"       # or "fitted term"
     expression: str = ""        # of a fitted term, for the FMU's description
+    overrides: dict[str, float] = field(default_factory=dict)   # parameter name -> its new value
 
     def __post_init__(self):
         self.original_fmu = Path(self.original_fmu)
-        self.onnx = Path(self.onnx)
+        self.onnx = Path(self.onnx) if self.onnx is not None else None
         self.channels = [str(c) for c in self.channels]
         self.inputs = [str(i) for i in self.inputs]
         n = len(self.channels)
         # Gates default to "both on": the trained hybrid as it was trained.
         self.p_ann = _gates(self.p_ann, n, "p_ann")
         self.p_fmu = _gates(self.p_fmu, n, "p_fmu")
-        if n == 0:
-            raise FmuBuilderError("the hybrid spec has no channels; list the derivatives the network corrects")
+        self.overrides = _overrides(self.overrides)
+        if n == 0 and not self.overrides:
+            raise FmuBuilderError("the hybrid spec has neither channels nor overrides; list the derivatives the "
+                                  "network corrects or the parameters it sets")
         if len(set(self.channels)) != n:
             raise FmuBuilderError(f"the hybrid spec lists a channel twice ({self.channels}); list each derivative once")
-        if not self.inputs:
+        if n and not self.inputs:
             raise FmuBuilderError("the hybrid spec has no network inputs; list the FMU variables fed to the network")
+        if n and self.onnx is None:
+            raise FmuBuilderError("the hybrid spec has channels but no network; give its \"onnx\" file")
         self.aliases = _aliases(self.aliases)
         if self.term not in TERMS:
             raise FmuBuilderError(f"the hybrid spec's term {self.term!r} is unknown; give one of {', '.join(TERMS)}")
         self.expression = str(self.expression or "")
+
+    @classmethod
+    def calibration(cls, original_fmu, overrides: dict[str, float]) -> "HybridSpec":
+        """The original with new values of some of its parameters, and no network."""
+        from fmubuilder.fmi import read_model_info
+        return cls(original_fmu, read_model_info(original_fmu).guid, channels=[], inputs=[], onnx=None,
+                   overrides=overrides)
 
     # -- JSON ------------------------------------------------------------------------------
     @classmethod
@@ -113,16 +132,17 @@ class HybridSpec:
         if data.get("version") != VERSION:
             raise FmuBuilderError(
                 f"{source} is a hybrid spec of version {data.get('version')}; this fmubuilder reads version {VERSION}")
-        missing = [k for k in ("original_fmu", "original_guid", "channels", "inputs", "onnx") if k not in data]
+        missing = [k for k in ("original_fmu", "original_guid", "channels", "inputs") if k not in data]
         if missing:
             raise FmuBuilderError(
                 f"{source}: the hybrid spec lacks {', '.join(missing)}; add them or re-export the spec")
         return cls(
             original_fmu=base / data["original_fmu"], original_guid=str(data["original_guid"]),
-            channels=list(data["channels"]), inputs=list(data["inputs"]), onnx=base / data["onnx"],
+            channels=list(data["channels"]), inputs=list(data["inputs"]),
+            onnx=base / data["onnx"] if data.get("onnx") else None,
             p_ann=list(data.get("p_ann", [])), p_fmu=list(data.get("p_fmu", [])),
             aliases=data.get("aliases", {}), term=data.get("term", "network"),
-            expression=data.get("expression", ""))
+            expression=data.get("expression", ""), overrides=data.get("overrides", {}))
 
     def to_dict(self, relative_to: str | os.PathLike | None = None) -> dict:
         def where(p: Path) -> str:
@@ -133,9 +153,11 @@ class HybridSpec:
         return {
             "format": FORMAT, "version": VERSION,
             "original_fmu": where(self.original_fmu), "original_guid": self.original_guid,
-            "channels": list(self.channels), "inputs": list(self.inputs), "onnx": where(self.onnx),
+            "channels": list(self.channels), "inputs": list(self.inputs),
+            "onnx": where(self.onnx) if self.onnx is not None else None,
             "p_ann": list(self.p_ann), "p_fmu": list(self.p_fmu), "aliases": dict(self.aliases),
             "term": self.term, **({"expression": self.expression} if self.expression else {}),
+            **({"overrides": dict(self.overrides)} if self.overrides else {}),
         }
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -167,6 +189,9 @@ class HybridSpec:
                     f"network input '{name}' is a {var.type} variable; only {', '.join(INPUT_TYPES)} can feed "
                     "the network")
         self._check_aliases(info)
+        self._check_overrides(info)
+        if not self.channels:
+            return
         n_in, n_out = onnx_io_sizes(self.onnx)
         if n_in != len(self.inputs) or n_out != len(self.channels):
             raise FmuBuilderError(
@@ -191,6 +216,13 @@ class HybridSpec:
                     f"alias '{name}' is not a continuous output of {info.model_name} ({var.causality}, "
                     f"{var.variability}); list only outputs that equal {channel} in 'aliases'")
 
+    def _check_overrides(self, info) -> None:
+        for name in self.overrides:
+            var = info.variable(name)   # unknown names fail here with a suggestion
+            if var.type != "Real" or var.causality != "parameter" or var.variability not in ("fixed", "tunable"):
+                raise FmuBuilderError(f"override '{name}' is a {var.causality} {var.type} ({var.variability}); only "
+                                      "a Real parameter (fixed or tunable) can be given a new value")
+
     def channel_states(self, info) -> list[str]:
         """Name of the state x of each channel der(x)."""
         by_name = {d.name: s.name for s, d in zip(info.states, info.derivatives)}
@@ -208,6 +240,19 @@ def _gates(values, n: int, what: str) -> list[float]:
     if not all(math.isfinite(g) for g in gates):
         raise FmuBuilderError(f"the {what} values {gates} are not all finite; give finite gate values")
     return gates
+
+
+def _overrides(overrides) -> dict[str, float]:
+    if not isinstance(overrides, dict):
+        raise FmuBuilderError(f"the hybrid spec's overrides {overrides!r} are not a mapping of parameter name to "
+                              "value; give e.g. {\"mass\": 1100.0}")
+    try:
+        values = {str(name): float(value) for name, value in overrides.items()}
+    except (TypeError, ValueError):
+        raise FmuBuilderError(f"the overrides {overrides} are not all numbers; give one number per parameter") from None
+    if not all(math.isfinite(v) for v in values.values()):
+        raise FmuBuilderError(f"the overrides {values} are not all finite; give finite values")
+    return values
 
 
 def _aliases(aliases) -> dict[str, str]:

@@ -252,7 +252,8 @@ def _embedded_spec(hybrid_fmu: Path, folder: Path) -> tuple[HybridSpec, dict[str
                 f"{hybrid_fmu} holds no hybrid spec (not exported by fmubuilder); pass the spec with --against")
         data = json.loads(hybrid.read(prefix + EMBEDDED_SPEC))
         original_xml = hybrid.read(prefix + EMBEDDED_ORIGINAL_XML)
-        (folder / EMBEDDED_ONNX).write_bytes(hybrid.read(prefix + EMBEDDED_ONNX))
+        if prefix + EMBEDDED_ONNX in names:     # a hybrid of overrides alone has no network
+            (folder / EMBEDDED_ONNX).write_bytes(hybrid.read(prefix + EMBEDDED_ONNX))
         identifier = _model_identifier(original_xml)
         # The original's binaries folder (its library and the files beside it) sits in resources/.
         binaries = set(data.get("original_binaries", [f"{identifier}.so"]))
@@ -345,7 +346,9 @@ def _reference_run(spec: HybridSpec, setup: _Setup, solver: str) -> _Run:
     from fmubuilder.fmi.instance import Fmu
     from .reference import HybridReference
     with Fmu(spec.original_fmu) as fmu:
-        system = HybridReference(fmu, spec, variables=setup.signals, start_values=setup.fmu_start_values,
+        # The overrides as start values of the original; the hybrid sets them itself.
+        system = HybridReference(fmu, spec, variables=setup.signals,
+                                 start_values={**spec.overrides, **setup.fmu_start_values},
                                  inputs=_engine_inputs(setup, fmu.info), p_ann=setup.p_ann, p_fmu=setup.p_fmu,
                                  tolerance=setup.rtol if solver == "dopri5" else None)
         if solver == "fmpy-euler":

@@ -114,16 +114,20 @@ def _build(spec: HybridSpec, info, scratch: Path, with_win64: bool = False) -> P
     (project / "modelDescription.xml").write_bytes(description.xml)
     _embed_for_validation(spec, description, original_xml, binaries, project / "resources" / EMBEDDED_DIR)
 
-    kernel = generate_kernel(spec.onnx, prefix=KERNEL_PREFIX)
-    kernel.write(project / "sources")
+    sources, headers = [WRAPPER_SOURCE], [CONFIG_HEADER, *STATIC_HEADERS]
+    if spec.channels:       # a hybrid of overrides alone runs no network
+        kernel = generate_kernel(spec.onnx, prefix=KERNEL_PREFIX)
+        kernel.write(project / "sources")
+        sources.append(kernel.source_name)
+        headers.append(kernel.header_name)
     for name in (WRAPPER_SOURCE, *STATIC_HEADERS):
         shutil.copyfile(TEMPLATE_DIR / name, project / "sources" / name)
     (project / "sources" / CONFIG_HEADER).write_text(render_config(spec, info, description))
     (project / "CMakeLists.txt").write_text(_render("hybrid_CMakeLists.txt.j2", {
         "identifier": description.model_identifier,
         "fmu_cmake": FMU_CMAKE.as_posix(),
-        "sources": [f"sources/{WRAPPER_SOURCE}", f"sources/{kernel.source_name}"],
-        "headers": [f"sources/{name}" for name in (kernel.header_name, CONFIG_HEADER, *STATIC_HEADERS)],
+        "sources": [f"sources/{name}" for name in sources],
+        "headers": [f"sources/{name}" for name in headers],
     }))
     build = build_cmake_project(project, scratch / "build",
                                 progress_label=f"export: compiling {description.model_identifier}.fmu")
@@ -238,6 +242,8 @@ def render_config(spec: HybridSpec, info, description: HybridDescription) -> str
     } for i, c in enumerate(description.channels)]
     aliases = [{"name": name, "vr": info.variable(name).value_reference, "channel": spec.channels.index(channel)}
                for name, channel in spec.aliases.items()]
+    overrides = [{"name": name, "vr": info.variable(name).value_reference, "value": c_double(value)}
+                 for name, value in spec.overrides.items()]
     caps = info.capabilities
     return _render("hybrid_config.h.j2", {
         "identifier": description.model_identifier,
@@ -251,13 +257,14 @@ def render_config(spec: HybridSpec, info, description: HybridDescription) -> str
         "n_ann_inputs": len(spec.inputs),
         "channels": channels,
         "aliases": aliases,
+        "overrides": overrides,
         "input_groups": list(groups.values()),
         "derivative_inputs": derivative_inputs,
         "inner_log_categories": description.log_categories,
         "can_get_and_set_fmu_state": caps.can_get_and_set_fmu_state,
         "can_serialize_fmu_state": caps.can_get_and_set_fmu_state and caps.can_serialize_fmu_state,
         "can_not_use_memory_management_functions": _declares(spec.original_fmu, "canNotUseMemoryManagementFunctions"),
-        "kernel_prefix": KERNEL_PREFIX,
+        "kernel_prefix": KERNEL_PREFIX if spec.channels else None,
         "kernel_header": f"{KERNEL_PREFIX}.h",
     })
 
@@ -319,10 +326,12 @@ def _check_resource_name(relative: str, entry: str, library: str, staged: dict) 
 def _embed_for_validation(spec: HybridSpec, description: HybridDescription, original_xml: bytes,
                           binaries: list[str], folder: Path) -> None:
     folder.mkdir(parents=True)
-    shutil.copyfile(spec.onnx, folder / EMBEDDED_ONNX)
+    if spec.onnx is not None:
+        shutil.copyfile(spec.onnx, folder / EMBEDDED_ONNX)
     (folder / EMBEDDED_ORIGINAL_XML).write_bytes(original_xml)
     # Paths relative to the folder: validation rebuilds the original FMU beside the network.
-    data = dataclasses.replace(spec, original_fmu=Path("original.fmu"), onnx=Path(EMBEDDED_ONNX)).to_dict()
+    data = dataclasses.replace(spec, original_fmu=Path("original.fmu"),
+                               onnx=Path(EMBEDDED_ONNX) if spec.onnx is not None else None).to_dict()
     data["gates"] = [{"channel": c.channel, "p_ann": c.p_ann, "p_fmu": c.p_fmu, "ann": c.ann}
                      for c in description.channels]
     # Which files of resources/ came from the original's binaries folder (to rebuild the original).

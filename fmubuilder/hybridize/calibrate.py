@@ -85,14 +85,13 @@ class Calibration:
     def description(self) -> str:
         return f"{self.name} = {self.value:.6g} (declared {self.declared:.6g})"
 
-    def details(self, ranked: list[Sensitivity], fitted_on: str, original_fmu, step: float) -> dict:
-        """What the report says about this candidate (and what its round trip needs)."""
+    def details(self, ranked: list[Sensitivity], fitted_on: str) -> dict:
+        """What the report says about this candidate."""
         same = next((s.equivalent for s in ranked if s.name == self.name), [])
         return {"calibrated": {self.name: self.value}, "declared": {self.name: self.declared},
                 "equivalent_parameters": list(same), "train_score": self.train_score,
                 "simulations": self.simulations, "fitted_on": fitted_on,
-                "screening": [{"parameter": s.name, "explained": s.explained} for s in ranked[:SCREEN_REPORTED]],
-                "original_fmu": str(original_fmu), "step": step}
+                "screening": [{"parameter": s.name, "explained": s.explained} for s in ranked[:SCREEN_REPORTED]]}
 
 
 def calibratable_parameters(info, fixed_by_data: set[str]) -> list:

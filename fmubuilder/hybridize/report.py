@@ -112,9 +112,35 @@ def _json_default(value):
 
 # -- the page ----------------------------------------------------------------------------------
 
+# Names, units, descriptions and file names come from the user's FMU and data: whatever they hold
+# must stay text on the page, never markup, a link or the end of a code span. Every such string goes
+# through _code or _text; to_html also refuses raw HTML, in case one is missed.
+
+_MARKDOWN_SPECIAL = re.compile(r"([\\`*_\[\]|])")
+
+
+def _text(value) -> str:
+    """Text from outside for running markdown: HTML's specials as entities, markdown's escaped."""
+    return _MARKDOWN_SPECIAL.sub(r"\\\1", html.escape(str(value), quote=False))
+
+
+def _code(value) -> str:
+    """A code span holding any text: its fence is longer than any run of backticks inside it."""
+    text = " ".join(str(value).splitlines())
+    fence = "`" * (1 + max((len(run) for run in re.findall(r"`+", text)), default=0))
+    pad = " " if text.startswith("`") or text.endswith("`") else ""
+    return f"{fence}{pad}{text}{pad}{fence}"
+
+
+def _code_block(text: str) -> list[str]:
+    """A fenced block that no line of `text` can close."""
+    fence = "`" * max(3, 1 + max((len(run) for run in re.findall(r"^`+", text, flags=re.M)), default=0))
+    return [fence, text, fence]
+
+
 def _with_unit(name: str, units: dict) -> str:
     unit = units.get(name)
-    return f"`{name}` [{unit}]" if unit else f"`{name}`"
+    return f"{_code(name)} [{_text(unit)}]" if unit else _code(name)
 
 
 def _gain(ratio: float) -> str:
@@ -155,17 +181,22 @@ def summary_line(report: dict) -> str:
             return f"{found} **Shipped: nothing**, the declared FMU explains the data."
         found += " The candidates were built anyway (`--allow-insignificant`)."
     chosen = next((m for m in report["models"] if m["chosen"]), None)
+    if not report["models"] and report["selection"].get("failed"):
+        return f"{found} **Shipped: nothing**: no candidate could be built (their reasons under Candidates)."
     if chosen is None:
         best = min((m["validation_relative_mse"] for m in report["models"]), default=float("nan"))
         return (f"{found} **Shipped: nothing**: no candidate beat the declared FMU on the validation data "
                 f"(best MSE ratio {best:.3g}).")
+    if report["hybrid_fmu"] is None:
+        return (f"{found} **Shipped: nothing**: the chosen {_text(chosen['name'])} hybrid failed its round trip "
+                "(below); a hybrid that does not compute what was scored is not published.")
     if chosen["name"] == "fitted term":
-        what = f"the fitted term `{chosen['description']}`"
+        what = f"the fitted term {_code(chosen['description'])}"
     elif chosen.get("calibrated"):
-        what = f"the calibrated parameter {chosen['description']}"
+        what = f"the calibrated parameter {_text(chosen['description'])}"
     else:
-        what = f"a neural network ({chosen['description']})"
-    return (f"{found} **Shipped** `{Path(report['hybrid_fmu']).name}` with {what}. "
+        what = f"a neural network ({_text(chosen['description'])})"
+    return (f"{found} **Shipped** {_code(Path(report['hybrid_fmu']).name)} with {what}. "
             f"**Held out, per signal** (MSE against the declared FMU's, and against the data's noise variance: "
             f"1× is the noise floor): {per_signal_gain(report)}.")
 
@@ -200,12 +231,12 @@ def _noise_ratio(errors: dict | None, variance: float | None) -> float | None:
 
 def markdown(report: dict, roundtrip: dict | None) -> str:
     lines = ["# fmubuilder hybridize report", "", report["summary"], "",
-             f"Model: `{Path(report['model_fmu']).name}`; wall time {report['seconds']:.0f} s."]
+             f"Model: {_code(Path(report['model_fmu']).name)}; wall time {report['seconds']:.0f} s."]
     for section in (_data_section, _diagnosis_section, _candidates_section, _errors_section):
         lines += ["", *section(report)]
     lines += ["", *_roundtrip_section(report, roundtrip), "", *_plots_section(report)]
     if roundtrip:
-        lines += ["", "## Appendix: the round trip in detail", "", "```", roundtrip["table"], "```"]
+        lines += ["", "## Appendix: the round trip in detail", "", *_code_block(roundtrip["table"])]
     return "\n".join(lines) + "\n"
 
 
@@ -213,10 +244,10 @@ def _data_section(report: dict) -> list[str]:
     data = report["data"]
     return ["## Data and their roles", "",
             f"- training (the diagnosis and the fit): {_code_list(data['train'])}",
-            f"- validation (the choice and the decision to publish; {data['validation_from']}): "
+            f"- validation (the choice and the decision to publish; {_text(data['validation_from'])}): "
             f"{_code_list(data['validation'])}",
             f"- test (touched once, after everything was decided): {_code_list(data['test'])}",
-            f"- every model simulated the same way: {report['scoring']}"]
+            f"- every model simulated the same way: {_text(report['scoring'])}"]
 
 
 def _diagnosis_section(report: dict) -> list[str]:
@@ -230,7 +261,7 @@ def _diagnosis_section(report: dict) -> list[str]:
                      f"**{_with_unit(d['channel'], units)}**, depending most likely on "
                      f"{', '.join(_with_unit(v, units) for v in d['inputs'][:3])}.")
         if d["fitted_term"]:
-            lines += ["", f"Fitted term: `{d['fitted_term']['expression']}`."]
+            lines += ["", f"Fitted term: {_code(d['fitted_term']['expression'])}."]
     else:
         lines.append(f"No significant effect: the residual is at the level of the measurement noise "
                      f"(joint p = {d['p_value']:.2g})."
@@ -247,19 +278,20 @@ def _diagnosis_section(report: dict) -> list[str]:
                if training["cut_short_by_time_budget"] else "")
         if training.get("at_noise_floor"):
             lines.append(f"\nThe NeuralFMU was not trained through the solver ({training['budget']} loss evaluations "
-                         f"were allowed): after its warm start on `{training['trained_on']}` every training signal lay "
+                         f"were allowed): after its warm start on {_code(training['trained_on'])} every training signal lay "
                          "at its noise floor.")
         else:
             lines.append(f"\nThe NeuralFMU trained with {training['loss_evaluations']} of {training['budget']} loss "
                          f"evaluations ({training['optimizer']}, {training['steps']} steps, seed {training['seed']}) "
-                         f"on `{training['trained_on']}`.{cut}")
+                         f"on {_code(training['trained_on'])}.{cut}")
     return lines
 
 
 def _candidates_section(report: dict) -> list[str]:
-    if not report["models"]:
-        return []
     selection = report["selection"]
+    failed = [f"\nFailed: {_text(name)}; {_text(why)}." for name, why in (selection.get("failed") or {}).items()]
+    if not report["models"]:
+        return ["## Candidates", "", "No candidate could be built.", *failed] if failed else []
     scores = selection.get("scores", {})
     lines = ["## Candidates", "",
              "Train, validation, test: MSE after / MSE before, mean over the signals (below 1: better than the "
@@ -270,27 +302,22 @@ def _candidates_section(report: dict) -> list[str]:
              "| test score | chosen | note |",
              "|:---|:---|---:|---:|---:|---:|---:|:---|:---|"]
     for m in report["models"]:
-        lines.append(f"| {m['name']} | {_cell(m['description'])} | {m['train_relative_mse']:.3g} | "
+        lines.append(f"| {_text(m['name'])} | {_text(m['description'])} | {m['train_relative_mse']:.3g} | "
                      f"{m['validation_relative_mse']:.3g} | {scores.get(m['name'], float('nan')):.3g} | "
                      f"{m['test_relative_mse']:.3g} | {m.get('test_score', float('nan')):.3g} | "
                      f"{'**yes**' if m['chosen'] else 'no'} | {_candidate_note(m, report.get('training'))} |")
-    lines.append(f"\nChosen on the validation data: **{selection['chosen'] or 'none (no candidate improved it)'}** "
-                 f"({selection['rule']}). {report['test_note']}")
-    lines += [f"\nNot trained: {name}; {why}." for name, why in (selection.get("not_trained") or {}).items()]
-    return lines
+    chosen = _text(selection["chosen"]) if selection["chosen"] else "none (no candidate improved it)"
+    lines.append(f"\nChosen on the validation data: **{chosen}** ({_text(selection['rule'])}). {report['test_note']}")
+    lines += [f"\nNot trained: {_text(name)}; {_text(why)}." for name, why in (selection.get("not_trained") or {}).items()]
+    return lines + failed
 
 
 def _code_list(names) -> str:
-    return ", ".join(f"`{name}`" for name in names)
+    return ", ".join(_code(name) for name in names)
 
 
 def _score(value) -> str:
     return "does not simulate" if value is None else f"{value:.3g}"
-
-
-def _cell(text: str) -> str:
-    """Text for a markdown table cell: a '|' (as in |speed|) would end the cell."""
-    return str(text).replace("|", "\\|")
 
 
 def _warm_start_note(warm: dict) -> str:
@@ -300,7 +327,7 @@ def _warm_start_note(warm: dict) -> str:
     if not warm["kept"]:
         return f"warm start not kept ({len(warm.get('trials', []))} fits tried)"
     estimates = warm.get("estimate") or []
-    parts = [f"fitted to the {' / '.join(dict.fromkeys(estimates))} run's estimate"] if estimates else []
+    parts = [f"fitted to the {' / '.join(_text(e) for e in dict.fromkeys(estimates))} run's estimate"] if estimates else []
     through = warm.get("through_simulation")
     if through and through["kept"]:
         parts.append("last layer through the simulation")
@@ -331,7 +358,7 @@ def _candidate_note(model: dict, training: dict | None) -> str:
         done, asked = model["loss_evaluations"], training.get("budget")
         floor = model.get("at_noise_floor")
         if floor:
-            ratios = ", ".join(f"{name} {ratio:.3g}" for name, ratio in floor["ratios"].items())
+            ratios = ", ".join(f"{_text(name)} {ratio:.3g}" for name, ratio in floor["ratios"].items())
             notes.append(f"not trained through the solver ({done} of {asked} loss evaluations): after the warm start "
                          f"every training signal lay at its noise floor (MSE / noise variance {ratios}; the noise "
                          f"alone gives up to {floor['factor']:.3g}), where a step can fit only the noise")
@@ -359,25 +386,25 @@ def _candidate_note(model: dict, training: dict | None) -> str:
         if model.get("validation_checkpoint"):
             notes.append(_stop_note(model["validation_checkpoint"], model.get("steps"), trained=not floor))
     elif model.get("calibrated"):
-        notes.append(f"calibrated by Gauss-Newton on `{model.get('fitted_on', 'the training data')}` in "
+        notes.append(f"calibrated by Gauss-Newton on {_code(model.get('fitted_on', 'the training data'))} in "
                      f"{model.get('simulations', '?')} simulations, no training")
         if model.get("equivalent_parameters"):
-            notes.append(f"{', '.join(model['equivalent_parameters'])} moved the signals alike in the screening: "
+            notes.append(f"{_code_list(model['equivalent_parameters'])} moved the signals alike in the screening: "
                          "the same candidate, not fitted apart")
     else:
         forms = model.get("forms")
         if forms and forms["fitted"]:
-            scores = ", ".join(f"`{_cell(f['form'])}` {_score(f['validation_score'])}" for f in forms["fitted"])
-            notes.append(f"fitted through the simulation on `{model.get('fitted_on', 'the training data')}`, no "
+            scores = ", ".join(f"{_code(f['form'])} {_score(f['validation_score'])}" for f in forms["fitted"])
+            notes.append(f"fitted through the simulation on {_code(model.get('fitted_on', 'the training data'))}, no "
                          f"training; its form chosen on the validation data among the diagnosis' and its leading "
                          f"variables' forms (validation scores: {scores}; another than the diagnosis' must score "
                          f"lower by x{forms['margin']:.3g})")
         else:
-            notes.append(f"fitted by the diagnosis on `{model.get('fitted_on', 'the training data')}`, no training")
+            notes.append(f"fitted by the diagnosis on {_code(model.get('fitted_on', 'the training data'))}, no training")
         refinement = model.get("refinement")
         if refinement and refinement["kept"]:
-            notes.append(f"coefficient refined through the simulation: {refinement['coefficients_before']} -> "
-                         f"{refinement['coefficients_after']} ({refinement['simulations']} sims)")
+            notes.append(f"coefficient refined through the simulation: {_text(refinement['coefficients_before'])} -> "
+                         f"{_text(refinement['coefficients_after'])} ({refinement['simulations']} sims)")
         elif refinement:
             notes.append(f"coefficient kept: refining it through the simulation did not lower the training "
                          f"error ({refinement['simulations']} sims)")
@@ -418,7 +445,7 @@ def _errors_section(report: dict) -> list[str]:
             lines.append("| " + " | ".join(row) + " |")
     if final:
         lines.append(f"\nFinal: the error at the last sample, shown for the signals that accumulate "
-                     f"({', '.join(sorted(cumulative))}).")
+                     f"({_code_list(sorted(cumulative))}).")
     return lines
 
 
@@ -430,13 +457,16 @@ def _factor(value: float) -> str:
 def _roundtrip_section(report: dict, roundtrip: dict | None) -> list[str]:
     if not roundtrip:
         return []
-    verdict = "passed" if roundtrip["passed"] else "FAILED"
-    lines = ["## Round trip of the published FMU", "",
-             f"The published FMU `{report['hybrid_fmu']}` against the Python reference (the network or term run "
-             f"by onnxruntime) over {roundtrip['span'][0]:g} to {roundtrip['span'][1]:g} s of the test data: "
-             f"max relative difference {roundtrip['max_rel_error']:.2g} over the rows compared ({verdict})."]
+    verdict = "passed" if roundtrip["passed"] else "FAILED: not published"
+    which = (f"The published FMU {_code(report['hybrid_fmu'])}" if report["hybrid_fmu"]
+             else f"The chosen {_text(report['chosen'])} hybrid")
+    worst = roundtrip["max_rel_error"]
+    lines = [f"## Round trip of the {'published FMU' if report['hybrid_fmu'] else 'chosen hybrid'}", "",
+             f"{which} against the Python reference (the original with the network, term or overrides, the network "
+             f"run by onnxruntime) over {roundtrip['span'][0]:g} to {roundtrip['span'][1]:g} s of the test data: "
+             f"max relative difference {'-' if worst is None else f'{worst:.2g}'} over the rows compared ({verdict})."]
     if roundtrip["not_compared"]:
-        lines.append(f"Not compared (no samples left): {'; '.join(roundtrip['not_compared'])}.")
+        lines.append(f"Not compared (no samples left): {_text('; '.join(roundtrip['not_compared']))}.")
     return lines + ["", "Each comparison, signal by signal: in the appendix."]
 
 
@@ -444,7 +474,7 @@ def _plots_section(report: dict) -> list[str]:
     lines = ["## Plots", ""]
     for plot in report["plots"]:
         lines += [f"![{PLOT_CAPTIONS.get(Path(plot).name, Path(plot).stem)}]({plot})", ""]
-    lines += [f"- {note}" for note in report["plot_notes"]]
+    lines += [f"- {_text(note)}" for note in report["plot_notes"]]
     return lines
 
 
@@ -471,7 +501,7 @@ def _plots(folder: Path, diagnosis, plain, chosen, roles, scoring, model_fmu, un
     paths = [signals("train.png", first, f"Training run {first.file_name}", held_out),
              signals("test.png", test, f"Test run {test.file_name} (touched once)")]
     notes = []
-    if chosen is not None:
+    if chosen is not None and not chosen.details.get("calibrated"):     # a calibration adds no term to draw
         try:
             from .effect import effects_of
             effects = effects_of(chosen.spec_dir / "spec.json", Path(model_fmu), first.data, first.start_values,
@@ -512,7 +542,11 @@ body > p:first-of-type { background: #eef5ff; border-left: 4px solid #1f77b4; pa
 def to_html(page: str, folder: Path) -> str:
     """The markdown page as one self-contained HTML file: the plots embedded as base64 PNG."""
     import markdown as md
-    body = md.markdown(page, extensions=["tables", "fenced_code"], output_format="html")
+    converter = md.Markdown(extensions=["tables", "fenced_code"], output_format="html")
+    # The page holds text from the user's FMU and data: raw HTML in it stays text.
+    converter.preprocessors.deregister("html_block")
+    converter.inlinePatterns.deregister("html")
+    body = converter.convert(page)
 
     def inline(match: re.Match) -> str:
         path = folder / html.unescape(match.group(1))

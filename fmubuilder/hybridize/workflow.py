@@ -18,7 +18,7 @@ import numpy as np
 
 from ..data import MeasuredData
 from ..errors import FmuBuilderError
-from ..files import copy_atomically, refuse_existing, replace_folder, staging_folder
+from ..files import copy_atomically, keep_for_the_user, refuse_existing, replace_folder, staging_folder
 from ..fmi import read_model_info
 from ..fmi.side_process import SideProcess, can_run_beside, cores
 from ..progress import counted
@@ -210,15 +210,15 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
         timings = {"diagnosis": time.perf_counter() - started}
         plain = score(Scores(model_fmu), roles, scoring, ("train", "validation"), "scoring the plain FMU")
         candidates: list[Candidate] = []
-        training, not_trained = None, {}
+        training, not_trained, failed = None, {}, {}
         if diagnosis.significant or allow_insignificant:
             context = _Context(model_fmu, info, roles, scoring, work, say, budget, seed, time_budget, started, plain,
                                progress=progress, ann_on_term=ann_on_term, jobs=jobs)
             candidates_started = time.perf_counter()
             candidates = _build_candidates(context, diagnosis)
-            training, not_trained = context.training, context.not_trained
+            training, not_trained, failed = context.training, context.not_trained, context.failed
             timings["candidates"] = time.perf_counter() - candidates_started
-        selection = {**_select(candidates, plain, roles.validation), "not_trained": not_trained}
+        selection = {**_select(candidates, plain, roles.validation), "not_trained": not_trained, "failed": failed}
         chosen = next((c for c in candidates if c.name == selection["chosen"]), None)
         # Everything is decided: now, and only now, the test data.
         say("      scoring every model on the test data (once, after the choice) ...")
@@ -230,16 +230,24 @@ def hybridize(model_fmu, train_csv, test_csv, output_fmu, report_dir, *, validat
             roundtrip_started = time.perf_counter()
             roundtrip = _roundtrip(chosen, roles.test)
             timings["roundtrip"] = time.perf_counter() - roundtrip_started
-            hybrid_path = output_fmu
+            hybrid_path = output_fmu if roundtrip["passed"] else None     # what was scored, or nothing
         say("[5/5] writing the report ...")
         from .report import write_report
         report = write_report(report_dir, model_fmu=model_fmu, diagnosis=diagnosis, plain=plain,
                               candidates=candidates, chosen=chosen, selection=selection, roundtrip=roundtrip,
                               hybrid_fmu=hybrid_path, roles=roles, scoring=scoring, training=training,
                               seconds=time.perf_counter() - started, timings=timings)
-        if chosen is not None:      # published with its report, once both are complete
+        if hybrid_path is not None:     # published with its report, once both are complete
             _publish(chosen.fmu, output_fmu, force)
         replace_folder(report_dir, final_report_dir)
+        if (chosen is not None and hybrid_path is None) or (failed and not candidates):
+            keep_for_the_user(final_report_dir)     # the errors below point to it
+        if chosen is not None and hybrid_path is None:
+            raise FmuBuilderError(f"the chosen {chosen.name} hybrid failed its round trip, so nothing was written; "
+                                  f"see its comparisons in the report: {final_report_dir / 'report.md'}")
+        if failed and not candidates:
+            raise FmuBuilderError(f"no candidate could be built: {_reasons(failed)}; the report: "
+                                  f"{final_report_dir / 'report.md'}")
         return HybridizeResult(report, final_report_dir, hybrid_path)
     finally:
         shutil.rmtree(work, ignore_errors=True)
@@ -371,6 +379,29 @@ class _Context:
     ann_on_term: bool = True                      # also train an ANN that starts from the fitted term
     jobs: int = 1                                 # processes: 2 builds the NeuralFMU and calibrations beside the rest
     not_trained: dict = field(default_factory=dict)   # candidate -> why it was not trained
+    failed: dict = field(default_factory=dict)        # candidate -> why it could not be built, trained or scored
+
+
+def _isolated(ctx: _Context, candidate: str, build, /, *args, **kwargs):
+    """What `build` returns, or None when it fails: one candidate that cannot be built, trained or
+    scored is reported with its reason, and the others are still chosen among. (Positional-only:
+    `build` may take a `name` of its own.)"""
+    try:
+        return build(*args, **kwargs)
+    except Exception as exc:    # any failure of one candidate's own work is that candidate's
+        ctx.failed[candidate] = _reason(exc)
+        ctx.say(f"      the {candidate} candidate failed: {ctx.failed[candidate]}")
+        return None
+
+
+def _reason(exc: Exception) -> str:
+    """One line: the message of an error of ours; the kind and message of any other."""
+    text = " ".join(str(exc).split())
+    return text if isinstance(exc, FmuBuilderError) else f"{type(exc).__name__}: {text}"
+
+
+def _reasons(failed: dict) -> str:
+    return "; ".join(f"{name}: {why}" for name, why in failed.items())
 
 
 def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
@@ -389,7 +420,7 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
     with SideProcess("training the NeuralFMU and calibrating", _beside_work,
                      (ctx, beside, wirings, settings), {},
                      in_caller=not beside) as helper:
-        candidates = _term_candidate(ctx, diagnosis)
+        candidates = _isolated(ctx, "fitted term", _term_candidate, ctx, diagnosis) or []
         term = next((c for c in candidates if c.name == "fitted term"), None)
         # refined: the ANN on the term starts from it
         fitted = term.details["fitted_term"] if term is not None else diagnosis.fitted_term
@@ -406,14 +437,18 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
         if start is not None:
             ctx.say(f"[3/5] training an ANN on top of the fitted term: {start.channel} with inputs "
                     f"{', '.join(start.inputs)} ({ctx.budget} loss evaluations) ...")
-            on_term.append(_neural_candidate(ctx, [start.channel], start.inputs, _aliases_of(ctx, start.channel),
-                                             settings, name=NAME, base_terms=start.terms))
+            on_term.append(_isolated(ctx, NAME, _neural_candidate, ctx, [start.channel], start.inputs,
+                                     _aliases_of(ctx, start.channel), settings, name=NAME, base_terms=start.terms))
         if beside:
             ctx.say("      waiting for the NeuralFMU's training and the calibration in the second process ...")
-        calibrated, candidate, ctx.training, said = helper.result()
+        try:
+            calibrated, candidate, ctx.training, said, failed = helper.result()
+        except FmuBuilderError as exc:      # the second process itself ended: its candidates are lost
+            calibrated, candidate, said, failed = [], None, [], {"neural": _reason(exc), "calibrated": _reason(exc)}
+    ctx.failed.update(failed)
     for line in said:
         ctx.say(line)
-    return [*candidates, *calibrated, candidate, *on_term]
+    return [c for c in (*candidates, *calibrated, candidate, *on_term) if c is not None]
 
 
 def _at_noise_floor(ctx: _Context, candidate: Candidate) -> str | None:
@@ -453,8 +488,9 @@ def _beside_work(ctx: _Context, beside: bool, *args, **kwargs) -> tuple[list[Can
     if beside:
         ctx = replace(ctx, say=said.append, progress=False)
         set_progress_enabled(False)     # this process's bars only
-    neural = _searched_neural_candidate(ctx, *args, **kwargs)
-    return _calibrated_candidates(ctx), neural, ctx.training, said
+    neural = _isolated(ctx, "neural", _searched_neural_candidate, ctx, *args, **kwargs)
+    calibrated = _isolated(ctx, "calibrated", _calibrated_candidates, ctx) or []
+    return calibrated, neural, ctx.training, said, ctx.failed
 
 
 def _candidate(ctx: _Context, name: str, description: str, fmu: Path, folder: Path, details: dict) -> Candidate:
@@ -637,20 +673,26 @@ def _export_fitted_term(ctx: _Context, fitted: dict, aliases: dict[str, str], na
 
 def _calibrated_candidates(ctx: _Context) -> list[Candidate]:
     """One candidate per calibrated parameter: the original FMU with the value fitted on the training data."""
-    from ..export.calibrated import export_calibrated
     from .calibrate import calibrate
     ctx.say("[2/5] screening the FMU's parameters for one that explains the residual ...")
     ranked, fits = calibrate(ctx.model_fmu, ctx.info, [(p.samples(), p.start_values) for p in ctx.roles.train],
                              ctx.scoring, say=ctx.say)
     candidates = []
-    for fit in fits:
-        folder = ctx.work / f"calibrated_{len(candidates)}"
-        folder.mkdir()
-        fmu = export_calibrated(ctx.model_fmu, {fit.name: fit.value}, folder / "calibrated.fmu")
-        candidates.append(_candidate(ctx, f"calibrated {fit.name}", fit.description, fmu, folder,
-                                     fit.details(ranked, ctx.roles.train[0].label, ctx.model_fmu,
-                                                 ctx.scoring.step)))
-    return candidates
+    for index, fit in enumerate(fits):
+        candidates.append(_isolated(ctx, f"calibrated {fit.name}", _calibrated_candidate, ctx, fit, ranked,
+                                    ctx.work / f"calibrated_{index}"))
+    return [c for c in candidates if c is not None]
+
+
+def _calibrated_candidate(ctx: _Context, fit, ranked, folder: Path) -> Candidate:
+    """The original with the fitted value: a hybrid with one override and no network."""
+    from ..export import HybridSpec, export_hybrid
+    folder.mkdir()
+    spec = HybridSpec.calibration(ctx.model_fmu, {fit.name: fit.value})
+    spec.save(folder / "spec.json")
+    fmu = export_hybrid(spec, folder / "hybrid.fmu")
+    return _candidate(ctx, f"calibrated {fit.name}", fit.description, fmu, folder,
+                      fit.details(ranked, ctx.roles.train[0].label))
 
 
 def _searched_neural_candidate(ctx: _Context, wirings: list[_Wiring], settings: dict) -> Candidate:
@@ -759,19 +801,11 @@ def _training_settings(data: MeasuredData, diagnosis, budget: int) -> dict:
 
 
 def _roundtrip(chosen: Candidate, test: Part) -> dict:
-    """The round trip of the chosen FMU over the start of the test data: a hybrid in fmpy against
-    the Python reference; a calibrated FMU in fmpy against the original with the calibrated values
-    (fmpy and the engine, Euler at the scoring step)."""
+    """The round trip of the chosen FMU over the start of the test data: the hybrid in fmpy and the
+    engine against the Python reference (the original with the network or term and the overrides)."""
     from ..export import validate_hybrid
-    from ..export.calibrated import validate_calibrated
-    data, details = test.data, chosen.details
+    data = test.data
     stop = min(data.stop, data.start + ROUNDTRIP_SPAN)
-    if "calibrated" in details:
-        check = validate_calibrated(chosen.fmu, details["original_fmu"], details["calibrated"],
-                                    start_values=test.start_values, start_time=data.start, stop_time=stop,
-                                    step_size=details["step"])
-        return {"passed": check["passed"], "max_rel_error": check["max_rel_error"], "span": [data.start, stop],
-                "table": check["table"], "not_compared": []}
     report = validate_hybrid(chosen.fmu, spec=chosen.spec_dir / "spec.json", start_values=test.start_values,
                              stop_time=stop)
     rows = [c for c in report.comparisons if not c.informational and c.compared]

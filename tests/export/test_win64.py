@@ -61,13 +61,22 @@ def sibling(tmp_path_factory):
     return {"spec": spec, "fmu": hybrid, "stop": 2.0, "step": 1e-3, "outputs": ["der(x)"]}
 
 
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory):
+    """The DC drive with its inertia calibrated: a hybrid of an override, without channels."""
+    original = example_with_win64("dc_drive", tmp_path_factory.mktemp("calibrated_original"))
+    spec = HybridSpec.calibration(original, {"inertia": 0.012})
+    hybrid = export_hybrid(spec, tmp_path_factory.mktemp("calibrated") / "dc_drive_calibrated.fmu")
+    return {"spec": spec, "fmu": hybrid, "stop": 10.0, "step": 1e-3, "outputs": ["speed"]}
+
+
 def run(case: dict, host: Path, fmu: Path, folder: Path, wine: str | None = None, rewind: bool = False) -> np.ndarray:
     value_references = [value_reference(fmu, name) for name in case["outputs"]]
     return run_host(host, unpacked(fmu, folder), fmu, case["stop"], case["step"], value_references, wine=wine,
                     rewind=rewind)
 
 
-@pytest.mark.parametrize("name", ["ball", "drive", "sibling"])
+@pytest.mark.parametrize("name", ["ball", "drive", "sibling", "calibrated"])
 def test_hybrid_carries_linux64_and_win64(name, request):
     case = request.getfixturevalue(name)
     hybrid, original = case["fmu"], read_model_info(case["spec"].original_fmu)
@@ -110,7 +119,7 @@ def test_win64_wrapper_needs_only_windows_dlls_and_exports_fmi2(ball, tmp_path):
         assert f" {function}\n" in headers
 
 
-@pytest.mark.parametrize("name", ["ball", "drive", "sibling"])
+@pytest.mark.parametrize("name", ["ball", "drive", "sibling", "calibrated"])
 def test_win64_under_wine_follows_the_linux64_trajectory(name, request, hosts, tmp_path):
     wine = require_wine()
     case = request.getfixturevalue(name)

@@ -1,11 +1,13 @@
-"""Calibration of an FMU parameter (fmubuilder/hybridize/calibrate.py) and its export
-(fmubuilder/export/calibrated.py).
+"""Calibration of an FMU parameter (fmubuilder/hybridize/calibrate.py) and its export (a hybrid
+with the parameter's override and no network, fmubuilder/export/).
 
 The truths are known: the data come from the same C model with one parameter changed (the
 sampled plant's friction b 0.2 instead of the declared 0.05; the DC drive's winding resistance
 1.32 instead of 1.2 Ohm), so the fit is compared with that value. The exported FMU is checked
 in fmpy, without start values, against fmpy running the original with the calibrated value.
 """
+import ctypes
+
 import numpy as np
 import pytest
 from fmpy import read_model_description, simulate_fmu
@@ -15,7 +17,7 @@ from fmpy.validation import validate_fmu
 from fmubuilder import synth
 from fmubuilder.build import example_fmu
 from fmubuilder.errors import FmuBuilderError
-from fmubuilder.export.calibrated import export_calibrated
+from fmubuilder.export import HybridSpec, export_hybrid
 from fmubuilder.fmi import read_model_info
 from fmubuilder.hybridize import hybridize
 from fmubuilder.hybridize.calibrate import (FIT_SIMULATIONS, Sensitivity, calibrate, calibratable_parameters, distinct,
@@ -143,7 +145,7 @@ def test_parameters_that_act_alike_are_fitted_once(tmp_path):
     assert [v.name for v in info.parameters].index(first.name) < [v.name for v in info.parameters].index(twin.name)
     assert first.equivalent == [twin.name]
     assert [f.name for f in fits] == [first.name]          # the twin is neither fitted nor scored
-    assert fits[0].details(ranked, "vldm.csv", fmu, 0.01)["equivalent_parameters"] == [twin.name]
+    assert fits[0].details(ranked, "vldm.csv")["equivalent_parameters"] == [twin.name]
     # the reference: fitted on its own the twin reaches the same training score
     alone = fit_parameter(fmu, runs, scoring, twin.name, twin.declared)
     assert alone.train_score == pytest.approx(fits[0].train_score, rel=1e-3)
@@ -175,13 +177,17 @@ def test_only_free_real_parameters_are_calibrated():
 # the export: an FMU that applies the calibrated value itself
 
 
+def export_calibrated(original, parameters, output, force=False):
+    return export_hybrid(HybridSpec.calibration(original, parameters), output, force=force)
+
+
 @pytest.fixture(scope="module")
 def calibrated(tmp_path_factory):
     return export_calibrated(example_fmu("sampled_plant"), {"b": TRUE_FRICTION},
                              tmp_path_factory.mktemp("calibrated") / "plant_calibrated.fmu")
 
 
-def test_the_calibrated_fmu_reproduces_the_original_with_the_value_in_fmpy(calibrated):
+def test_the_calibrated_hybrid_reproduces_the_original_with_the_value_in_fmpy(calibrated):
     original = example_fmu("sampled_plant")
     assert validate_fmu(str(calibrated)) == []
     kwargs = dict(stop_time=3.0, output=["w", "i", "u", "b"], relative_tolerance=1e-8, output_interval=0.01)
@@ -194,7 +200,7 @@ def test_the_calibrated_fmu_reproduces_the_original_with_the_value_in_fmpy(calib
     description = read_model_description(str(calibrated))
     start = {v.name: v.start for v in description.modelVariables}
     assert float(start["b"]) == TRUE_FRICTION
-    assert description.modelExchange.modelIdentifier == "sampled_plant_calibrated"
+    assert description.modelExchange.modelIdentifier == "sampled_plant_hybrid"
 
 
 def test_a_reset_returns_to_the_calibrated_value(calibrated, tmp_path):
@@ -218,7 +224,34 @@ def test_a_reset_returns_to_the_calibrated_value(calibrated, tmp_path):
         fmu.freeInstance()
 
 
-def test_the_calibrated_fmu_runs_in_the_engine(calibrated):
+def test_the_fmu_state_of_a_hybrid_without_channels_round_trips(calibrated, tmp_path):
+    """No gates to keep: the state is the original's, also through its serialization."""
+    from fmpy import extract
+    description = read_model_description(str(calibrated))
+    fmu = FMU2Model(guid=description.guid, unzipDirectory=extract(str(calibrated), str(tmp_path / "x")),
+                    modelIdentifier=description.modelExchange.modelIdentifier, instanceName="plant")
+    n = description.numberOfContinuousStates
+    x = (ctypes.c_double * n)()
+    fmu.instantiate()
+    try:
+        fmu.setupExperiment(startTime=0.0)
+        fmu.enterInitializationMode()
+        fmu.exitInitializationMode()
+        fmu.enterContinuousTimeMode()
+        fmu.getContinuousStates(x, n)
+        before = list(x)
+        state = fmu.deSerializeFMUstate(fmu.serializeFMUstate(fmu.getFMUstate()))
+        x[0] += 1.0
+        fmu.setContinuousStates(x, n)
+        fmu.setFMUstate(state)
+        fmu.getContinuousStates(x, n)
+        assert list(x) == before
+        fmu.freeFMUstate(state)
+    finally:
+        fmu.freeInstance()
+
+
+def test_the_calibrated_hybrid_runs_in_the_engine(calibrated):
     ours = simulate(calibrated, stop_time=2.0, solver="euler", step_size=0.001, variables=["w"])
     reference = simulate(example_fmu("sampled_plant"), stop_time=2.0, solver="euler", step_size=0.001,
                          start_values={"b": TRUE_FRICTION}, variables=["w"])
@@ -229,7 +262,7 @@ def test_the_calibrated_fmu_runs_in_the_engine(calibrated):
     ({"no_such": 1.0}, "no_such"),
     ({"w": 1.0}, "only a Real parameter"),
     ({"b": float("nan")}, "finite"),
-    ({}, "no calibrated parameters"),
+    ({}, "neither channels nor overrides"),
 ])
 def test_bad_calibrations_are_one_clear_error(parameters, message, tmp_path):
     with pytest.raises(FmuBuilderError, match=message):
@@ -260,3 +293,16 @@ def test_hybridize_chooses_and_publishes_the_calibration_when_it_is_best_on_vali
     chosen = next(m for m in report["models"] if m["chosen"])
     assert chosen["calibrated"]["b"] == pytest.approx(TRUE_FRICTION, rel=0.01)
     assert chosen["test_relative_mse"] < 0.01
+
+
+def test_a_calibration_of_an_fmu_without_fmu_state_functions(tmp_path):
+    """canGetAndSetFMUstate="false" and a binary that refuses the calls: the wrapper looks none up."""
+    original = example_fmu("sampled_plant_no_fmu_state")
+    calibrated = export_calibrated(original, {"b": TRUE_FRICTION}, tmp_path / "plant_calibrated.fmu")
+    assert validate_fmu(str(calibrated)) == []
+    kwargs = dict(fmi_type="ModelExchange", solver="CVode", stop_time=3.0, output=["w"], relative_tolerance=1e-8,
+                  output_interval=0.01)
+    mine = simulate_fmu(str(calibrated), **kwargs)
+    reference = simulate_fmu(str(original), start_values={"b": TRUE_FRICTION}, **kwargs)
+    np.testing.assert_allclose(mine["w"], reference["w"], rtol=1e-12, atol=1e-14)
+    assert read_model_description(str(calibrated)).modelExchange.canGetAndSetFMUstate is False

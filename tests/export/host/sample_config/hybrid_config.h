@@ -33,6 +33,11 @@ static const Channel CHANNELS[N_CHANNELS] = {
 #define N_ALIASES 0
 static const Alias ALIASES[1] = {{0, 0}};
 
+/* g set to its declared value: the override's path runs, the trajectory stays the original's. */
+#define N_OVERRIDES 1
+static const fmi2ValueReference OVERRIDE_VRS[] = {4};
+static const fmi2Real OVERRIDE_VALUES[] = {9.81};
+
 #define N_REAL_INPUTS 2
 static const fmi2ValueReference REAL_INPUT_VRS[] = {0, 2};
 static const size_t REAL_INPUT_POSITIONS[] = {0, 1};
