@@ -192,7 +192,9 @@ def _levenberg_marquardt(problem: _Problem, theta: np.ndarray, residual: np.ndar
         gradient = jacobian.T @ residual + ridge * (theta - origin)
         if _promised(curvature, gradient) < CONVERGED_BELOW * objective(theta, residual):
             return theta, _cost(residual), "converged"
-        step = np.linalg.solve(curvature + damping * np.diag(np.diag(curvature)), -gradient)
+        # Least squares, not solve: a derivative the measured signals do not see gives a zero Jacobian
+        # (and no ridge), and its step is then none.
+        step = np.linalg.lstsq(curvature + damping * np.diag(np.diag(curvature)), -gradient, rcond=None)[0]
         trial = problem.residual(theta + step)
         if np.all(np.isfinite(trial)) and step @ step > 0:
             jacobian = jacobian + np.outer(trial - residual - jacobian @ step, step) / (step @ step)
