@@ -736,7 +736,8 @@ def _train_neural(ctx: _Context, channels: list[str], inputs: list[str], aliases
     # term, a NeuralFMU never worse than its warm start.
     held_out = ctx.roles.validation[0]
     validation = Validation(held_out.data, held_out.window, held_out.start_values)
-    settings = {**settings, "last_layer_simulations": settings["last_layer_simulations"] * budget // max(ctx.budget, 1)}
+    if budget != ctx.budget:      # a screening: its warm start and first steps, no last-layer refinement
+        settings = {**settings, "last_layer_simulations": 0}
     return train_neural_fmu(ctx.model_fmu, first.samples(), targets=channels, inputs=inputs,
                             start_values=first.start_values, topology="residual", budget=budget,
                             base_terms=base_terms, channel_inputs=channel_inputs, validation=validation,
