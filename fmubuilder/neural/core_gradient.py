@@ -1,0 +1,262 @@
+"""The training's simulation with its gradient from the compiled core (core/sensitivity.c).
+
+`simulate_for_loss` is `solve.simulate` for a loss evaluation: where the core's gradient is exact
+it runs each element in C and returns a Trajectory whose values are a torch.autograd.Function of
+the folded network (Topology.folded: each layer's W and b, and the FMU gates), so the loss is
+defined in torch as before and autograd carries the gradient on to the topology's parameters. The
+backward pass runs each element again in C with forward sensitivities S = dx/dtheta stepped beside
+the states in the solver's own stages (J = df/dx of the FMU and the network by forward
+differences, df/dtheta from the network's weights), summing grad_values . dy/dtheta at the grid
+points. One C run forward, one with sensitivities backward; no autograd graph per step.
+
+The core's gradient follows the states through smooth steps only, so it is used where the
+modelDescription says nothing else can happen (`exact_in_core`): no event indicators (no state
+events, no event-time term), no internal discrete variables (a sampled controller's held values
+would need solve.py's discrete-state path, item 3 of its docstring), no discrete inputs, no trained
+FMU parameters, and an FMU that saves its state (the element starts). A run that has an event all
+the same (a time event of the FMU's own) is done again by the torch solver, and that model stays
+with it. Everything else keeps the torch batch solver.
+"""
+from __future__ import annotations
+
+import math
+import weakref
+
+import numpy as np
+import torch
+
+from ..simulation import core
+from ..simulation.system import _OutputColumns
+from .model import NeuralFMU
+from .solve import SOLVERS, ElementStart, Trajectory, can_snapshot, simulate
+
+_ACTIVATIONS = {torch.tanh: "tanh", torch.sigmoid: "sigmoid", torch.relu: "relu"}
+# Models whose runs had an event after all: the torch solver from then on.
+_EVENTFUL: "weakref.WeakSet[NeuralFMU]" = weakref.WeakSet()
+
+
+def exact_in_core(model: NeuralFMU) -> bool:
+    """Whether the core's gradient is the exact gradient of this model's runs, from its
+    modelDescription and topology (see the module docstring)."""
+    info, topology = model.info, model.topology
+    internal_discrete = any(v.variability == "discrete" and v.causality in ("local", "output")
+                            for v in info.variables.values())
+    discrete_inputs = any(v.variability == "discrete" or v.api_type != "Real" for v in info.inputs)
+    return (topology.ann is not None and info.n_event_indicators == 0 and not internal_discrete
+            and not discrete_inputs and not model.config.parameters and can_snapshot(info)
+            and core.enabled())
+
+
+def simulate_for_loss(model: NeuralFMU, duration: float, step_size: float, *, starts, record, solver: str,
+                      inputs=None, keep_final_state: bool = False) -> Trajectory:
+    """solve.simulate for a loss evaluation: in the core where its gradient is exact, else torch."""
+    usable = (torch.is_grad_enabled() and solver in SOLVERS and model not in _EVENTFUL and exact_in_core(model)
+              and all(start.fmu_state is not None for start in starts))
+    if usable:
+        trajectory = CoreElements(model, duration, step_size, starts, record, solver, inputs).trajectory(
+            keep_final_state)
+        if trajectory is not None:
+            return trajectory
+        _EVENTFUL.add(model)
+    return simulate(model, duration, step_size, starts=starts, record=record, solver=solver, inputs=inputs,
+                    keep_final_state=keep_final_state)
+
+
+class CoreElements:
+    """Batch elements run one after another in the core, forward and with sensitivities."""
+
+    def __init__(self, model: NeuralFMU, duration: float, step_size: float, starts, record, solver: str, inputs,
+                 strict: bool = True):
+        self.strict = strict    # False (for measurements): state resets and events between grid points let pass
+        self.model, self.starts, self.record, self.inputs = model, list(starts), list(record), inputs
+        self.solver = core_solver(solver, step_size)
+        K = max(1, int(math.ceil(duration / step_size - 1e-9)))
+        self.grid = np.minimum(np.arange(K + 1) * step_size, duration)
+        self.grid[-1] = duration
+        self.rk4 = solver == "rk4"
+        self.layers = model.topology.folded()
+        self.theta = [tensor for layer in self.layers if isinstance(layer, tuple) for tensor in layer]
+        self.theta.append(model.topology.gate_fmu)
+        self.n_parameters = sum(t.numel() for t in self.theta)
+        self.instances = None
+
+    def trajectory(self, keep_final_state: bool) -> Trajectory | None:
+        """The elements' Trajectory with values differentiable through the core; None where the
+        core's run cannot stand for the torch solver's (see the module docstring)."""
+        runs = self._forward(keep_final_state)
+        if runs is None:
+            return None
+        values, before = _CoreRuns.apply(self, *self.theta)
+        finals = torch.from_numpy(np.stack([run.x for run in runs]))
+        return Trajectory(times=self.grid.copy(), t0=np.array([s.t0 for s in self.starts], dtype=float),
+                          names=list(self.record), values=values, final_states=finals,
+                          final_starts=self._final_starts if keep_final_state else None,
+                          before=before if self.rk4 else None, stats={"core_gradient": True})
+
+    # -- the runs ---------------------------------------------------------------------------------
+    def _forward(self, keep_final_state: bool):
+        """Each element's run in the core, its events' rows recorded: the records at the grid points
+        (after their events) and before the events there. None if an event resets the states or
+        falls between grid points (the torch solver records the steps it cuts, Trajectory.inner)."""
+        self.instances = self.model.instances_for(self.starts)
+        self.correction = self._correction()
+        runs, finals, self.roles = [], [], []
+        for b, start in enumerate(self.starts):
+            run, _, resets = self._run(b, None)
+            exact = self.strict and (resets or run.terminated)
+            roles = None if exact else _row_roles(run, start.t0 + self.grid, self.strict)
+            if roles is None:
+                return None
+            runs.append(run)
+            self.roles.append(roles)
+            if keep_final_state:
+                finals.append(self._saved(b, run))
+        self.values = np.stack([run.table[grid] for run, (grid, _) in zip(runs, self.roles)], axis=1)
+        self.before = np.stack([run.table[ends] for run, (_, ends) in zip(runs, self.roles)], axis=1)
+        self.rows = [len(run.times) for run in runs]
+        self._final_starts = finals
+        return runs
+
+    def gradient(self, grad_values: np.ndarray, grad_before: np.ndarray | None) -> np.ndarray:
+        """The sum over elements, grid points and columns of grad_values d(value)/dtheta and
+        grad_before d(before)/dtheta."""
+        total = np.zeros(self.n_parameters)
+        for b, (grid, ends) in enumerate(self.roles):
+            weights = np.zeros((self.rows[b], grad_values.shape[2]))
+            np.add.at(weights, grid, grad_values[:, b, :])
+            if grad_before is not None:
+                np.add.at(weights, ends, grad_before[:, b, :])
+            if np.any(weights):
+                total += self._run(b, weights)[1]
+        return total
+
+    def _run(self, b: int, weights):
+        start = self.starts[b]
+        system = _ElementSystem(self.instances[b], self.model, self.record, self.inputs, self.correction)
+        x0 = self._placed(system.instance, start)
+        return core.run_with_gradient(system, self.solver, start_time=start.t0, stop_time=start.t0 + self.grid[-1],
+                                      output_times=start.t0 + self.grid, x0=x0, next_event=start.next_event_time,
+                                      n_parameters=self.n_parameters, weights=weights, record_events=True)
+
+    def _placed(self, instance, start: ElementStart) -> np.ndarray:
+        """The instance at the element's start (its saved FMU state, the state overrides); its states."""
+        state = instance.deserialize_fmu_state(start.fmu_state)
+        try:
+            instance.set_fmu_state(state)
+        finally:
+            instance.free_fmu_state(state)
+        x = instance.get_continuous_states()
+        if start.states:
+            names = self.model.state_names()
+            for name, value in start.states.items():
+                x[names.index(name)] = float(value)
+            instance.set_continuous_states(x)
+        return x
+
+    def _saved(self, b: int, run) -> ElementStart:
+        instance = self.instances[b]
+        instance.set_time(run.t)
+        if self.inputs is not None and self.inputs.continuous:
+            instance.set_real([v.value_reference for v in self.inputs.continuous], self.inputs.at(run.t))
+        instance.set_continuous_states(run.x)
+        state = instance.get_fmu_state()
+        try:
+            data = instance.serialize_fmu_state(state)
+        finally:
+            instance.free_fmu_state(state)
+        return ElementStart(float(run.t), data, float(run.next_event))
+
+    def _correction(self) -> core.Correction:
+        """The folded network as the core evaluates it, with the base term (see NumpyTopology)."""
+        topology, n = self.model.topology, self.model.info.n_states
+        sources = [(core.SOURCE_STATE, i) if i < n else (core.SOURCE_DERIVATIVE, i - n) if i < 2 * n
+                   else (core.SOURCE_VARIABLE, i - 2 * n) for i in topology.input_source.tolist()]
+        program = []
+        for i, layer in enumerate(self.layers):
+            if isinstance(layer, tuple):
+                following = self.layers[i + 1] if i + 1 < len(self.layers) else None
+                activation = None if following is None or isinstance(following, tuple) else _ACTIVATIONS[following]
+                program.append((layer[0].detach().numpy().copy(), layer[1].detach().numpy().copy(), activation))
+        terms, bias, gate = [], 0.0, 0.0
+        if topology.base is not None:
+            terms, bias = topology.base.terms_by_basis()
+            gate = float(topology.gate_ann[0])
+        info = self.model.info
+        return core.Correction(inputs=sources, variable_vrs=[info.variable(name).value_reference
+                                                             for name in topology.fmu_variables],
+                               layers=program, channels=list(topology.channel_index),
+                               gate_fmu=topology.gate_fmu.detach().numpy().copy(), terms=terms, term_bias=bias,
+                               term_gate=gate)
+
+
+def core_solver(name: str, step_size: float):
+    from ..simulation import make_solver
+    return make_solver(name, step_size=step_size)
+
+
+class _ElementSystem:
+    """What the core reads of a system (see core._plan), around an instance at an element start."""
+
+    def __init__(self, instance, model: NeuralFMU, record, inputs, correction):
+        info = model.info
+        self.instance, self.info = instance, info
+        self.n_states, self.n_indicators = info.n_states, info.n_event_indicators
+        self.recorded = [info.variable(name) for name in record]
+        self.columns = _OutputColumns(instance, info, self.recorded)
+        self.inputs = inputs
+        self.breakpoints = inputs.breakpoints if inputs is not None else np.zeros(0)
+        self.input_event_times = inputs.discrete_change_times().tolist() if inputs is not None else []
+        self._correction = correction
+
+    def compiled_correction(self):
+        return self._correction
+
+
+def _row_roles(run, grid_times: np.ndarray, strict: bool = True):
+    """(the row of each grid point's record, the row of each grid point k + 1 before its events) of
+    a run recorded with its events (each event: a row before and one after it, at its time, then
+    the grid point's own record); None if an event lies between grid points or rows are missing."""
+    times, events = run.times, [t for t, _ in run.events]
+    grid_rows, before_event = [], {}
+    i = e = 0
+    while i < len(times):
+        if e < len(events) and times[i] == events[e]:
+            before_event.setdefault(events[e], i)
+            i, e = i + 2, e + 1
+        else:
+            grid_rows.append(i)
+            i += 1
+    if len(grid_rows) != len(grid_times):
+        return None
+    tolerance = 1e-9 * max(1.0, float(np.max(np.abs(grid_times))))
+    ends = list(grid_rows[1:])
+    for t, row in before_event.items():
+        k = int(np.argmin(np.abs(grid_times - t)))
+        if abs(grid_times[k] - t) > tolerance:
+            if strict:
+                return None
+            continue
+        if k > 0:
+            ends[k - 1] = row
+    return np.array(grid_rows), np.array(ends, dtype=int)
+
+
+class _CoreRuns(torch.autograd.Function):
+    """The elements' records at the grid points [K+1, B, C] and before the events there [K, B, C]
+    as a function of theta (CoreElements.theta)."""
+
+    @staticmethod
+    def forward(ctx, elements: CoreElements, *theta):
+        ctx.elements = elements
+        return torch.from_numpy(elements.values), torch.from_numpy(elements.before)
+
+    @staticmethod
+    def backward(ctx, grad_values, grad_before):
+        elements = ctx.elements
+        flat = elements.gradient(grad_values.detach().numpy(),
+                                 None if grad_before is None else grad_before.detach().numpy())
+        grads, offset = [], 0
+        for tensor in elements.theta:
+            grads.append(torch.from_numpy(flat[offset:offset + tensor.numel()].reshape(tensor.shape).copy()))
+            offset += tensor.numel()
+        return (None, *grads)

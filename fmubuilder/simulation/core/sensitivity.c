@@ -1,0 +1,427 @@
+/* Forward sensitivities of a corrected system (a NeuralFMU) to its correction's parameters, in the
+ * event loop's own steps (see core_gradient_run in event_loop.h).
+ *
+ * theta: the layers' W and b (row-major, layer after layer), then the FMU gate of each channel.
+ * S = dx/dtheta [n][P] is stepped beside the states with the solver's own stages:
+ *     dS/dt = J S + F,   J = df/dx by forward differences of the corrected derivatives (the FMU
+ *     and the network together), F = df/dtheta from the network's weights (backpropagation).
+ * Time events, step events and input kinks pass S on unchanged; a state reset at an event is
+ * counted (the caller uses another gradient then); state events are passed on without the
+ * event-time term. At each recorded row the weighted outputs' sensitivities are summed into the
+ * gradient: sum over columns of w dy/dtheta, with dy/dx of a computed variable by differences. */
+#include <float.h>
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "loop.h"
+
+struct Sensitivity {
+    size_t n, P, n_columns, n_outputs, width_total;
+    const double *weights;          /* [n_outputs][n_columns] by recorded row, NULL: no sensitivities */
+    double *gradient;               /* [P] */
+    int64_t resets;
+    double st, st_prev;             /* the times of S and S_prev */
+    double *S, *S_prev, *S_stage, *K, *K_sum, *F;   /* [n][P] each; F: [n_channels][P] */
+    double *J, *f0, *fp, *xp, *xs, *v;              /* J [n][n]; the others [n] */
+    double *z, *activations, *delta, *delta_next;   /* the network's inputs, outputs, backward */
+    double *y0;                     /* the computed columns at the nominal point */
+    /* where J and F were last taken: a grid point's record and the next step's first stage share it */
+    double lin_t, *lin_x;
+    int lin_valid;
+};
+
+/* A perturbation of a state for forward differences. */
+static double fd_step(double value)
+{
+    return sqrt(DBL_EPSILON) * (fabs(value) > 1.0 ? fabs(value) : 1.0);
+}
+
+static double activation_slope(int activation, double out)
+{
+    switch (activation) {
+    case ACTIVATION_TANH:
+        return 1.0 - out * out;
+    case ACTIVATION_SIGMOID:
+        return out * (1.0 - out);
+    case ACTIVATION_RELU:
+        return out > 0.0 ? 1.0 : 0.0;
+    default:
+        return 1.0;
+    }
+}
+
+/* F: the rows df_channel/dtheta at the inputs z (the network's, as correct() gathered them). */
+static void parameter_rows(Loop *loop, Sensitivity *s)
+{
+    const CoreCorrection *c = loop->plan->correction;
+    size_t L = c->n_layers;
+    /* forward, keeping every layer's output (activations[0..]: z, then each layer) */
+    double *outputs = s->activations;
+    memcpy(outputs, s->z, c->n_inputs * sizeof(double));
+    const double *w = c->weights, *b = c->biases, *in = outputs;
+    double *out = outputs + c->n_inputs;
+    for (size_t l = 0; l < L; ++l) {
+        int rows = c->layer_rows[l], cols = c->layer_cols[l];
+        for (int j = 0; j < rows; ++j) {
+            double sum = 0.0;
+            for (int k = 0; k < cols; ++k) {
+                sum += w[j * cols + k] * in[k];
+            }
+            out[j] = loop_activated(c->layer_activation[l], sum + b[j]);
+        }
+        w += (size_t)rows * cols;
+        b += rows;
+        in = out;
+        out += rows;
+    }
+    for (size_t channel = 0; channel < c->n_channels; ++channel) {
+        double *row = s->F + channel * s->P;
+        memset(row, 0, s->P * sizeof(double));
+        /* backward from output `channel`, layer by layer, parameters laid out as in theta */
+        size_t offset_params = s->P - c->n_channels, offset_out = s->width_total;
+        double *delta = s->delta, *next = s->delta_next;
+        int rows = c->layer_rows[L - 1];
+        offset_out -= rows;
+        for (int j = 0; j < rows; ++j) {
+            delta[j] = j == (int)channel ? activation_slope(c->layer_activation[L - 1], outputs[offset_out + j]) : 0.0;
+        }
+        const double *W_end = c->weights;
+        for (size_t l = 0; l < L; ++l) {
+            W_end += (size_t)c->layer_rows[l] * c->layer_cols[l];
+        }
+        for (size_t l = L; l-- > 0;) {
+            rows = c->layer_rows[l];
+            int cols = c->layer_cols[l];
+            const double *W = W_end - (size_t)rows * cols;
+            size_t offset_in = offset_out - cols;
+            const double *a = outputs + offset_in;
+            offset_params -= (size_t)rows * cols + rows;
+            double *dW = row + offset_params, *db = dW + (size_t)rows * cols;
+            for (int j = 0; j < rows; ++j) {
+                if (delta[j] == 0.0) {
+                    continue;
+                }
+                for (int k = 0; k < cols; ++k) {
+                    dW[j * cols + k] = delta[j] * a[k];
+                }
+                db[j] = delta[j];
+            }
+            if (l > 0) {
+                for (int k = 0; k < cols; ++k) {
+                    double sum = 0.0;
+                    for (int j = 0; j < rows; ++j) {
+                        sum += W[j * cols + k] * delta[j];
+                    }
+                    next[k] = sum * activation_slope(c->layer_activation[l - 1], a[k]);
+                }
+                double *swap = delta;
+                delta = next;
+                next = swap;
+            }
+            W_end = W;
+            offset_out = offset_in;
+        }
+        row[s->P - c->n_channels + channel] = loop->raw_channel[channel];
+    }
+}
+
+/* J = df/dx by forward differences and F = df/dtheta at (t, x); f0 gets f(t, x). */
+static int linearised(Loop *loop, Sensitivity *s, double t, const double *x)
+{
+    const CoreCorrection *c = loop->plan->correction;
+    size_t n = s->n;
+    if (s->lin_valid && t == s->lin_t && memcmp(x, s->lin_x, n * sizeof(double)) == 0) {
+        return 0;
+    }
+    s->lin_valid = 0;
+    if (loop_derivatives(loop, t, x, s->f0)) {
+        return 1;
+    }
+    memcpy(s->z, loop->network_in, c->n_inputs * sizeof(double));
+    parameter_rows(loop, s);       /* uses raw_channel of this nominal evaluation */
+    memcpy(s->xp, x, n * sizeof(double));
+    for (size_t j = 0; j < n; ++j) {
+        double step = fd_step(x[j]);
+        s->xp[j] = x[j] + step;
+        step = s->xp[j] - x[j];
+        if (loop_derivatives(loop, t, s->xp, s->fp)) {
+            return 1;
+        }
+        for (size_t i = 0; i < n; ++i) {
+            s->J[i * n + j] = (s->fp[i] - s->f0[i]) / step;
+        }
+        s->xp[j] = x[j];
+    }
+    s->lin_t = t;
+    memcpy(s->lin_x, x, n * sizeof(double));
+    s->lin_valid = 1;
+    return 0;
+}
+
+/* K = J S_stage + F (F on the channels' rows). */
+static void stage_slope(const Loop *loop, Sensitivity *s, const double *S_stage, double *K)
+{
+    const CoreCorrection *c = loop->plan->correction;
+    size_t n = s->n, P = s->P;
+    for (size_t i = 0; i < n; ++i) {
+        double *Ki = K + i * P;
+        memset(Ki, 0, P * sizeof(double));
+        for (size_t j = 0; j < n; ++j) {
+            double a = s->J[i * n + j];
+            if (a == 0.0) {
+                continue;
+            }
+            const double *Sj = S_stage + j * P;
+            for (size_t p = 0; p < P; ++p) {
+                Ki[p] += a * Sj[p];
+            }
+        }
+    }
+    for (size_t channel = 0; channel < c->n_channels; ++channel) {
+        double *Ki = K + (size_t)c->channel_state[channel] * P;
+        const double *Fc = s->F + channel * P;
+        for (size_t p = 0; p < P; ++p) {
+            Ki[p] += Fc[p];
+        }
+    }
+}
+
+/* out = S + a K, over [n][P]. */
+static void axpy_all(size_t count, const double *S, double a, const double *K, double *out)
+{
+    for (size_t i = 0; i < count; ++i) {
+        out[i] = S[i] + a * K[i];
+    }
+}
+
+int sens_step(Loop *loop, double t, double h, const double *x)
+{
+    Sensitivity *s = loop->sens;
+    if (s->weights == NULL) {
+        return 0;
+    }
+    size_t n = s->n, count = n * s->P;
+    double *S_new = s->S_prev;      /* S_prev is free: it becomes the old S below */
+    if (loop->plan->solver == CORE_EULER) {
+        if (linearised(loop, s, t, x)) {
+            return 1;
+        }
+        stage_slope(loop, s, s->S, s->K);
+        axpy_all(count, s->S, h, s->K, S_new);
+    } else {
+        /* RK4's stages, at the points the nominal step evaluated (its k1, k2, k3 give them) */
+        const double *slopes[3] = {loop->dx_prev, loop->k2, loop->k3};
+        const double fractions[4] = {0.0, 0.5, 0.5, 1.0}, weights[4] = {1.0, 2.0, 2.0, 1.0};
+        memset(s->K_sum, 0, count * sizeof(double));
+        memcpy(s->S_stage, s->S, count * sizeof(double));
+        for (int stage = 0; stage < 4; ++stage) {
+            double fraction = fractions[stage];
+            for (size_t i = 0; i < n; ++i) {
+                s->xs[i] = stage == 0 ? x[i] : x[i] + (fraction * h) * slopes[stage - 1][i];
+            }
+            if (linearised(loop, s, stage == 0 ? t : stage == 3 ? t + h : t + 0.5 * h, s->xs)) {
+                return 1;
+            }
+            stage_slope(loop, s, s->S_stage, s->K);
+            for (size_t i = 0; i < count; ++i) {
+                s->K_sum[i] += weights[stage] * s->K[i];
+            }
+            if (stage < 3) {
+                axpy_all(count, s->S, fractions[stage + 1] * h, s->K, s->S_stage);
+            }
+        }
+        axpy_all(count, s->S, h / 6.0, s->K_sum, S_new);
+    }
+    s->S_prev = s->S;
+    s->S = S_new;
+    s->st_prev = t;
+    s->st = t + h;
+    return 0;
+}
+
+/* S at t within the last step, linear between its ends, into out (or S itself at the end). */
+static const double *sensitivity_at(Sensitivity *s, double t, double *out)
+{
+    if (t == s->st || s->st == s->st_prev) {
+        return s->S;
+    }
+    double theta = (t - s->st_prev) / (s->st - s->st_prev);
+    for (size_t i = 0; i < s->n * s->P; ++i) {
+        out[i] = s->S_prev[i] + theta * (s->S[i] - s->S_prev[i]);
+    }
+    return out;
+}
+
+void sens_restart(Loop *loop, double t)
+{
+    Sensitivity *s = loop->sens;
+    if (s->weights == NULL) {
+        return;
+    }
+    if (t != s->st) {
+        const double *S = sensitivity_at(s, t, s->S_stage);
+        if (S != s->S) {
+            memcpy(s->S, S, s->n * s->P * sizeof(double));
+        }
+    }
+    memcpy(s->S_prev, s->S, s->n * s->P * sizeof(double));
+    s->st = s->st_prev = t;
+}
+
+void sens_after_event(Loop *loop, int values_changed)
+{
+    loop->sens->lin_valid = 0;      /* the event may have changed the discrete states */
+    loop->sens->resets += values_changed != 0;
+}
+
+/* v += w dy/dx for the computed columns, by forward differences. */
+static int computed_rows(Loop *loop, Sensitivity *s, double t, const double *x, const double *w)
+{
+    const CorePlan *p = loop->plan;
+    size_t n = s->n;
+    if (loop_computed(loop, t, x)) {
+        return 1;
+    }
+    memcpy(s->y0, loop->computed, p->n_computed * sizeof(double));
+    memcpy(s->xp, x, n * sizeof(double));
+    for (size_t j = 0; j < n; ++j) {
+        double step = fd_step(x[j]);
+        s->xp[j] = x[j] + step;
+        step = s->xp[j] - x[j];
+        if (loop_computed(loop, t, s->xp)) {
+            return 1;
+        }
+        for (size_t col = 0; col < p->n_columns; ++col) {
+            if (p->column_kind[col] == COLUMN_COMPUTED && w[col] != 0.0) {
+                int index = p->column_index[col];
+                s->v[j] += w[col] * (loop->computed[index] - s->y0[index]) / step;
+            }
+        }
+        s->xp[j] = x[j];
+    }
+    return 0;
+}
+
+int sens_record(Loop *loop, double t, const double *x, size_t row)
+{
+    Sensitivity *s = loop->sens;
+    const CorePlan *p = loop->plan;
+    if (s->weights == NULL || row >= s->n_outputs || !loop->continuous_mode) {
+        return 0;
+    }
+    const double *w = s->weights + row * s->n_columns;
+    size_t n = s->n, P = s->P;
+    int derivative = 0, computed = 0;
+    memset(s->v, 0, n * sizeof(double));
+    for (size_t col = 0; col < p->n_columns; ++col) {
+        if (w[col] == 0.0) {
+            continue;
+        }
+        derivative |= p->column_kind[col] == COLUMN_DERIVATIVE;
+        computed |= p->column_kind[col] == COLUMN_COMPUTED;
+        if (p->column_kind[col] == COLUMN_STATE) {
+            s->v[p->column_index[col]] += w[col];
+        }
+    }
+    if (derivative) {       /* a corrected derivative: J S + F */
+        const CoreCorrection *c = p->correction;
+        if (linearised(loop, s, t, x)) {
+            return 1;
+        }
+        for (size_t col = 0; col < p->n_columns; ++col) {
+            if (p->column_kind[col] != COLUMN_DERIVATIVE || w[col] == 0.0) {
+                continue;
+            }
+            int index = p->column_index[col];
+            for (size_t j = 0; j < n; ++j) {
+                s->v[j] += w[col] * s->J[index * n + j];
+            }
+            for (size_t channel = 0; channel < c->n_channels; ++channel) {
+                if (c->channel_state[channel] == index) {
+                    for (size_t q = 0; q < P; ++q) {
+                        s->gradient[q] += w[col] * s->F[channel * P + q];
+                    }
+                }
+            }
+        }
+    }
+    if (computed && computed_rows(loop, s, t, x, w)) {
+        return 1;
+    }
+    const double *S = sensitivity_at(s, t, s->K);
+    for (size_t j = 0; j < n; ++j) {
+        if (s->v[j] == 0.0) {
+            continue;
+        }
+        const double *Sj = S + j * P;
+        for (size_t q = 0; q < P; ++q) {
+            s->gradient[q] += s->v[j] * Sj[q];
+        }
+    }
+    return 0;
+}
+
+int core_gradient_run(const CoreFmu *fmu, const CorePlan *plan, const double *weights, size_t n_rows,
+                      size_t n_parameters, double *gradient, int64_t *resets, CoreResult *result)
+{
+    const CoreCorrection *c = plan->correction;
+    size_t n = plan->n_states, P = n_parameters, width_total = 0, widest = 0;
+    for (size_t l = 0; c != NULL && l < c->n_layers; ++l) {
+        size_t rows = (size_t)c->layer_rows[l];
+        width_total += rows;
+        widest = rows > widest ? rows : widest;
+    }
+    Sensitivity s;
+    memset(&s, 0, sizeof(s));
+    s.n = n;
+    s.P = P;
+    s.n_columns = plan->n_columns;
+    s.n_outputs = n_rows;
+    s.weights = c != NULL && c->n_layers > 0 ? weights : NULL;
+    s.gradient = gradient;
+    size_t n_inputs = c != NULL ? c->n_inputs : 0;
+    s.width_total = n_inputs + width_total;
+    size_t matrices = 6 * n * P + (c != NULL ? c->n_channels : 0) * P;
+    size_t words = matrices + n * n + 6 * n + n_inputs + s.width_total + 2 * (widest + n_inputs)
+                   + plan->n_computed + 1;
+    double *memory = s.weights != NULL ? calloc(words, sizeof(double)) : NULL;
+    if (s.weights != NULL && memory == NULL) {
+        memset(result, 0, sizeof(*result));
+        result->error = CORE_NO_MEMORY;
+        return result->error;
+    }
+    if (memory != NULL) {
+        double *pool = memory;
+        double **matrix[] = {&s.S, &s.S_prev, &s.S_stage, &s.K, &s.K_sum};
+        for (size_t k = 0; k < 5; ++k) {
+            *matrix[k] = pool;
+            pool += n * P;
+        }
+        pool += n * P;          /* room for sensitivity_at's interpolation in K's place */
+        s.F = pool;
+        pool += c->n_channels * P;
+        s.J = pool;
+        pool += n * n;
+        double **vectors[] = {&s.f0, &s.fp, &s.xp, &s.xs, &s.v, &s.lin_x};
+        for (size_t k = 0; k < 6; ++k) {
+            *vectors[k] = pool;
+            pool += n;
+        }
+        s.z = pool;
+        pool += n_inputs;
+        s.activations = pool;
+        pool += s.width_total;
+        s.delta = pool;
+        pool += widest + n_inputs;
+        s.delta_next = pool;
+        pool += widest + n_inputs;
+        s.y0 = pool;
+        s.st = s.st_prev = plan->start;
+        memset(gradient, 0, P * sizeof(double));
+    }
+    int code = loop_run(fmu, plan, result, &s);
+    *resets = s.resets;
+    free(memory);
+    return code;
+}
