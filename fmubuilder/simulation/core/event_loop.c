@@ -206,6 +206,17 @@ double loop_activated(int activation, double value)
     return activated(activation, value);
 }
 
+int loop_fmu_values(Loop *loop, double t, const double *x, double *der, double *variables)
+{
+    const CoreCorrection *c = loop->plan->correction;
+    TRY(put_at(loop, t, x));
+    FMI(loop, CALL_GET_DERIVATIVES, loop->fmu->get_derivatives(loop->fmu->component, der, loop->n));
+    if (c->n_variables) {
+        FMI(loop, CALL_GET_REAL, loop->fmu->get_real(loop->fmu->component, c->variable_vrs, c->n_variables, variables));
+    }
+    return 0;
+}
+
 int loop_computed(Loop *loop, double t, const double *x)
 {
     const CorePlan *p = loop->plan;

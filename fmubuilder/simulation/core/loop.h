@@ -47,6 +47,8 @@ struct Loop {
 /* event_loop.c: the corrected derivatives at (t, x) (the instance put there); the FMU's variables
  * the correction reads are left in loop->variables, its inputs in loop->network_in. */
 int loop_derivatives(Loop *loop, double t, const double *x, double *out);
+/* event_loop.c: the FMU's own derivatives at (t, x) and the variables the correction reads. */
+int loop_fmu_values(Loop *loop, double t, const double *x, double *der, double *variables);
 /* event_loop.c: the recorded computed variables at (t, x), into loop->computed. */
 int loop_computed(Loop *loop, double t, const double *x);
 double loop_activated(int activation, double value);

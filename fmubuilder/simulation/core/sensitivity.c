@@ -3,8 +3,9 @@
  *
  * theta: the layers' W and b (row-major, layer after layer), then the FMU gate of each channel.
  * S = dx/dtheta [n][P] is stepped beside the states with the solver's own stages:
- *     dS/dt = J S + F,   J = df/dx by forward differences of the corrected derivatives (the FMU
- *     and the network together), F = df/dtheta from the network's weights (backpropagation).
+ *     dS/dt = J S + F,   F = df/dtheta from the network's weights (backpropagation),
+ *     J = df/dx: the FMU's derivatives and the variables the network reads by forward differences,
+ *     through the network by its input gradient (backpropagation too).
  * Time events, step events and input kinks pass S on unchanged; a state reset at an event is
  * counted (the caller uses another gradient then); state events are passed on without the
  * event-time term. At each recorded row the weighted outputs' sensitivities are summed into the
@@ -25,6 +26,9 @@ struct Sensitivity {
     double *S, *S_prev, *S_stage, *K, *K_sum, *F;   /* [n][P] each; F: [n_channels][P] */
     double *J, *f0, *fp, *xp, *xs, *v;              /* J [n][n]; the others [n] */
     double *z, *activations, *delta, *delta_next;   /* the network's inputs, outputs, backward */
+    double *input_gradient;         /* [n_channels][n_inputs]: d(network + base)/dz */
+    double *der0, *J_fmu;           /* the FMU's derivatives [n] and their Jacobian [n][n] */
+    double *vars0, *vars_p, *dvars; /* the network's FMU variables [m], perturbed, d/dx [m][n] */
     double *y0;                     /* the computed columns at the nominal point */
     /* where J and F were last taken: a grid point's record and the next step's first stage share it */
     double lin_t, *lin_x;
@@ -48,6 +52,18 @@ static double activation_slope(int activation, double out)
         return out > 0.0 ? 1.0 : 0.0;
     default:
         return 1.0;
+    }
+}
+
+/* gradient += d(base term)/dz (see base_term in event_loop.c). */
+static void base_gradient(const CoreCorrection *c, const double *z, double *gradient)
+{
+    for (size_t k = 0; k < c->n_terms; ++k) {
+        double u = z[c->term_input[k]] - c->term_center[k];
+        int basis = c->term_basis[k];
+        double slope = basis == BASIS_W ? 1.0 : basis == BASIS_ABS ? (u > 0.0) - (u < 0.0)
+                       : basis == BASIS_SIGNED_SQUARE ? 2.0 * fabs(u) : 2.0 * u;
+        gradient[c->term_input[k]] += c->term_gate * c->term_coefficient[k] * slope;
     }
 }
 
@@ -107,7 +123,16 @@ static void parameter_rows(Loop *loop, Sensitivity *s)
                 }
                 db[j] = delta[j];
             }
-            if (l > 0) {
+            if (l == 0) {
+                double *gradient = s->input_gradient + channel * c->n_inputs;
+                for (int k = 0; k < cols; ++k) {
+                    double sum = 0.0;
+                    for (int j = 0; j < rows; ++j) {
+                        sum += W[j * cols + k] * delta[j];
+                    }
+                    gradient[k] = sum;
+                }
+            } else {
                 for (int k = 0; k < cols; ++k) {
                     double sum = 0.0;
                     for (int j = 0; j < rows; ++j) {
@@ -124,13 +149,31 @@ static void parameter_rows(Loop *loop, Sensitivity *s)
         }
         row[s->P - c->n_channels + channel] = loop->raw_channel[channel];
     }
+    if (c->term_gate != 0.0 && c->n_channels == 1) {
+        base_gradient(c, s->z, s->input_gradient);
+    }
 }
 
-/* J = df/dx by forward differences and F = df/dtheta at (t, x); f0 gets f(t, x). */
+/* dz_i/dx_j of the network's input i. */
+static double input_slope(const CoreCorrection *c, const Sensitivity *s, size_t i, size_t j)
+{
+    int index = c->input_index[i];
+    switch (c->input_source[i]) {
+    case SOURCE_STATE:
+        return (size_t)index == j ? 1.0 : 0.0;
+    case SOURCE_DERIVATIVE:
+        return s->J_fmu[(size_t)index * s->n + j];
+    default:
+        return s->dvars[(size_t)index * s->n + j];
+    }
+}
+
+/* J = df/dx and F = df/dtheta at (t, x): the FMU by forward differences, the network through its
+ * input gradient; f0 gets f(t, x). */
 static int linearised(Loop *loop, Sensitivity *s, double t, const double *x)
 {
     const CoreCorrection *c = loop->plan->correction;
-    size_t n = s->n;
+    size_t n = s->n, m = c->n_variables;
     if (s->lin_valid && t == s->lin_t && memcmp(x, s->lin_x, n * sizeof(double)) == 0) {
         return 0;
     }
@@ -139,19 +182,39 @@ static int linearised(Loop *loop, Sensitivity *s, double t, const double *x)
         return 1;
     }
     memcpy(s->z, loop->network_in, c->n_inputs * sizeof(double));
+    memcpy(s->vars0, loop->variables, m * sizeof(double));
+    memcpy(s->der0, s->f0, n * sizeof(double));
+    for (size_t channel = 0; channel < c->n_channels; ++channel) {
+        s->der0[c->channel_state[channel]] = loop->raw_channel[channel];
+    }
     parameter_rows(loop, s);       /* uses raw_channel of this nominal evaluation */
     memcpy(s->xp, x, n * sizeof(double));
     for (size_t j = 0; j < n; ++j) {
         double step = fd_step(x[j]);
         s->xp[j] = x[j] + step;
         step = s->xp[j] - x[j];
-        if (loop_derivatives(loop, t, s->xp, s->fp)) {
+        if (loop_fmu_values(loop, t, s->xp, s->fp, s->vars_p)) {
             return 1;
         }
         for (size_t i = 0; i < n; ++i) {
-            s->J[i * n + j] = (s->fp[i] - s->f0[i]) / step;
+            s->J_fmu[i * n + j] = (s->fp[i] - s->der0[i]) / step;
+        }
+        for (size_t v = 0; v < m; ++v) {
+            s->dvars[v * n + j] = (s->vars_p[v] - s->vars0[v]) / step;
         }
         s->xp[j] = x[j];
+    }
+    memcpy(s->J, s->J_fmu, n * n * sizeof(double));
+    for (size_t channel = 0; channel < c->n_channels; ++channel) {
+        size_t row = (size_t)c->channel_state[channel];
+        const double *gradient = s->input_gradient + channel * c->n_inputs;
+        for (size_t j = 0; j < n; ++j) {
+            double sum = c->gate_fmu[channel] * s->J_fmu[row * n + j];
+            for (size_t i = 0; i < c->n_inputs; ++i) {
+                sum += gradient[i] * input_slope(c, s, i, j);
+            }
+            s->J[row * n + j] = sum;
+        }
     }
     s->lin_t = t;
     memcpy(s->lin_x, x, n * sizeof(double));
@@ -383,8 +446,9 @@ int core_gradient_run(const CoreFmu *fmu, const CorePlan *plan, const double *we
     size_t n_inputs = c != NULL ? c->n_inputs : 0;
     s.width_total = n_inputs + width_total;
     size_t matrices = 6 * n * P + (c != NULL ? c->n_channels : 0) * P;
-    size_t words = matrices + n * n + 6 * n + n_inputs + s.width_total + 2 * (widest + n_inputs)
-                   + plan->n_computed + 1;
+    size_t n_channels = c != NULL ? c->n_channels : 0, m = c != NULL ? c->n_variables : 0;
+    size_t words = matrices + 2 * n * n + 7 * n + n_inputs + s.width_total + 2 * (widest + n_inputs)
+                   + n_channels * n_inputs + 2 * m + m * n + plan->n_computed + 1;
     double *memory = s.weights != NULL ? calloc(words, sizeof(double)) : NULL;
     if (s.weights != NULL && memory == NULL) {
         memset(result, 0, sizeof(*result));
@@ -416,6 +480,18 @@ int core_gradient_run(const CoreFmu *fmu, const CorePlan *plan, const double *we
         pool += widest + n_inputs;
         s.delta_next = pool;
         pool += widest + n_inputs;
+        s.input_gradient = pool;
+        pool += n_channels * n_inputs;
+        s.der0 = pool;
+        pool += n;
+        s.J_fmu = pool;
+        pool += n * n;
+        s.vars0 = pool;
+        pool += m;
+        s.vars_p = pool;
+        pool += m;
+        s.dvars = pool;
+        pool += m * n;
         s.y0 = pool;
         s.st = s.st_prev = plan->start;
         memset(gradient, 0, P * sizeof(double));
