@@ -159,6 +159,11 @@ static int correct(Loop *loop, const double *x, double *der)
     }
     double base = c->term_gate != 0.0 ? base_term(c, z) : 0.0;
     const double *in = z, *w = c->weights, *b = c->biases;
+    double *kept = loop->layer_outputs;     /* every layer's output kept for the sensitivities */
+    if (kept != NULL) {
+        memcpy(kept, z, c->n_inputs * sizeof(double));
+        next = kept + c->n_inputs;
+    }
     for (size_t layer = 0; layer < c->n_layers; ++layer) {
         int rows = c->layer_rows[layer], cols = c->layer_cols[layer];
         for (int j = 0; j < rows; ++j) {
@@ -171,7 +176,7 @@ static int correct(Loop *loop, const double *x, double *der)
         w += (size_t)rows * cols;
         b += rows;
         in = next;
-        next = next == loop->network_b ? h : loop->network_b;
+        next = kept != NULL ? next + rows : next == loop->network_b ? h : loop->network_b;
     }
     for (size_t k = 0; k < c->n_channels; ++k) {
         int state = c->channel_state[k];
@@ -1129,6 +1134,7 @@ int loop_run(const CoreFmu *fmu, const CorePlan *plan, CoreResult *result, Sensi
     loop.variables = take(&pool, n_variables);
     loop.raw_channel = take(&pool, c ? c->n_channels : 0);
     loop.sens = sens;
+    loop.layer_outputs = sens != NULL ? sens_layer_outputs(sens) : NULL;
     for (size_t j = 0; j < plan->n_columns; ++j) {
         loop.derivative_columns |= plan->column_kind[j] == COLUMN_DERIVATIVE;
     }

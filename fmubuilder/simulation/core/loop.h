@@ -42,6 +42,7 @@ struct Loop {
     int held;
     double *raw_channel;            /* the FMU's derivative of each corrected state, as correct() found it */
     Sensitivity *sens;              /* forward sensitivities (sensitivity.c), or NULL */
+    double *layer_outputs;          /* where correct() keeps z and each layer's output, or NULL */
 };
 
 /* event_loop.c: the corrected derivatives at (t, x) (the instance put there); the FMU's variables
@@ -60,5 +61,6 @@ int sens_step(Loop *loop, double t, double h, const double *x);
 void sens_restart(Loop *loop, double t);
 int sens_record(Loop *loop, double t, const double *x, size_t row);
 void sens_after_event(Loop *loop, int values_changed);
+double *sens_layer_outputs(Sensitivity *sens);
 
 #endif

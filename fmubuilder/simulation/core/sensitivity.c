@@ -67,30 +67,14 @@ static void base_gradient(const CoreCorrection *c, const double *z, double *grad
     }
 }
 
-/* F: the rows df_channel/dtheta at the inputs z (the network's, as correct() gathered them). */
+/* F: the rows df_channel/dtheta and the input gradient, from the layers' outputs that correct() kept
+ * at the nominal point. */
 static void parameter_rows(Loop *loop, Sensitivity *s)
 {
     const CoreCorrection *c = loop->plan->correction;
     size_t L = c->n_layers;
-    /* forward, keeping every layer's output (activations[0..]: z, then each layer) */
-    double *outputs = s->activations;
-    memcpy(outputs, s->z, c->n_inputs * sizeof(double));
-    const double *w = c->weights, *b = c->biases, *in = outputs;
-    double *out = outputs + c->n_inputs;
-    for (size_t l = 0; l < L; ++l) {
-        int rows = c->layer_rows[l], cols = c->layer_cols[l];
-        for (int j = 0; j < rows; ++j) {
-            double sum = 0.0;
-            for (int k = 0; k < cols; ++k) {
-                sum += w[j * cols + k] * in[k];
-            }
-            out[j] = loop_activated(c->layer_activation[l], sum + b[j]);
-        }
-        w += (size_t)rows * cols;
-        b += rows;
-        in = out;
-        out += rows;
-    }
+    /* z and every layer's output, as correct() kept them at the nominal point */
+    const double *outputs = s->activations;
     for (size_t channel = 0; channel < c->n_channels; ++channel) {
         double *row = s->F + channel * s->P;
         memset(row, 0, s->P * sizeof(double));
@@ -276,8 +260,6 @@ int sens_step(Loop *loop, double t, double h, const double *x)
         /* RK4's stages, at the points the nominal step evaluated (its k1, k2, k3 give them) */
         const double *slopes[3] = {loop->dx_prev, loop->k2, loop->k3};
         const double fractions[4] = {0.0, 0.5, 0.5, 1.0}, weights[4] = {1.0, 2.0, 2.0, 1.0};
-        memset(s->K_sum, 0, count * sizeof(double));
-        memcpy(s->S_stage, s->S, count * sizeof(double));
         for (int stage = 0; stage < 4; ++stage) {
             double fraction = fractions[stage];
             for (size_t i = 0; i < n; ++i) {
@@ -286,12 +268,13 @@ int sens_step(Loop *loop, double t, double h, const double *x)
             if (linearised(loop, s, stage == 0 ? t : stage == 3 ? t + h : t + 0.5 * h, s->xs)) {
                 return 1;
             }
-            stage_slope(loop, s, s->S_stage, s->K);
+            stage_slope(loop, s, stage == 0 ? s->S : s->S_stage, s->K);
+            /* one pass: the weighted sum of the stages' slopes and the next stage's sensitivities */
+            double next = stage < 3 ? fractions[stage + 1] * h : 0.0, weight = weights[stage];
             for (size_t i = 0; i < count; ++i) {
-                s->K_sum[i] += weights[stage] * s->K[i];
-            }
-            if (stage < 3) {
-                axpy_all(count, s->S, fractions[stage + 1] * h, s->K, s->S_stage);
+                double k = s->K[i];
+                s->K_sum[i] = stage == 0 ? k : s->K_sum[i] + weight * k;
+                s->S_stage[i] = s->S[i] + next * k;
             }
         }
         axpy_all(count, s->S, h / 6.0, s->K_sum, S_new);
@@ -330,6 +313,11 @@ void sens_restart(Loop *loop, double t)
     }
     memcpy(s->S_prev, s->S, s->n * s->P * sizeof(double));
     s->st = s->st_prev = t;
+}
+
+double *sens_layer_outputs(Sensitivity *sens)
+{
+    return sens->weights != NULL ? sens->activations : NULL;
 }
 
 void sens_after_event(Loop *loop, int values_changed)
