@@ -1,21 +1,29 @@
 """The training's simulation with its gradient from the compiled core (core/sensitivity.c).
 
 `simulate_for_loss` is `solve.simulate` for a loss evaluation: where the core's gradient is exact
-it runs each element in C and returns a Trajectory whose values are a torch.autograd.Function of
+it runs each element in C and returns a Trajectory whose records are a torch.autograd.Function of
 the folded network (Topology.folded: each layer's W and b, and the FMU gates), so the loss is
 defined in torch as before and autograd carries the gradient on to the topology's parameters. The
 backward pass runs each element again in C with forward sensitivities S = dx/dtheta stepped beside
-the states in the solver's own stages (J = df/dx of the FMU and the network by forward
-differences, df/dtheta from the network's weights), summing grad_values . dy/dtheta at the grid
-points. One C run forward, one with sensitivities backward; no autograd graph per step.
+the states in the solver's own stages (the FMU's Jacobian by forward differences, the network's
+by backpropagation), summing grad . d(record)/dtheta over the records. One C run forward, one with
+sensitivities backward; no autograd graph per step.
 
-The core's gradient follows the states through smooth steps only, so it is used where the
-modelDescription says nothing else can happen (`exact_in_core`): no event indicators (no state
-events, no event-time term), no internal discrete variables (a sampled controller's held values
-would need solve.py's discrete-state path, item 3 of its docstring), no discrete inputs, no trained
-FMU parameters, and an FMU that saves its state (the element starts). A run that has an event all
-the same (a time event of the FMU's own) is done again by the torch solver, and that model stays
-with it. Everything else keeps the torch batch solver.
+The records are the torch solver's: each grid point after its events and, with RK4, before them.
+At a step's end the core reads a derivative or an FMU variable at the step's end where the torch
+solver takes RK4's last stage, as the scoring's engine does; the two losses differ by about 1e-4
+of the loss on the DC drive (tests/neural/test_core_gradient.py).
+
+The core's gradient follows the states through steps and passes them through events unchanged, so
+it is used where the modelDescription says that is all there is (`exact_in_core`): no event
+indicators (a state event would need the event time's term), no discrete variables (a sampled
+controller's held values need solve.py's discrete-state path, item 3 of its docstring: on the VLDM
+the core's gradient without it is several times too small, benchmarks/bench_gradient_core.py), no
+discrete inputs, no trained FMU parameters, and an FMU that saves its state (the element starts).
+Time events of the FMU's own (the DC drive's set-point profile) pass. A run in which an event
+resets the states or falls between grid points (the torch solver records the steps it cuts) is
+done again by the torch solver, and that model stays with it. A discrete state the
+modelDescription does not declare cannot be seen; the rule trusts the declaration.
 """
 from __future__ import annotations
 
@@ -25,13 +33,13 @@ import weakref
 import numpy as np
 import torch
 
-from ..simulation import core
+from ..simulation import core, make_solver
 from ..simulation.system import _OutputColumns
 from .model import NeuralFMU
 from .solve import SOLVERS, ElementStart, Trajectory, can_snapshot, simulate
 
 _ACTIVATIONS = {torch.tanh: "tanh", torch.sigmoid: "sigmoid", torch.relu: "relu"}
-# Models whose runs had an event after all: the torch solver from then on.
+# Models with a run the core's records cannot stand for (see the module docstring): torch from then on.
 _EVENTFUL: "weakref.WeakSet[NeuralFMU]" = weakref.WeakSet()
 
 
@@ -69,7 +77,7 @@ class CoreElements:
                  strict: bool = True):
         self.strict = strict    # False (for measurements): state resets and events between grid points let pass
         self.model, self.starts, self.record, self.inputs = model, list(starts), list(record), inputs
-        self.solver = core_solver(solver, step_size)
+        self.solver = make_solver(solver, step_size=step_size)
         K = max(1, int(math.ceil(duration / step_size - 1e-9)))
         self.grid = np.minimum(np.arange(K + 1) * step_size, duration)
         self.grid[-1] = duration
@@ -187,11 +195,6 @@ class CoreElements:
                                layers=program, channels=list(topology.channel_index),
                                gate_fmu=topology.gate_fmu.detach().numpy().copy(), terms=terms, term_bias=bias,
                                term_gate=gate)
-
-
-def core_solver(name: str, step_size: float):
-    from ..simulation import make_solver
-    return make_solver(name, step_size=step_size)
 
 
 class _ElementSystem:

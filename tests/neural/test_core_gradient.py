@@ -137,16 +137,29 @@ def torch_solver_loss(trainer):
     return sum(terms) / len(terms)
 
 
+VAN_DER_POL = {
+    "one channel": TopologyConfig(channels=["der(x1)"], inputs=["x0", "x1"], hidden=[6], kind="residual"),
+    "two channels, sigmoid, reading a derivative": TopologyConfig(
+        channels=["der(x0)", "der(x1)"], inputs=["x1", "der(x0)"], hidden=[5, 4], activation="sigmoid",
+        kind="gates"),
+    "a base term": TopologyConfig(channels=["der(x1)"], inputs=["x0", "x1"], hidden=[4], kind="residual",
+                                  base_terms=[{"variable": "x0", "basis": "w*|w|", "center": 0.2, "coefficient": -0.3},
+                                              {"variable": "x1", "basis": "|w|", "center": 0.0, "coefficient": 0.1},
+                                              {"variable": "x0", "basis": "1", "center": 0.0, "coefficient": 0.05}]),
+}
+
+
+@pytest.mark.parametrize("topology", VAN_DER_POL)
 @pytest.mark.parametrize("solver, step", [("rk4", 0.05), ("euler", 0.01)])
-def test_van_der_pol_weighted_records(solver, step):
-    """The Reference FMU VanDerPol with a residual ANN on der(x1) reading both states: a weighted sum
-    of a state and a corrected derivative over two elements from saved FMU states."""
+def test_van_der_pol_weighted_records(solver, step, topology):
+    """The Reference FMU VanDerPol with an ANN on its derivatives: a weighted sum of a state and a
+    corrected derivative over two elements from saved FMU states."""
     torch.manual_seed(3)
-    model = NeuralFMU(reference_fmu("VanDerPol"), TopologyConfig(channels=["der(x1)"], inputs=["x0", "x1"],
-                                                                 hidden=[6], kind="residual"))
+    model = NeuralFMU(reference_fmu("VanDerPol"), TopologyConfig.from_dict(VAN_DER_POL[topology].to_dict()))
     with torch.no_grad():
         model.topology.ann[-1].weight.normal_(0.0, 0.3)
         model.topology.ann[-1].bias.fill_(0.1)
+        model.topology.gate_ann.fill_(0.5)
         run = simulate(model, 2.0, step, record=["x0"], solver=solver, capture=[0, round(1.0 / step)])
     starts = [run.captured[0][0], run.captured[round(1.0 / step)][0]]
     assert core_gradient.exact_in_core(model)

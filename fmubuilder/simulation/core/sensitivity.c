@@ -25,7 +25,7 @@ struct Sensitivity {
     double st, st_prev;             /* the times of S and S_prev */
     double *S, *S_prev, *S_stage, *K, *K_sum, *F;   /* [n][P] each; F: [n_channels][P] */
     double *J, *f0, *fp, *xp, *xs, *v;              /* J [n][n]; the others [n] */
-    double *z, *activations, *delta, *delta_next;   /* the network's inputs, outputs, backward */
+    double *activations, *delta, *delta_next;       /* z and the layers' outputs; backward */
     double *input_gradient;         /* [n_channels][n_inputs]: d(network + base)/dz */
     double *der0, *J_fmu;           /* the FMU's derivatives [n] and their Jacobian [n][n] */
     double *vars0, *vars_p, *dvars; /* the network's FMU variables [m], perturbed, d/dx [m][n] */
@@ -67,74 +67,73 @@ static void base_gradient(const CoreCorrection *c, const double *z, double *grad
     }
 }
 
-/* F: the rows df_channel/dtheta and the input gradient, from the layers' outputs that correct() kept
- * at the nominal point. */
+/* Layer l's part of a channel's row of F (dW = delta a^T, db = delta, for the layer's input a),
+ * and delta carried back to the layer's input: into `back` (times the previous layer's activation
+ * slope), or for the first layer the network's input gradient. */
+static void layer_backward(const CoreCorrection *c, size_t l, const double *W, const double *a,
+                           const double *delta, double *dW, double *back, int first)
+{
+    int rows = c->layer_rows[l], cols = c->layer_cols[l];
+    double *db = dW + (size_t)rows * cols;
+    for (int j = 0; j < rows; ++j) {
+        if (delta[j] == 0.0) {
+            continue;
+        }
+        for (int k = 0; k < cols; ++k) {
+            dW[j * cols + k] = delta[j] * a[k];
+        }
+        db[j] = delta[j];
+    }
+    for (int k = 0; k < cols; ++k) {
+        double sum = 0.0;
+        for (int j = 0; j < rows; ++j) {
+            sum += W[j * cols + k] * delta[j];
+        }
+        back[k] = first ? sum : sum * activation_slope(c->layer_activation[l - 1], a[k]);
+    }
+}
+
+/* Row `channel` of F (df_channel/dtheta) and its input gradient, by backpropagation through the
+ * layers' outputs that correct() kept at the nominal point (s->activations: z, then each layer). */
+static void channel_row(Loop *loop, Sensitivity *s, size_t channel)
+{
+    const CoreCorrection *c = loop->plan->correction;
+    const double *outputs = s->activations;
+    double *row = s->F + channel * s->P, *delta = s->delta, *next = s->delta_next;
+    memset(row, 0, s->P * sizeof(double));
+    size_t L = c->n_layers, offset_params = s->P - c->n_channels, offset_out = s->width_total;
+    const double *W = c->weights;
+    for (size_t l = 0; l < L; ++l) {
+        W += (size_t)c->layer_rows[l] * c->layer_cols[l];
+    }
+    int rows = c->layer_rows[L - 1];
+    offset_out -= rows;
+    for (int j = 0; j < rows; ++j) {
+        delta[j] = j == (int)channel ? activation_slope(c->layer_activation[L - 1], outputs[offset_out + j]) : 0.0;
+    }
+    for (size_t l = L; l-- > 0;) {
+        rows = c->layer_rows[l];
+        int cols = c->layer_cols[l];
+        W -= (size_t)rows * cols;
+        offset_out -= cols;             /* now the layer's input */
+        offset_params -= (size_t)rows * cols + rows;
+        double *back = l == 0 ? s->input_gradient + channel * c->n_inputs : next;
+        layer_backward(c, l, W, outputs + offset_out, delta, row + offset_params, back, l == 0);
+        next = delta;
+        delta = back;
+    }
+    row[s->P - c->n_channels + channel] = loop->raw_channel[channel];
+}
+
+/* F and the input gradients of every channel, with the base term's (one channel only). */
 static void parameter_rows(Loop *loop, Sensitivity *s)
 {
     const CoreCorrection *c = loop->plan->correction;
-    size_t L = c->n_layers;
-    /* z and every layer's output, as correct() kept them at the nominal point */
-    const double *outputs = s->activations;
     for (size_t channel = 0; channel < c->n_channels; ++channel) {
-        double *row = s->F + channel * s->P;
-        memset(row, 0, s->P * sizeof(double));
-        /* backward from output `channel`, layer by layer, parameters laid out as in theta */
-        size_t offset_params = s->P - c->n_channels, offset_out = s->width_total;
-        double *delta = s->delta, *next = s->delta_next;
-        int rows = c->layer_rows[L - 1];
-        offset_out -= rows;
-        for (int j = 0; j < rows; ++j) {
-            delta[j] = j == (int)channel ? activation_slope(c->layer_activation[L - 1], outputs[offset_out + j]) : 0.0;
-        }
-        const double *W_end = c->weights;
-        for (size_t l = 0; l < L; ++l) {
-            W_end += (size_t)c->layer_rows[l] * c->layer_cols[l];
-        }
-        for (size_t l = L; l-- > 0;) {
-            rows = c->layer_rows[l];
-            int cols = c->layer_cols[l];
-            const double *W = W_end - (size_t)rows * cols;
-            size_t offset_in = offset_out - cols;
-            const double *a = outputs + offset_in;
-            offset_params -= (size_t)rows * cols + rows;
-            double *dW = row + offset_params, *db = dW + (size_t)rows * cols;
-            for (int j = 0; j < rows; ++j) {
-                if (delta[j] == 0.0) {
-                    continue;
-                }
-                for (int k = 0; k < cols; ++k) {
-                    dW[j * cols + k] = delta[j] * a[k];
-                }
-                db[j] = delta[j];
-            }
-            if (l == 0) {
-                double *gradient = s->input_gradient + channel * c->n_inputs;
-                for (int k = 0; k < cols; ++k) {
-                    double sum = 0.0;
-                    for (int j = 0; j < rows; ++j) {
-                        sum += W[j * cols + k] * delta[j];
-                    }
-                    gradient[k] = sum;
-                }
-            } else {
-                for (int k = 0; k < cols; ++k) {
-                    double sum = 0.0;
-                    for (int j = 0; j < rows; ++j) {
-                        sum += W[j * cols + k] * delta[j];
-                    }
-                    next[k] = sum * activation_slope(c->layer_activation[l - 1], a[k]);
-                }
-                double *swap = delta;
-                delta = next;
-                next = swap;
-            }
-            W_end = W;
-            offset_out = offset_in;
-        }
-        row[s->P - c->n_channels + channel] = loop->raw_channel[channel];
+        channel_row(loop, s, channel);
     }
     if (c->term_gate != 0.0 && c->n_channels == 1) {
-        base_gradient(c, s->z, s->input_gradient);
+        base_gradient(c, s->activations, s->input_gradient);
     }
 }
 
@@ -165,7 +164,6 @@ static int linearised(Loop *loop, Sensitivity *s, double t, const double *x)
     if (loop_derivatives(loop, t, x, s->f0)) {
         return 1;
     }
-    memcpy(s->z, loop->network_in, c->n_inputs * sizeof(double));
     memcpy(s->vars0, loop->variables, m * sizeof(double));
     memcpy(s->der0, s->f0, n * sizeof(double));
     for (size_t channel = 0; channel < c->n_channels; ++channel) {
@@ -435,7 +433,7 @@ int core_gradient_run(const CoreFmu *fmu, const CorePlan *plan, const double *we
     s.width_total = n_inputs + width_total;
     size_t matrices = 6 * n * P + (c != NULL ? c->n_channels : 0) * P;
     size_t n_channels = c != NULL ? c->n_channels : 0, m = c != NULL ? c->n_variables : 0;
-    size_t words = matrices + 2 * n * n + 7 * n + n_inputs + s.width_total + 2 * (widest + n_inputs)
+    size_t words = matrices + 2 * n * n + 7 * n + s.width_total + 2 * (widest + n_inputs)
                    + n_channels * n_inputs + 2 * m + m * n + plan->n_computed + 1;
     double *memory = s.weights != NULL ? calloc(words, sizeof(double)) : NULL;
     if (s.weights != NULL && memory == NULL) {
@@ -460,8 +458,6 @@ int core_gradient_run(const CoreFmu *fmu, const CorePlan *plan, const double *we
             *vectors[k] = pool;
             pool += n;
         }
-        s.z = pool;
-        pool += n_inputs;
         s.activations = pool;
         pool += s.width_total;
         s.delta = pool;
