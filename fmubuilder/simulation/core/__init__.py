@@ -149,6 +149,8 @@ def run_with_gradient(system, solver, *, start_time: float, stop_time: float, ou
     weights[row, column] d(value)/dtheta, the events that reset the states). weights [rows,
     columns] for the rows the same run records (events' rows too with record_events), or None:
     the run alone, its resets counted."""
+    if solver.adaptive:
+        raise ValueError("the core's sensitivities follow the fixed-step solvers (Euler, RK4) only")
     lib, ffi = library()
     plan, keep = _plan(ffi, system, solver, start_time, stop_time, output_times, x0, next_event, record_events)
     fmu = _fmu(ffi, system, plan)
