@@ -75,7 +75,7 @@ def torch_solver(model, duration, step_size, *, starts, record, solver, inputs=N
 
 
 def forced_core(model, duration, step_size, *, starts, record, solver, inputs=None, keep_final_state=False):
-    """The core's gradient whatever the model (strict=False: events between grid points let pass)."""
+    """The core's gradient whatever the model (strict=False: state resets let pass)."""
     return core_gradient.CoreElements(model, duration, step_size, starts, record, solver, inputs,
                                       strict=False).trajectory(keep_final_state)
 
@@ -107,7 +107,7 @@ def core_runs(trainer: Trainer) -> tuple[float, float]:
     started = time.perf_counter()
     elements._forward(False)
     forward = time.perf_counter() - started
-    weights = np.ones((elements.rows[0], len(trainer.recorded)))
+    weights = np.ones((len(elements.tables[0]), len(trainer.recorded)))
     started = time.perf_counter()
     elements._run(0, weights)
     return forward, time.perf_counter() - started

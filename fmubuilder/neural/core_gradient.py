@@ -20,15 +20,17 @@ indicators (a state event would need the event time's term), no discrete variabl
 controller's held values need solve.py's discrete-state path, item 3 of its docstring: on the VLDM
 the core's gradient without it is several times too small, benchmarks/bench_gradient_core.py), no
 discrete inputs, no trained FMU parameters, and an FMU that saves its state (the element starts).
-Time events of the FMU's own (the DC drive's set-point profile) pass. A run in which an event
-resets the states or falls between grid points (the torch solver records the steps it cuts) is
-done again by the torch solver, and that model stays with it. A discrete state the
+Time events of the FMU's own (the DC drive's set-point profile) pass, on a grid point or between
+two (the core records both sides of each, which give the torch solver's steps of a cut interval).
+A run in which an event resets the states is done again by the torch solver, and that model stays
+with it. A discrete state the
 modelDescription does not declare cannot be seen; the rule trusts the declaration.
 """
 from __future__ import annotations
 
 import math
 import weakref
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -75,7 +77,7 @@ class CoreElements:
 
     def __init__(self, model: NeuralFMU, duration: float, step_size: float, starts, record, solver: str, inputs,
                  strict: bool = True):
-        self.strict = strict    # False (for measurements): state resets and events between grid points let pass
+        self.strict = strict    # False (for measurements): state resets let pass
         self.model, self.starts, self.record, self.inputs = model, list(starts), list(record), inputs
         self.solver = make_solver(solver, step_size=step_size)
         K = max(1, int(math.ceil(duration / step_size - 1e-9)))
@@ -89,52 +91,49 @@ class CoreElements:
         self.instances = None
 
     def trajectory(self, keep_final_state: bool) -> Trajectory | None:
-        """The elements' Trajectory with values differentiable through the core; None where the
-        core's run cannot stand for the torch solver's (see the module docstring)."""
+        """The elements' Trajectory with records differentiable through the core; None where a run
+        reset the states (see the module docstring)."""
         runs = self._forward(keep_final_state)
         if runs is None:
             return None
-        values, before = _CoreRuns.apply(self, *self.theta)
+        rows = _CoreRuns.apply(self, *self.theta)
+        rows = (rows,) if isinstance(rows, torch.Tensor) else rows
+        values = torch.stack([r[layout.grid] for r, layout in zip(rows, self.layouts)], dim=1)
+        before = torch.stack([r[layout.ends] for r, layout in zip(rows, self.layouts)], dim=1)
+        inner = [(k, b, [(start, end, rows[b][first], rows[b][last]) for start, end, first, last in steps])
+                 for b, layout in enumerate(self.layouts) for k, steps in sorted(layout.inner.items())]
         finals = torch.from_numpy(np.stack([run.x for run in runs]))
         return Trajectory(times=self.grid.copy(), t0=np.array([s.t0 for s in self.starts], dtype=float),
                           names=list(self.record), values=values, final_states=finals,
                           final_starts=self._final_starts if keep_final_state else None,
-                          before=before if self.rk4 else None, stats={"core_gradient": True})
+                          before=before if self.rk4 else None, inner=inner if self.rk4 else [],
+                          stats={"core_gradient": True})
 
     # -- the runs ---------------------------------------------------------------------------------
     def _forward(self, keep_final_state: bool):
-        """Each element's run in the core, its events' rows recorded: the records at the grid points
-        (after their events) and before the events there. None if an event resets the states or
-        falls between grid points (the torch solver records the steps it cuts, Trajectory.inner)."""
+        """Each element's run in the core, its events' rows recorded (see _layout); None if an event
+        reset the states."""
         self.instances = self.model.instances_for(self.starts)
         self.correction = self._correction()
-        runs, finals, self.roles = [], [], []
+        runs, finals, self.layouts = [], [], []
         for b, start in enumerate(self.starts):
             run, _, resets = self._run(b, None)
-            exact = self.strict and (resets or run.terminated)
-            roles = None if exact else _row_roles(run, start.t0 + self.grid, self.strict)
-            if roles is None:
+            layout = None if self.strict and (resets or run.terminated) else _layout(run, start.t0, self.grid)
+            if layout is None:
                 return None
             runs.append(run)
-            self.roles.append(roles)
+            self.layouts.append(layout)
             if keep_final_state:
                 finals.append(self._saved(b, run))
-        self.values = np.stack([run.table[grid] for run, (grid, _) in zip(runs, self.roles)], axis=1)
-        self.before = np.stack([run.table[ends] for run, (_, ends) in zip(runs, self.roles)], axis=1)
-        self.rows = [len(run.times) for run in runs]
+        self.tables = [run.table for run in runs]
         self._final_starts = finals
         return runs
 
-    def gradient(self, grad_values: np.ndarray, grad_before: np.ndarray | None) -> np.ndarray:
-        """The sum over elements, grid points and columns of grad_values d(value)/dtheta and
-        grad_before d(before)/dtheta."""
+    def gradient(self, grads: list) -> np.ndarray:
+        """The sum over elements, recorded rows and columns of grads[b][row, column] d(record)/dtheta."""
         total = np.zeros(self.n_parameters)
-        for b, (grid, ends) in enumerate(self.roles):
-            weights = np.zeros((self.rows[b], grad_values.shape[2]))
-            np.add.at(weights, grid, grad_values[:, b, :])
-            if grad_before is not None:
-                np.add.at(weights, ends, grad_before[:, b, :])
-            if np.any(weights):
+        for b, weights in enumerate(grads):
+            if weights is not None and np.any(weights):
                 total += self._run(b, weights)[1]
         return total
 
@@ -215,49 +214,71 @@ class _ElementSystem:
         return self._correction
 
 
-def _row_roles(run, grid_times: np.ndarray, strict: bool = True):
-    """(the row of each grid point's record, the row of each grid point k + 1 before its events) of
-    a run recorded with its events (each event: a row before and one after it, at its time, then
-    the grid point's own record); None if an event lies between grid points or rows are missing."""
+@dataclass
+class _Layout:
+    """Where one run's records are among the rows the core recorded: each event gives a row before
+    it and one after it, at its time; each grid point its record after its events."""
+    grid: np.ndarray        # [K+1] the row of each grid point's record
+    ends: np.ndarray        # [K] the row of grid point k + 1 before its events (an interval's end)
+    inner: dict             # {k: [(start, end, row at the start, row at the end before its events)]}:
+                            # the steps of a grid interval that events cut, times from the run's start
+
+
+def _layout(run, t0: float, grid: np.ndarray) -> _Layout | None:
+    """The run's _Layout, as the torch solver's Trajectory records it; None if rows are missing."""
     times, events = run.times, [t for t, _ in run.events]
-    grid_rows, before_event = [], {}
+    grid_rows, pairs = [], []        # pairs: (event time, row before, row after)
     i = e = 0
     while i < len(times):
         if e < len(events) and times[i] == events[e]:
-            before_event.setdefault(events[e], i)
+            pairs.append((events[e], i, i + 1))
             i, e = i + 2, e + 1
         else:
             grid_rows.append(i)
             i += 1
-    if len(grid_rows) != len(grid_times):
+    if len(grid_rows) != len(grid):
         return None
+    grid_times = t0 + grid
     tolerance = 1e-9 * max(1.0, float(np.max(np.abs(grid_times))))
-    ends = list(grid_rows[1:])
-    for t, row in before_event.items():
+    ends, on_grid, cuts = list(grid_rows[1:]), set(), {}
+    for t, before, after in pairs:
         k = int(np.argmin(np.abs(grid_times - t)))
-        if abs(grid_times[k] - t) > tolerance:
-            if strict:
-                return None
+        if abs(grid_times[k] - t) <= tolerance:
+            if k > 0 and k not in on_grid:        # the first event there: the value before them all
+                ends[k - 1] = before
+            on_grid.add(k)
+        else:
+            cuts.setdefault(int(np.searchsorted(grid_times, t)) - 1, []).append((t, before, after))
+    inner = {k: _steps(k, cut, grid_times, grid_rows, ends, t0) for k, cut in cuts.items()}
+    return _Layout(np.array(grid_rows), np.array(ends, dtype=int), inner)
+
+
+def _steps(k: int, cut: list, grid_times: np.ndarray, grid_rows: list, ends: list, t0: float) -> list:
+    """The steps of grid interval k between the events inside it (several at one time: the row
+    before the first, after the last)."""
+    steps, start, first = [], grid_times[k], grid_rows[k]
+    for index, (t, before, after) in enumerate(cut):
+        if index + 1 < len(cut) and cut[index + 1][0] == t:
             continue
-        if k > 0:
-            ends[k - 1] = row
-    return np.array(grid_rows), np.array(ends, dtype=int)
+        same = [entry for entry in cut if entry[0] == t]
+        steps.append((start - t0, t - t0, first, same[0][1]))
+        start, first = t, after
+    steps.append((start - t0, grid_times[k + 1] - t0, first, ends[k]))
+    return steps
 
 
 class _CoreRuns(torch.autograd.Function):
-    """The elements' records at the grid points [K+1, B, C] and before the events there [K, B, C]
-    as a function of theta (CoreElements.theta)."""
+    """Each element's recorded rows [rows, C] (see _Layout) as a function of theta (CoreElements.theta)."""
 
     @staticmethod
     def forward(ctx, elements: CoreElements, *theta):
         ctx.elements = elements
-        return torch.from_numpy(elements.values), torch.from_numpy(elements.before)
+        return tuple(torch.from_numpy(table) for table in elements.tables)
 
     @staticmethod
-    def backward(ctx, grad_values, grad_before):
+    def backward(ctx, *grads):
         elements = ctx.elements
-        flat = elements.gradient(grad_values.detach().numpy(),
-                                 None if grad_before is None else grad_before.detach().numpy())
+        flat = elements.gradient([None if g is None else g.detach().numpy() for g in grads])
         grads, offset = [], 0
         for tensor in elements.theta:
             grads.append(torch.from_numpy(flat[offset:offset + tensor.numel()].reshape(tensor.shape).copy()))

@@ -20,14 +20,19 @@ SIGNALS = ("speed", "current", "power", "temperature")
 
 
 @pytest.fixture(scope="module")
-def windage_data():
-    """6 s of the speed-controlled drive with windage (two set-point steps), four signals with noise."""
-    truth = simulate_engine(example_fmu("dc_drive_truth_windage"), stop_time=6.0, solver="rk4", step_size=0.001,
-                            output_interval=0.05, variables=list(SIGNALS))
+def windage_truth():
+    return simulate_engine(example_fmu("dc_drive_truth_windage"), stop_time=6.1, solver="rk4", step_size=0.001,
+                           output_interval=0.001, variables=list(SIGNALS))
+
+
+def windage_data(truth, offset: float = 0.0):
+    """6 s of the speed-controlled drive with windage (two set-point steps) from `offset`, four
+    signals every 50 ms with noise."""
+    times = offset + 0.05 * np.arange(121)
     rng = np.random.default_rng(0)
-    signals = {name: truth[name] + 0.01 * np.std(truth[name]) * rng.standard_normal(truth.time.size)
-               for name in SIGNALS}
-    return MeasuredData(truth.time, signals, source="dc_drive windage")
+    signals = {name: np.interp(times, truth.time, truth[name]) + 0.01 * np.std(truth[name]) *
+               rng.standard_normal(times.size) for name in SIGNALS}
+    return MeasuredData(times, signals, source="dc_drive windage")
 
 
 def make_trainer(fmu, data, aliases=None, sensor_lag=0.1):
@@ -93,17 +98,20 @@ def core_loss(trainer):
     return loss
 
 
-@pytest.mark.parametrize("aliases", [{}, {"power": "der(energy)"}], ids=["power read", "power as der(energy)"])
-def test_dc_drive_loss_gradient_against_differences_and_the_torch_solver(dc_drive_fmu, windage_data, aliases):
+@pytest.mark.parametrize("aliases, offset", [({}, 0.0), ({"power": "der(energy)"}, 0.0), ({}, 0.004)],
+                         ids=["power read", "power as der(energy)", "events between grid points"])
+def test_dc_drive_loss_gradient_against_differences_and_the_torch_solver(dc_drive_fmu, windage_truth, aliases, offset):
     """A state, an FMU variable (power, by differences of its reading) or a corrected derivative,
-    through the sensor's lag; the drive's set-point profile has time events inside the elements."""
-    trainer = make_trainer(dc_drive_fmu, windage_data, aliases)
+    through the sensor's lag; the drive's set-point profile has time events inside the elements, on
+    grid points, or with the data from 4 ms on between them."""
+    trainer = make_trainer(dc_drive_fmu, windage_data(windage_truth, offset), aliases)
     model = trainer.model
     assert core_gradient.exact_in_core(model)
     trajectory = core_gradient.simulate_for_loss(model, trainer.element_duration, trainer.step,
                                                  starts=[e.start for e in trainer.elements], record=trainer.recorded,
                                                  solver="rk4", inputs=trainer.inputs)
     assert trajectory.stats.get("core_gradient")
+    assert bool(trajectory.inner) == bool(offset)
     with torch.no_grad():
         reference = simulate(model, trainer.element_duration, trainer.step, starts=[e.start for e in trainer.elements],
                              record=trainer.recorded, solver="rk4", inputs=trainer.inputs)
