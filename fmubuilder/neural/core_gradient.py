@@ -41,8 +41,8 @@ from .model import NeuralFMU
 from .solve import SOLVERS, ElementStart, Trajectory, can_snapshot, simulate
 
 _ACTIVATIONS = {torch.tanh: "tanh", torch.sigmoid: "sigmoid", torch.relu: "relu"}
-# Models with a run the core's records cannot stand for (see the module docstring): torch from then on.
-_EVENTFUL: "weakref.WeakSet[NeuralFMU]" = weakref.WeakSet()
+# Models with a run in which an event reset the states (see the module docstring): torch from then on.
+_RESETTING: "weakref.WeakSet[NeuralFMU]" = weakref.WeakSet()
 
 
 def exact_in_core(model: NeuralFMU) -> bool:
@@ -60,14 +60,14 @@ def exact_in_core(model: NeuralFMU) -> bool:
 def simulate_for_loss(model: NeuralFMU, duration: float, step_size: float, *, starts, record, solver: str,
                       inputs=None, keep_final_state: bool = False) -> Trajectory:
     """solve.simulate for a loss evaluation: in the core where its gradient is exact, else torch."""
-    usable = (torch.is_grad_enabled() and solver in SOLVERS and model not in _EVENTFUL and exact_in_core(model)
+    usable = (torch.is_grad_enabled() and solver in SOLVERS and model not in _RESETTING and exact_in_core(model)
               and all(start.fmu_state is not None for start in starts))
     if usable:
         trajectory = CoreElements(model, duration, step_size, starts, record, solver, inputs).trajectory(
             keep_final_state)
         if trajectory is not None:
             return trajectory
-        _EVENTFUL.add(model)
+        _RESETTING.add(model)
     return simulate(model, duration, step_size, starts=starts, record=record, solver=solver, inputs=inputs,
                     keep_final_state=keep_final_state)
 
