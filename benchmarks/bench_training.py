@@ -9,7 +9,7 @@ its batching; an L-BFGS loss evaluation, line search included, is one pass), as 
 budget of loss evaluations (one per batch), which it spends exactly. Per method: the
 held-out MSE of each measured signal relative to the plain FMU's, averaged (below 1: better), the
 optimizer steps, the passes used, and the wall time relative to the first method, measured in the
-same run. The collocation warm start (warm_start.py) comes before and is counted apart, in
+same run, and in seconds. The collocation warm start (warm_start.py) comes before and is counted apart, in
 simulations without gradient.
 
     python benchmarks/bench_training.py [--passes 12]
@@ -92,11 +92,11 @@ def main() -> None:
     baseline = rows[0][2]["seconds"]
     print(f"DC drive windage, {args.passes} passes over 15 s of training data; held out: 20.5-30 s")
     print("| warm start | method | warm-start simulations | first loss | held-out MSE ratio | optimizer steps | "
-          "passes | wall time ratio |")
-    print("|---|---|---|---|---|---|---|---|")
+          "passes | wall time ratio | wall time (s) |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for name, warm_start, r in rows:
         print(f"| {warm_start} | {name} | {r['warm_simulations']} | {r['first_loss']:.3f} | {r['held_out']:.3f} | "
-              f"{r['steps']} | {r['passes']:.0f} | {r['seconds'] / baseline:.2f} |")
+              f"{r['steps']} | {r['passes']:.0f} | {r['seconds'] / baseline:.2f} | {r['seconds']:.1f} |")
 
 
 if __name__ == "__main__":

@@ -50,6 +50,7 @@ from ..data import MeasuredData, load_data, sensor_reading
 from ..files import refuse_existing, write_atomically
 from ..progress import Bar
 from ..score import floors_of, validation_score
+from .core_gradient import simulate_for_loss
 from .io import save_neural_fmu
 from .model import NeuralFMU
 from .sensor import sensor_grid
@@ -858,9 +859,9 @@ class Trainer:
 
     def _signal_errors(self, batch: list["_Element"], keep_final_state: bool) -> dict:
         """{signal: weighted MSE over the batch's data points} (tensors)."""
-        trajectory = simulate(self.model, self.element_duration, self.step, starts=[e.start for e in batch],
-                              record=self.recorded, solver=self.settings.solver, inputs=self.inputs,
-                              keep_final_state=keep_final_state)
+        trajectory = simulate_for_loss(self.model, self.element_duration, self.step, starts=[e.start for e in batch],
+                                       record=self.recorded, solver=self.settings.solver, inputs=self.inputs,
+                                       keep_final_state=keep_final_state)
         if keep_final_state:
             for position, (element, final) in enumerate(zip(batch, trajectory.final_starts)):
                 if element.index + 1 < len(self.elements):

@@ -33,7 +33,7 @@ from ..events import MAX_CUT_STEPS_IN_A_ROW, MAX_EVENTS_AT_ONE_TIME, RELATIVE_TI
 from ..solvers import step_size_underflow
 
 SOURCE_DIR = Path(__file__).resolve().parent
-SOURCES = ("CMakeLists.txt", "event_loop.c", "event_loop.h")
+SOURCES = ("CMakeLists.txt", "event_loop.c", "event_loop.h", "loop.h", "sensitivity.c")
 LIBRARY_NAME = "event_loop.so"
 ENGINE_VARIABLE = "FMUBUILDER_ENGINE"
 
@@ -120,6 +120,7 @@ class CoreRun:
     t: float
     terminated: bool
     x: np.ndarray = field(repr=False)
+    next_event: float = float("inf")
 
 
 def run(system, solver, *, start_time: float, stop_time: float, output_times: np.ndarray, x0: np.ndarray,
@@ -135,6 +136,40 @@ def run(system, solver, *, start_time: float, stop_time: float, output_times: np
         if code:
             _raise(code, result, system)
         return _collected(ffi, result, plan)
+    finally:
+        lib.core_free_result(result)
+        del keep
+
+
+def run_with_gradient(system, solver, *, start_time: float, stop_time: float, output_times: np.ndarray,
+                      x0: np.ndarray, next_event: float, n_parameters: int, weights: np.ndarray | None,
+                      record_events: bool = False) -> tuple[CoreRun, np.ndarray, int]:
+    """`run` with forward sensitivities to the correction's parameters (core_gradient_run in
+    event_loop.h): (the run, the gradient: the sum over the recorded rows and columns of
+    weights[row, column] d(value)/dtheta, the events that reset the states). weights [rows,
+    columns] for the rows the same run records (events' rows too with record_events), or None:
+    the run alone, its resets counted."""
+    if solver.adaptive:
+        raise ValueError("the core's sensitivities follow the fixed-step solvers (Euler, RK4) only")
+    lib, ffi = library()
+    plan, keep = _plan(ffi, system, solver, start_time, stop_time, output_times, x0, next_event, record_events)
+    fmu = _fmu(ffi, system, plan)
+    result = ffi.new("CoreResult *")
+    resets = ffi.new("int64_t *")
+    gradient = np.zeros(max(n_parameters, 1))
+    rows = 0
+    if weights is not None:
+        weights = np.ascontiguousarray(weights, dtype=np.float64)
+        if weights.ndim != 2 or weights.shape[1] != plan.n_columns:
+            raise ValueError(f"weights of shape {weights.shape} for rows of {plan.n_columns} columns")
+        rows = weights.shape[0]
+    pointer = ffi.NULL if weights is None or rows == 0 else ffi.cast("double *", ffi.from_buffer(weights))
+    try:
+        code = lib.core_gradient_run(fmu, plan, pointer, rows, n_parameters,
+                                     ffi.cast("double *", ffi.from_buffer(gradient)), resets, result)
+        if code:
+            _raise(code, result, system)
+        return _collected(ffi, result, plan), gradient[:n_parameters], int(resets[0])
     finally:
         lib.core_free_result(result)
         del keep
@@ -285,7 +320,8 @@ def _collected(ffi, result, plan) -> CoreRun:
         "steps", "rejected_steps", "rhs_evaluations", "indicator_evaluations", "time_events", "state_events", "step_events",
         "event_iterations")}
     return CoreRun(times=doubles(result.times, rows), table=table, events=events, counts=counts,
-                   t=float(result.t), terminated=bool(result.terminated), x=doubles(result.x, plan.n_states))
+                   t=float(result.t), terminated=bool(result.terminated), x=doubles(result.x, plan.n_states),
+                   next_event=float(result.next_event))
 
 
 def _raise(code: int, result, system) -> None:

@@ -6,7 +6,7 @@
 #include <stdlib.h>
 #include <string.h>
 
-#include "event_loop.h"
+#include "loop.h"
 
 /* A fixed step that would leave less than this fraction of itself before its limit is
  * stretched to the limit (solvers._SNAP). */
@@ -14,40 +14,6 @@
 /* locate's iteration cap (events.locate's max_iterations). */
 #define MAX_LOCATE_ITERATIONS 200
 
-typedef struct {
-    const CoreFmu *fmu;
-    const CorePlan *plan;
-    CoreResult *res;
-    size_t n, nz;
-    double eps;                     /* the engine's output tolerance: time_tolerance(start, scale) */
-    /* the event sequence (events.EventSequence) */
-    double t, next_event;
-    int terminated, events_here, cuts_in_a_row;
-    double *z, *z_end;              /* z: NULL without indicators */
-    /* the engine's current state */
-    double *x;
-    /* the solver (solvers.Euler, RK4, DOPRI5) */
-    double st, st_prev;
-    double *sx, *sx_prev, *dx, *dx_prev, *x_new;
-    int dx_current;
-    double *stage, *k2, *k3, *k4, *interpolated;
-    double h;                       /* DOPRI5: the proposed next step */
-    double *K, *K_last, *abs_x, *abs_new, *Q;      /* DOPRI5: stages [7][n], |x|, dense output [n][4] */
-    int stepped, dense_ready;
-    /* locate's bracket */
-    double *za, *zb, *z_trial, *wa, *wb;
-    /* outputs and inputs */
-    size_t i_out, i_bp, segment;
-    double *input_values, *discrete_cache, *computed, *row;
-    int *integers;
-    int discrete_valid, continuous_mode;
-    /* the correction's inputs, variables and layer buffers; derivatives for recorded columns */
-    double *network_in, *network_a, *network_b, *variables, *recorded_dx;
-    int derivative_columns;
-    /* the point the instance was last put at: setting it again would change nothing */
-    double held_t, *held_x;
-    int held;
-} Loop;
 
 /* ---- FMI calls, each leaving its breadcrumb ------------------------------------------- */
 
@@ -193,6 +159,11 @@ static int correct(Loop *loop, const double *x, double *der)
     }
     double base = c->term_gate != 0.0 ? base_term(c, z) : 0.0;
     const double *in = z, *w = c->weights, *b = c->biases;
+    double *kept = loop->layer_outputs;     /* every layer's output kept for the sensitivities */
+    if (kept != NULL) {
+        memcpy(kept, z, c->n_inputs * sizeof(double));
+        next = kept + c->n_inputs;
+    }
     for (size_t layer = 0; layer < c->n_layers; ++layer) {
         int rows = c->layer_rows[layer], cols = c->layer_cols[layer];
         for (int j = 0; j < rows; ++j) {
@@ -205,11 +176,12 @@ static int correct(Loop *loop, const double *x, double *der)
         w += (size_t)rows * cols;
         b += rows;
         in = next;
-        next = next == loop->network_b ? h : loop->network_b;
+        next = kept != NULL ? next + rows : next == loop->network_b ? h : loop->network_b;
     }
     for (size_t k = 0; k < c->n_channels; ++k) {
         int state = c->channel_state[k];
         double network = c->n_layers ? in[k] : 0.0;
+        loop->raw_channel[k] = der[state];
         double fmu = c->n_layers ? c->gate_fmu[k] * der[state] : der[state];
         der[state] = network + fmu + (c->n_channels == 1 ? base : 0.0);
     }
@@ -226,6 +198,35 @@ static int derivatives(Loop *loop, double t, const double *x, double *out)
     if (loop->plan->correction != NULL) {
         TRY(correct(loop, x, out));
     }
+    return 0;
+}
+
+int loop_derivatives(Loop *loop, double t, const double *x, double *out)
+{
+    return derivatives(loop, t, x, out);
+}
+
+double loop_activated(int activation, double value)
+{
+    return activated(activation, value);
+}
+
+int loop_fmu_values(Loop *loop, double t, const double *x, double *der, double *variables)
+{
+    const CoreCorrection *c = loop->plan->correction;
+    TRY(put_at(loop, t, x));
+    FMI(loop, CALL_GET_DERIVATIVES, loop->fmu->get_derivatives(loop->fmu->component, der, loop->n));
+    if (c->n_variables) {
+        FMI(loop, CALL_GET_REAL, loop->fmu->get_real(loop->fmu->component, c->variable_vrs, c->n_variables, variables));
+    }
+    return 0;
+}
+
+int loop_computed(Loop *loop, double t, const double *x)
+{
+    const CorePlan *p = loop->plan;
+    TRY(put_at(loop, t, x));
+    FMI(loop, CALL_GET_REAL, loop->fmu->get_real(loop->fmu->component, p->computed_vrs, p->n_computed, loop->computed));
     return 0;
 }
 
@@ -248,6 +249,9 @@ static int dopri5_restart(Loop *loop, double t, const double *x, int keep_step);
  * too (DOPRI5's proposed step is 0 then). */
 static int solver_restart(Loop *loop, double t, const double *x, int keep_step)
 {
+    if (loop->sens != NULL) {
+        sens_restart(loop, t);
+    }
     loop->st = loop->st_prev = t;
     memcpy(loop->sx, x, loop->n * sizeof(double));
     memcpy(loop->sx_prev, x, loop->n * sizeof(double));
@@ -314,6 +318,9 @@ static int solver_step(Loop *loop, double t_limit, double *t_reached)
         for (size_t i = 0; i < n; ++i) {
             x_new[i] = x[i] + sixth * (k1[i] + 2.0 * (loop->k2[i] + loop->k3[i]) + loop->k4[i]);
         }
+    }
+    if (loop->sens != NULL) {
+        TRY(sens_step(loop, t, h, x));
     }
     memcpy(loop->sx_prev, x, n * sizeof(double));
     memcpy(loop->sx, x_new, n * sizeof(double));
@@ -668,6 +675,9 @@ static int record(Loop *loop, const double *times, size_t count, double t, const
     TRY(grow(loop, &r->row_capacity, r->n_rows + count, (void **)&r->times, sizeof(double), (void **)&r->rows,
              (p->n_columns ? p->n_columns : 1) * sizeof(double)));
     for (size_t k = 0; k < count; ++k) {
+        if (loop->sens != NULL) {
+            TRY(sens_record(loop, t, x, r->n_rows));
+        }
         r->times[r->n_rows] = times[k];
         memcpy(r->rows + r->n_rows * p->n_columns, loop->row, p->n_columns * sizeof(double));
         r->n_rows += 1;
@@ -936,6 +946,9 @@ static int event(Loop *loop, int kind)
     }
     core_event_info info;
     TRY(event_iteration(loop, &info));
+    if (loop->sens != NULL) {
+        sens_after_event(loop, info.valuesOfContinuousStatesChanged);
+    }
     if (!info.terminateSimulation) {
         FMI(loop, CALL_ENTER_CONTINUOUS_TIME_MODE, f->enter_continuous_time_mode(f->component));
     }
@@ -1055,6 +1068,11 @@ static double *take(double **pool, size_t count)
 
 int core_run(const CoreFmu *fmu, const CorePlan *plan, CoreResult *result)
 {
+    return loop_run(fmu, plan, result, NULL);
+}
+
+int loop_run(const CoreFmu *fmu, const CorePlan *plan, CoreResult *result, Sensitivity *sens)
+{
     Loop loop;
     memset(&loop, 0, sizeof(loop));
     memset(result, 0, sizeof(*result));
@@ -1065,7 +1083,7 @@ int core_run(const CoreFmu *fmu, const CorePlan *plan, CoreResult *result)
         width = (size_t)c->layer_rows[layer] > width ? (size_t)c->layer_rows[layer] : width;
     }
     size_t words = 33 * n + 7 * nz + plan->n_continuous_inputs + plan->n_discrete + plan->n_computed
-                   + plan->n_columns + n_inputs + 2 * width + n_variables + 1;
+                   + plan->n_columns + n_inputs + 2 * width + n_variables + (c ? c->n_channels : 0) + 1;
     double *memory = calloc(words, sizeof(double));
     int *integers = calloc(1, sizeof(int));
     result->x = calloc(n ? n : 1, sizeof(double));
@@ -1114,6 +1132,9 @@ int core_run(const CoreFmu *fmu, const CorePlan *plan, CoreResult *result)
     loop.network_a = take(&pool, width);
     loop.network_b = take(&pool, width);
     loop.variables = take(&pool, n_variables);
+    loop.raw_channel = take(&pool, c ? c->n_channels : 0);
+    loop.sens = sens;
+    loop.layer_outputs = sens != NULL ? sens_layer_outputs(sens) : NULL;
     for (size_t j = 0; j < plan->n_columns; ++j) {
         loop.derivative_columns |= plan->column_kind[j] == COLUMN_DERIVATIVE;
     }
@@ -1141,6 +1162,7 @@ int core_run(const CoreFmu *fmu, const CorePlan *plan, CoreResult *result)
         }
     }
     result->t = loop.t;
+    result->next_event = loop.next_event;
     result->terminated = loop.terminated;
     memcpy(result->x, loop.x, n * sizeof(double));
     free(memory);

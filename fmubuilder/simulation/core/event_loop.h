@@ -170,6 +170,7 @@ typedef struct {
     double error_time;
     double error_step;              /* the step size of a CORE_STEP_UNDERFLOW */
     double t;                       /* the time reached */
+    double next_event;              /* the next time event pending there (inf: none) */
     int terminated;                 /* the model asked to stop */
     double *x;                      /* the states reached [n_states] */
     size_t n_rows;
@@ -185,5 +186,14 @@ typedef struct {
 
 int core_run(const CoreFmu *fmu, const CorePlan *plan, CoreResult *result);
 void core_free_result(CoreResult *result);
+
+/* The run of core_run with forward sensitivities of the states to the correction's parameters
+ * (sensitivity.c): theta = each layer's W (row-major) and b, layer after layer, then the channels'
+ * FMU gates (n_parameters in all). gradient [n_parameters] gets the sum over the recorded rows of
+ * weights[row][column] d(value)/dtheta (weights [n_rows][n_columns], the rows as the run records
+ * them, events' rows too; NULL: the run alone). resets: the events at which the FMU changed its
+ * continuous states (their sensitivities are not followed). */
+int core_gradient_run(const CoreFmu *fmu, const CorePlan *plan, const double *weights, size_t n_rows,
+                      size_t n_parameters, double *gradient, int64_t *resets, CoreResult *result);
 
 #endif
