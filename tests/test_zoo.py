@@ -16,7 +16,7 @@ from fmubuilder.simulation import read_csv_signals
 
 # Development seeds (below 1000): a wrong parameter, a missing effect and no effect at all, each on
 # a model with a short run.
-SEEDS = {"parameter": 0, "effect": 7, "none": 25}
+SEEDS = {"parameter": 0, "effect": 32, "none": 43}
 
 
 @pytest.fixture(scope="module")

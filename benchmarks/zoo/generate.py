@@ -144,9 +144,11 @@ def draw_effect(rng, base: Base, trajectory: dict[str, np.ndarray], readable: li
     count = 1 if rng.random() < 0.7 else 2       # sums of two parts
     parts = []
     scale = float(np.sqrt(np.mean(trajectory[channel] ** 2))) or 1.0
+    candidates = [n for n in readable if np.ptp(trajectory[n]) > 1e-9]
+    # A product needs two variables that move: not on a model with one.
+    families = [f for f in FAMILIES if f != "product" or len(candidates) >= 2]
     for _ in range(count):
-        family = str(rng.choice(FAMILIES))
-        candidates = [n for n in readable if np.ptp(trajectory[n]) > 1e-9]
+        family = str(rng.choice(families))
         part = draw_part(rng, family, trajectory, candidates)
         peak = float(np.max(np.abs(part.shape(trajectory)))) or 1.0
         part.amplitude = float(rng.choice([-1, 1])) * log_uniform(rng, 0.05, 0.5) * scale / peak
