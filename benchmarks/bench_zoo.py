@@ -26,7 +26,7 @@ import os
 import sys
 import time
 import traceback
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
@@ -138,12 +138,13 @@ def succeeded(truth: dict, row: dict) -> bool:
     return all(r <= SUCCESS_FACTOR for r in row["ratios"].values())
 
 
-def table(truths: dict, rows: dict) -> list[str]:
-    """The markdown table: one row per seed."""
+def table(truths: dict, rows: dict, only: list[str] | None = None) -> list[str]:
+    """The markdown table: one row per seed (of `only`, when given)."""
     ratios = lambda r: ", ".join(f"{k} {v:.3g}" for k, v in r.items())
     lines = ["| seed | base | truth | data | channel found | shipped | test MSE / noise variance | truth's | s | ok |",
              "|---|---|---|---|---|---|---|---|---|---|"]
-    for name, truth in truths.items():
+    for name in only or truths:
+        truth = truths[name]
         row, d = rows[name], truth["data"]
         data = (f"{d['rate']:.0f} Hz, {d['runs']} run{'s' * (d['runs'] > 1)}, {d['noise_model']}"
                 f"{', std' if d['spread_columns'] else ''}{', val' if d['separate_validation'] else ''}")
@@ -161,7 +162,7 @@ def rates(truths: dict, rows: dict) -> list[str]:
     wins = sum(succeeded(truths[n], rows[n]) for n in with_effect)
     published = sum(rows[n]["shipped"] for n in without)
     seconds = [rows[n]["seconds"] for n in truths]
-    cpu = [rows[n]["cpu_seconds"] for n in truths]
+    cpu = [rows[n].get("cpu_seconds", float("nan")) for n in truths]
     by_kind = {}
     for n in with_effect:
         by_kind.setdefault(truths[n]["kind"], []).append(succeeded(truths[n], rows[n]))
@@ -182,21 +183,49 @@ def main(argv=None) -> int:
     parser.add_argument("--budget", type=int, default=DEFAULT_BUDGET, help="NeuralFMU loss evaluations per case")
     parser.add_argument("--jobs", type=int, default=1, help="cases run side by side")
     parser.add_argument("--out", type=Path, default=None, help="folder of the cases (default: a new temporary one)")
+    parser.add_argument("--table-only", action="store_true",
+                        help="tabulate the finished cases in --out (of an interrupted or running bench); run nothing")
     args = parser.parse_args(argv)
     out = args.out or Path(__import__("tempfile").mkdtemp(prefix="zoo-"))
     out.mkdir(parents=True, exist_ok=True)
     seeds = parse_seeds(args.seeds)
     started = time.perf_counter()
-    with ProcessPoolExecutor(args.jobs) as pool:
-        truths = dict(pool.map(generate, seeds, [out] * len(seeds)))
-        write_manifest(out / "manifest.toml", truths, args.budget)
-        print(f"{len(truths)} cases in {out} ({time.perf_counter() - started:.0f} s)", flush=True)
-        rows = {row["name"]: row for row in pool.map(run_or_reuse, [out / n for n in truths], [args.budget] * len(truths))}
+    if args.table_only:
+        truths, rows = finished(out, seeds)
+    else:
+        truths, rows = run_all(out, seeds, args.budget, args.jobs)
     lines = table(truths, rows) + [""] + rates(truths, rows)
+    if len(truths) < len(seeds):
+        lines.append(f"(of {len(seeds)} seeds asked for, {len(truths)} finished)")
     (out / "zoo.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     print(f"\ntable: {out / 'zoo.md'}; total {time.perf_counter() - started:.0f} s")
     return 0
+
+
+def run_all(out: Path, seeds: list[int], budget: int, jobs: int) -> tuple[dict, dict]:
+    """Generate every case, write the manifest, run hybridize on each; a line per finished case."""
+    started = time.perf_counter()
+    with ProcessPoolExecutor(jobs) as pool:
+        truths = dict(pool.map(generate, seeds, [out] * len(seeds)))
+        write_manifest(out / "manifest.toml", truths, budget)
+        print(f"{len(truths)} cases in {out} ({time.perf_counter() - started:.0f} s)", flush=True)
+        futures = {pool.submit(run_or_reuse, out / name, budget): name for name in truths}
+        rows = {}
+        for future in as_completed(futures):
+            row = rows[futures[future]] = future.result()
+            print(table(truths, {row["name"]: row}, only=[row["name"]])[-1], flush=True)
+    return truths, rows
+
+
+def finished(out: Path, seeds: list[int]) -> tuple[dict, dict]:
+    truths, rows = {}, {}
+    for seed in seeds:
+        case = out / f"seed-{seed}"
+        if (case / "result.json").is_file():
+            truths[case.name] = json.loads((case / "truth.json").read_text())
+            rows[case.name] = json.loads((case / "result.json").read_text())
+    return truths, rows
 
 
 if __name__ == "__main__":
