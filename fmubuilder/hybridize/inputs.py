@@ -570,12 +570,19 @@ def _in_windows(term: MissingTerm, data, parts) -> np.ndarray:
 
 
 def _joined(terms: list[MissingTerm]) -> MissingTerm:
-    """One MissingTerm of several runs, one after the other (the smoother ignores time)."""
+    """One MissingTerm of several runs, one after the other (the smoother ignores time). Each run's
+    stamps are shifted to follow the run before it by more than a slope window and a test block, so
+    that the time stays increasing (runs may each start at 0) and no window spans two runs."""
     if len(terms) == 1:
         return terms[0]
     first = terms[0]
     channels = [c for c in first.missing if all(c in t.missing for t in terms)]
-    return MissingTerm(np.concatenate([t.time for t in terms]),
+    times, end = [], None
+    for t in terms:
+        shift = 0.0 if end is None else end + SLOPE_WINDOW + BLOCK_SECONDS - float(t.time[0])
+        times.append(t.time + shift)
+        end = float(times[-1][-1])
+    return MissingTerm(np.concatenate(times),
                        {c: np.concatenate([t.missing[c] for t in terms]) for c in channels},
                        {n: np.concatenate([t.variables[n] for t in terms]) for n in first.variables},
                        first.kinds, set.union(*(t.measured for t in terms)), first.aliases)
