@@ -257,3 +257,25 @@ def test_proportional_copies_are_one_input():
     variables = {"speed": x, "friction_torque": -1e-3 * x, "current": np.cos(3 * x)}
     kept, duplicates = distinct_variables(variables, ["speed", "friction_torque", "current"], np.ones(50, bool))
     assert kept == ["speed", "current"] and duplicates == {"friction_torque": "speed"}
+
+
+def test_runs_that_each_start_at_zero_are_joined_in_increasing_time():
+    """A separate validation run starts at 0 like the training run: joined, the stamps must still
+    increase (the settled-sample windows and the test blocks are windows in time), and the choice on
+    them must find the variable the term is made of."""
+    rng = np.random.default_rng(3)
+
+    def run(length):
+        time = np.arange(0.0, length, 0.1)
+        speed = np.sin(0.7 * time) + 0.3 * rng.normal(size=time.size)
+        other = rng.normal(size=time.size)
+        return inputs.MissingTerm(time, {"der(x)": np.tanh(3.0 * speed) + 0.05 * rng.normal(size=time.size)},
+                                  {"speed": speed, "other": other, "der(x)": np.zeros(time.size)},
+                                  {"speed": "state", "other": "output"}, {"speed"})
+    train, validation = run(40.0), run(12.0)
+    joined = inputs._joined([train, validation])
+    assert np.all(np.diff(joined.time) > 0)
+    assert joined.time[train.time.size] - joined.time[train.time.size - 1] > inputs.SLOPE_WINDOW
+    train_mask = np.r_[np.ones(train.time.size, bool), np.zeros(validation.time.size, bool)]
+    choice = inputs.choose_inputs(joined, "der(x)", train_mask, ~train_mask)
+    assert choice.inputs[:1] == ["speed"]
