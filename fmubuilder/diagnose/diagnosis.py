@@ -147,7 +147,7 @@ def diagnose(model_fmu, data_csv, start_values: dict | None = None, plots_dir=No
             wall["trace"] = wallclock.perf_counter() - trace_started
             if fitted_term is not None:
                 fitted_run = runner.simulate(fitted_term.terms, trajectories=False)
-                _judge_term(diagnosis, data, tests, fitted_run)
+                _judge_term(diagnosis, data, nominal, fitted_run)
         diagnosis.simulations = runner.runs
         if plots_dir is not None:
             from .plots import write_plots
@@ -313,17 +313,24 @@ def _trace_window(diagnosis, info, data, runner, nominal, noise, variables, dead
     return fitted
 
 
-def _judge_term(diagnosis: Diagnosis, data: MeasuredData, tests, fitted_run: ModelRun) -> None:
+def _judge_term(diagnosis: Diagnosis, data: MeasuredData, nominal: ModelRun, fitted_run: ModelRun) -> None:
     """Errors with the fitted term over the whole data span, and whether it is offered: it must
     remove TERM_MIN_EXPLAINED of the residual's excess over noise (block chi-square minus its
-    degrees of freedom, summed over the signals)."""
+    degrees of freedom, summed over the signals). Before and after are measured against one noise
+    estimate per signal, the corrected residual's, which holds less of the effect than the plain one:
+    with two estimates the plain residual's effect, taken partly for noise, would shrink its own excess."""
     before = after = 0.0
-    for e, test in zip(diagnosis.errors, tests):
-        residual = data.signals[e.signal] - fitted_run.predicted[e.signal]
+    for e in diagnosis.errors:
+        name, spread = e.signal, data.std.get(e.signal)
+        model = fitted_run.predicted[name]
+        residual = data.signals[name] - model
         e.corrected_rms = rms(residual)
-        new = significance.signal_test(residual, fitted_run.predicted[e.signal], data.std.get(e.signal), data.runs)
-        before += max(0.0, test.chi2 - test.dof)
-        after += max(0.0, new.chi2 - new.dof)
+        fit = significance.fit_noise(residual, model, spread, data.runs)
+        was = significance.joint_test([data.signals[name] - nominal.predicted[name]], [model], [spread], data.runs,
+                                      fits=[fit])
+        now = significance.joint_test([residual], [model], [spread], data.runs, fits=[fit])
+        before += max(0.0, was.chi2 - was.dof)
+        after += max(0.0, now.chi2 - now.dof)
     removed = 1.0 - after / before if before > 0 else 0.0
     term = diagnosis.fitted_term
     term["explained_excess"] = float(removed)
