@@ -3,7 +3,7 @@
 For each seed, benchmarks/zoo/generate.py draws a case (a declared FMU, a truth with a missing effect,
 a wrong parameter or nothing, and measured data) and writes it with a batch manifest. `hybridize`
 runs on each case as a user would run it (declared model, training data, optional validation run,
-test data), in worker processes. Each case is then scored without the report: the shipped hybrid
+test data), through `fmubuilder batch` on the generated manifest (a process per case, resumable). Each case is then scored without the report: the shipped hybrid
 (or the declared FMU when nothing is shipped) is simulated on the test data, and every measured
 signal's test MSE is divided by its true noise variance (of the measured value: a mean over runs
 has one run's variance over the number of runs). The truth FMU scored the same way sits near 1:
@@ -11,8 +11,9 @@ the column checks the scoring.
 
 Success: every measured signal of the shipped model at most SUCCESS_FACTOR times its noise variance
 on the test data, over the seeds with an effect or a wrong parameter. False publish: a hybrid shipped
-on a seed without any effect. A case folder that already holds truth.json and result.json is reused
-(an interrupted run resumes; delete the folder, or give a new --out, after changing the code). Seeds 1000-1049 are reserved for the reported numbers; develop on
+on a seed without any effect. A case folder that already holds truth.json is reused, and the batch skips the
+cases it finished with the same inputs (an interrupted run resumes; give a new --out after changing
+the code). Seeds 1000-1049 are reserved for the reported numbers; develop on
 seeds below 1000.
 
     python benchmarks/bench_zoo.py --seeds 1000-1049 [--budget N] [--jobs N] [--out DIR]
@@ -20,12 +21,10 @@ seeds below 1000.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import sys
 import time
-import traceback
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
@@ -39,13 +38,6 @@ SUCCESS_FACTOR = 3.0     # the bar: every measured signal within 3 times its noi
 # NeuralFMU loss evaluations per case: below hybridize's default (10) so that 50 seeds run in about
 # 40 minutes on two cores.
 DEFAULT_BUDGET = 3
-
-
-def cpu_time() -> float:
-    """CPU seconds of this process and its finished children (compilers, side processes)."""
-    import resource
-    return time.process_time() + sum(getattr(resource.getrusage(resource.RUSAGE_CHILDREN), f)
-                                     for f in ("ru_utime", "ru_stime"))
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -79,35 +71,19 @@ def score(fmu: Path, case: Path, truth: dict, parameters: dict | None = None) ->
     return {s: float(np.mean((simulated[s] - columns[s]) ** 2) / truth["noise_variance"][s]) for s in truth["signals"]}
 
 
-def run_case(case: Path, budget: int) -> dict:
-    """hybridize on the case as the CLI runs it, then the independent scores."""
-    from fmubuilder.hybridize import hybridize
+def score_case(case: Path, ran: dict, folder: Path) -> dict:
+    """The independent scores of a case `fmubuilder batch` ran (`ran`: its summary row; `folder`: its
+    outputs): the shipped hybrid, or the declared FMU when nothing was shipped, and the truth."""
     truth = json.loads((case / "truth.json").read_text())
-    files = truth["files"]
-    out = case / "hybridize"
-    started, cpu_started = time.perf_counter(), cpu_time()
-    row = {"name": case.name, "seed": truth["seed"]}
-    try:
-        with open(case / "hybridize.log", "w") as log, contextlib.redirect_stdout(log):   # its progress lines
-            result = hybridize(case / "declared.fmu", [case / files["train"]], case / files["test"],
-                               out / "hybrid.fmu", out / "report",
-                               validation_csv=case / files["validation"] if "validation" in files else None,
-                               budget=budget, seed=0, force=True, progress=True, jobs=1)
-        report = result.report
-        shipped = Path(result.hybrid_fmu) if result.hybrid_fmu else None
-        row.update(channel=report["diagnosis"].get("channel"), chosen=report.get("chosen"), error=None)
-    except Exception as exc:     # a crash is a failed case, its message in the table
-        traceback.print_exc()
-        shipped = None
-        row.update(channel=None, chosen=None, error=f"{type(exc).__name__}: {exc}"[:200])
-    row["seconds"] = time.perf_counter() - started
-    row["cpu_seconds"] = cpu_time() - cpu_started    # the machine may be shared: CPU time too
-    row["shipped"] = shipped is not None
+    shipped = folder / "hybrid.fmu" if ran["status"] == "ok" and (folder / "hybrid.fmu").is_file() else None
+    row = {"name": case.name, "seed": truth["seed"], "channel": ran["found"] if ran["found"] != "none" else None,
+           "chosen": ran["shipped"] if shipped else None,
+           "error": ran["reason"] if ran["status"] == "failed" else None,
+           "seconds": float(ran["seconds"] or "nan"), "shipped": shipped is not None}
     row["ratios"] = score(shipped or case / "declared.fmu", case, truth)
     truth_params = {k: v["truth"] for k, v in truth["parameters"].items()}
     truth_fmu = case / "truth.fmu" if truth["kind"] == "effect" else case / "declared.fmu"
     row["truth_ratios"] = score(truth_fmu, case, truth, truth_params)
-    (case / "result.json").write_text(json.dumps(row, indent=2) + "\n")
     return row
 
 
@@ -116,12 +92,6 @@ def generate(seed: int, out: Path) -> tuple[str, dict]:
     name = f"seed-{seed}"
     written = out / name / "truth.json"
     return name, json.loads(written.read_text()) if written.is_file() else build_case(seed, out / name)
-
-
-def run_or_reuse(case: Path, budget: int) -> dict:
-    """A finished case's result (a resumed run), else hybridize on it."""
-    done = case / "result.json"
-    return json.loads(done.read_text()) if done.is_file() else run_case(case, budget)
 
 
 def describe_truth(truth: dict) -> str:
@@ -162,7 +132,6 @@ def rates(truths: dict, rows: dict) -> list[str]:
     wins = sum(succeeded(truths[n], rows[n]) for n in with_effect)
     published = sum(rows[n]["shipped"] for n in without)
     seconds = [rows[n]["seconds"] for n in truths]
-    cpu = [rows[n].get("cpu_seconds", float("nan")) for n in truths]
     by_kind = {}
     for n in with_effect:
         by_kind.setdefault(truths[n]["kind"], []).append(succeeded(truths[n], rows[n]))
@@ -172,8 +141,7 @@ def rates(truths: dict, rows: dict) -> list[str]:
              f"false publish: {published}/{len(without)} seeds without an effect "
              f"({100 * published / max(1, len(without)):.0f} %)",
              f"crashed: {sum(bool(rows[n]['error']) for n in truths)}/{len(truths)} seeds (counted as failures)",
-             f"hybridize time per seed: median {np.median(seconds):.0f} s, max {np.max(seconds):.0f} s wall; "
-             f"median {np.median(cpu):.0f} s, max {np.max(cpu):.0f} s CPU"]
+             f"hybridize time per seed: median {np.median(seconds):.0f} s, max {np.max(seconds):.0f} s wall"]
     return lines
 
 
@@ -204,16 +172,22 @@ def main(argv=None) -> int:
 
 
 def run_all(out: Path, seeds: list[int], budget: int, jobs: int) -> tuple[dict, dict]:
-    """Generate every case, write the manifest, run hybridize on each; a line per finished case."""
+    """Generate every case and the manifest, run them with `fmubuilder batch` (as a user runs many
+    cases: a process per case, resumable), then score each case independently of its report."""
+    from fmubuilder.batch import run_batch
     started = time.perf_counter()
     with ProcessPoolExecutor(jobs) as pool:
         truths = dict(pool.map(generate, seeds, [out] * len(seeds)))
-        write_manifest(out / "manifest.toml", truths, budget)
-        print(f"{len(truths)} cases in {out} ({time.perf_counter() - started:.0f} s)", flush=True)
-        futures = {pool.submit(run_or_reuse, out / name, budget): name for name in truths}
+    manifest = write_manifest(out / "manifest.toml", truths, budget)
+    print(f"{len(truths)} cases in {out} ({time.perf_counter() - started:.0f} s)", flush=True)
+    batch = run_batch(manifest, out / "batch", jobs=jobs, progress=sys.stderr.isatty())
+    ran = {r["name"]: r for r in batch.rows}
+    with ProcessPoolExecutor(jobs) as pool:
+        futures = {pool.submit(score_case, out / name, ran[name], out / "batch" / name): name for name in truths}
         rows = {}
         for future in as_completed(futures):
             row = rows[futures[future]] = future.result()
+            (out / row["name"] / "result.json").write_text(json.dumps(row, indent=2) + "\n")
             print(table(truths, {row["name"]: row}, only=[row["name"]])[-1], flush=True)
     return truths, rows
 
