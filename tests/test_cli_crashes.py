@@ -149,7 +149,7 @@ def test_ctrl_c_in_python_code_stops_cleanly(bouncing_ball_fmu, tmp_path):
     proc.send_signal(signal.SIGINT)
     _, stderr = proc.communicate(timeout=30)
     assert proc.returncode == 130
-    assert stderr.strip().splitlines() == ["error: interrupted"]
+    assert stderr.strip().splitlines() == ["error: interrupted; nothing was written"]
     assert list(tmpdir.iterdir()) == [] and list(out.iterdir()) == []
 
 
