@@ -193,12 +193,20 @@ def run_all(out: Path, seeds: list[int], budget: int, jobs: int) -> tuple[dict, 
 
 
 def finished(out: Path, seeds: list[int]) -> tuple[dict, dict]:
+    """The scored cases of `seeds` in `out`, scoring those the batch finished since (of a running or
+    interrupted bench)."""
+    import csv
+    summary = out / "batch" / "summary.csv"
+    ran = {r["name"]: r for r in csv.DictReader(summary.open())} if summary.is_file() else {}
     truths, rows = {}, {}
     for seed in seeds:
         case = out / f"seed-{seed}"
-        if (case / "result.json").is_file():
+        done = case / "result.json"
+        if not done.is_file() and ran.get(case.name, {}).get("status") in ("ok", "failed"):
+            done.write_text(json.dumps(score_case(case, ran[case.name], out / "batch" / case.name), indent=2) + "\n")
+        if done.is_file():
             truths[case.name] = json.loads((case / "truth.json").read_text())
-            rows[case.name] = json.loads((case / "result.json").read_text())
+            rows[case.name] = json.loads(done.read_text())
     return truths, rows
 
 

@@ -52,7 +52,7 @@ estimated from the residual itself and the model's own run (no sensor settings a
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import optimize, stats
@@ -103,15 +103,17 @@ class NoiseFit:
     floor: float              # numerical agreement tolerance
     dof: float                # degrees of freedom of the noise estimate
     variance_cap: float = math.inf   # no plausible noise has a larger variance per sample (spread)
+    away: list = field(default_factory=list)   # plausible fits away from the model's frequencies
 
-    def spectrum(self, omega: np.ndarray) -> np.ndarray:
-        """The noise spectrum the test assumes: the largest of the plausible fits, each
-        scaled down to the variance cap."""
+    def spectrum(self, omega: np.ndarray, wide: bool = False) -> np.ndarray:
+        """The noise spectrum the test assumes: the largest of the plausible fits (with `wide`, those
+        away from the model's frequencies too), each scaled down to the variance cap."""
         omega = np.asarray(omega, dtype=float)
-        if not self.spectra:
+        fits = self.spectra + self.away if wide else self.spectra
+        if not fits:
             return np.zeros(omega.size)
         capped = [s.at(omega) * min(1.0, self.variance_cap / max(_marginal_variance(s), 1e-300))
-                  for s in self.spectra]
+                  for s in fits]
         return np.max(capped, axis=0)
 
     @property
@@ -225,24 +227,28 @@ def fit_noise(residual: np.ndarray, model_values: np.ndarray | None = None,
     if band is None:
         band = bands(n, [model_values]).noise
     dft, norm = _tapered_dft(residual)
-    # Where the model's frequencies leave holes in the noise band, the fits must bridge them, and
-    # below the band's lowest frequency they extrapolate: the fits on the whole band above the lowest
-    # frequencies (which an effect at the model's frequencies can only inflate) join the envelope,
-    # so that the test is never less cautious than without the holes.
+    # The narrow look (the lowest frequencies) keeps the fits on the whole band above them. The wide
+    # look (the model's frequencies) needs the noise away from the model's frequencies too: fitted
+    # there, and joined by the whole band's fits, since over the holes the model's frequencies leave
+    # (and below them) the spectrum is bridged or extrapolated: it is never less cautious than without.
     whole = np.arange(min(GUARD * effect_band(n) + 1, max((n - 1) // 2, 1)), (n - 1) // 2 + 1)
-    spectra, pinned, effective = [], [], max(band.size / _HANN_VARIANCE_INFLATION, 1.0)
-    for frequencies in ([band] if np.array_equal(band, whole) else [band, whole]):
-        omega, periodogram, weight = _binned(2.0 * math.pi * frequencies / n, np.abs(dft[frequencies]) ** 2 / norm)
-        poles = 1.0 - np.geomspace(1.0, SLOWEST_CORNER * float(omega[0]), POLE_COUNT) if omega.size else np.zeros(1)
-        found = _plausible_spectra(omega, periodogram, weight / _HANN_VARIANCE_INFLATION, poles)
-        spectra += found
-        pinned = pinned or found      # the noise level: from the band without the model's frequencies
+    spectra = _fitted_spectra(dft, norm, n, whole)
+    away = _fitted_spectra(dft, norm, n, band) if not np.array_equal(band, whole) else []
     fit = NoiseFit(spectra=spectra, marginal=0.0, excused=0.0, floor=NUMERICAL_FLOOR * span,
-                   dof=2.0 * effective)
-    fit.marginal = math.sqrt(_marginal_variance(pinned[0])) if pinned else 0.0
+                   dof=2.0 * max(whole.size / _HANN_VARIANCE_INFLATION, 1.0), away=away)
+    # The noise level: from the band without the model's frequencies, which holds less of an effect.
+    best = (away or spectra)[:1]
+    fit.marginal = math.sqrt(_marginal_variance(best[0])) if best else 0.0
     if spread is not None and np.size(spread) and runs > 1:
         _apply_spread(fit, np.asarray(spread, dtype=float), runs)
     return fit
+
+
+def _fitted_spectra(dft: np.ndarray, norm: float, n: int, frequencies: np.ndarray) -> list[Spectrum]:
+    """The plausible noise spectra fitted to the periodogram at `frequencies` (step 2)."""
+    omega, periodogram, weight = _binned(2.0 * math.pi * frequencies / n, np.abs(dft[frequencies]) ** 2 / norm)
+    poles = 1.0 - np.geomspace(1.0, SLOWEST_CORNER * float(omega[0]), POLE_COUNT) if omega.size else np.zeros(1)
+    return _plausible_spectra(omega, periodogram, weight / _HANN_VARIANCE_INFLATION, poles)
 
 
 def _binned(omega: np.ndarray, periodogram: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -343,8 +349,8 @@ def joint_test(residuals, model_values=None, spreads=None, runs: int = 2,
     # Two looks, each calibrated, the smaller p doubled (a union bound): the lowest frequencies alone
     # keep the full power against slow effects, the model's frequencies find the others.
     lowest = np.arange(1, effect_band(n) + 1)
-    looks = [(_statistic(residuals, fits, coherence, frequencies), count * (2 * frequencies.size + 1))
-             for frequencies in (lowest, band.effect)]
+    looks = [(_statistic(residuals, fits, coherence, frequencies, wide), count * (2 * frequencies.size + 1))
+             for frequencies, wide in ((lowest, False), (band.effect, True))]
     (chi2, dof), p_value = min(((look, _p_value(look[0], look[1], noise_dof)) for look in looks),
                                key=lambda pair: pair[1])
     p_value = p_value if np.array_equal(lowest, band.effect) else min(1.0, 2.0 * p_value)
@@ -352,12 +358,12 @@ def joint_test(residuals, model_values=None, spreads=None, runs: int = 2,
 
 
 def _statistic(residuals: list[np.ndarray], fits: list[NoiseFit], coherence: np.ndarray,
-               effect: np.ndarray) -> float:
+               effect: np.ndarray, wide: bool) -> float:
     """Q over the zero frequency and the `effect` frequencies (module docstring, step 5)."""
     n = residuals[0].size
     frequencies = np.concatenate([[0], effect]).astype(int)
     omega = 2.0 * math.pi * frequencies / n
-    spectra = np.array([f.spectrum(omega) for f in fits])                     # (S, 1 + K)
+    spectra = np.array([f.spectrum(omega, wide) for f in fits])               # (S, 1 + K)
     with np.errstate(divide="ignore", invalid="ignore"):
         root = np.where(spectra > 0, 1.0 / np.sqrt(spectra), 0.0)
         z = np.array([np.fft.rfft(r)[frequencies] for r in residuals]) * root
