@@ -374,8 +374,8 @@ def _candidate_note(model: dict, training: dict | None) -> str:
             notes.append(_warm_start_note(model["warm_start"]))
         search = model.get("channel_search")
         if search:
-            notes.append(f"its derivative chosen on the validation data after {search['budget_each']} loss evaluation(s) "
-                         "each: " + "; ".join(f"{', '.join(f'`{c}`' for c in row['channels'])} "
+            notes.append(f"its derivative chosen on the validation data after each one's warm start and "
+                         f"{search['budget_each']} loss evaluation(s): " + "; ".join(f"{', '.join(f'`{c}`' for c in row['channels'])} "
                                              f"{row['validation_score']:.3g}" for row in search["screened"]))
         refined = model.get("last_layer")
         if refined and refined["kept"]:

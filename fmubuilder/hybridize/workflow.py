@@ -35,11 +35,11 @@ DEFAULT_BUDGET = 10
 # of five effects: docs/MEASUREMENTS.md, "The DC drive effects table against earlier versions").
 OPTIMIZER = "lbfgs"
 # The NeuralFMU's derivative is searched, not only traced: every derivative the diagnosis cannot rule
-# out (those whose change moves a measured signal, the traced one first) gets a short screening
-# training of SCREEN_BUDGET loss evaluations after its warm start, and the one with the lowest
-# validation score gets the full budget. One evaluation is the least that trains through the solver;
-# at most SEARCH_CHANNELS derivatives keep the search's work within a few times the budget of 10.
-SCREEN_BUDGET = 1
+# out (those whose change moves a measured signal, the traced one first) gets its network's warm
+# start (fitted to the collocation estimate of the missing term, no gradient through the solver:
+# SCREEN_BUDGET loss evaluations), scored on the validation data, and the one with the lowest score
+# is trained with the full budget. At most SEARCH_CHANNELS derivatives: each costs a warm start.
+SCREEN_BUDGET = 0
 SEARCH_CHANNELS = 4
 # Seconds of the test data replayed by the round-trip validation (fmpy Euler and CVode).
 ROUNDTRIP_SPAN = 60.0
@@ -414,7 +414,7 @@ def _build_candidates(ctx: _Context, diagnosis) -> list[Candidate]:
     settings = _training_settings(ctx.roles.train[0].samples(), diagnosis, ctx.budget)
     beside = ctx.jobs > 1 and can_run_beside()
     searched = "" if len(wirings) == 1 else \
-        f" after screening {len(wirings)} derivatives ({SCREEN_BUDGET} loss evaluation each)"
+        f" after screening {len(wirings)} derivatives by their warm starts ({SCREEN_BUDGET} loss evaluations each)"
     ctx.say(f"[2/5] training a NeuralFMU: ANN on {_wiring(channels, inputs, channel_inputs)} "
             f"({ctx.budget} loss evaluations){searched}{', and calibrating, in a second process' if beside else ''} ...")
     with SideProcess("training the NeuralFMU and calibrating", _beside_work,
