@@ -21,6 +21,7 @@ seeds below 1000.
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import os
 import sys
@@ -195,7 +196,6 @@ def run_all(out: Path, seeds: list[int], budget: int, jobs: int) -> tuple[dict, 
 def finished(out: Path, seeds: list[int]) -> tuple[dict, dict]:
     """The scored cases of `seeds` in `out`, scoring those the batch finished since (of a running or
     interrupted bench)."""
-    import csv
     summary = out / "batch" / "summary.csv"
     ran = {r["name"]: r for r in csv.DictReader(summary.open())} if summary.is_file() else {}
     truths, rows = {}, {}

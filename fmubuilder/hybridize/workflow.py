@@ -718,12 +718,17 @@ def _searched_neural_candidate(ctx: _Context, wirings: list[_Wiring], settings: 
     return candidate
 
 
+def _work_folder(ctx: _Context, name: str) -> Path:
+    """Where the candidate `name` keeps its training and export."""
+    return ctx.work / name.replace(" ", "_")
+
+
 def _train_neural(ctx: _Context, channels: list[str], inputs: list[str], aliases: dict[str, str], settings: dict,
                   name: str, base_terms: list[dict] = (), channel_inputs: list[list[str]] = (), budget: int | None = None):
     """A NeuralFMU trained on the first training run, checkpointed on the validation data."""
     from ..neural import train_neural_fmu
     from ..neural.train import Validation
-    folder = ctx.work / name.replace(" ", "_")
+    folder = _work_folder(ctx, name)
     folder.mkdir()
     first = ctx.roles.train[0]
     cap = None if ctx.time_budget is None else max(1.0, ctx.time_budget - (time.perf_counter() - ctx.started))
@@ -756,7 +761,7 @@ def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], ali
     from .terms import spec_from_neural
     first = ctx.roles.train[0]
     trained = _train_neural(ctx, channels, inputs, aliases, settings, name, base_terms, channel_inputs)
-    folder = ctx.work / name.replace(" ", "_")
+    folder = _work_folder(ctx, name)
     try:
         spec = spec_from_neural(trained.model, folder, aliases)
     finally:
