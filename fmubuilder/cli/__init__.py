@@ -7,12 +7,13 @@ inside their command so that `fmubuilder --help` and `fmubuilder inspect` start 
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import sys
 import warnings
 
 from ..errors import FmuBuilderError, first_line
-from .common import guide
+from .common import EXIT_INTERRUPTED, guide
 
 DEFAULT_CALL_TIMEOUT = 60.0
 
@@ -89,18 +90,19 @@ def run(argv: list[str] | None = None) -> int:
     return 2 if args is None else execute(args)
 
 
-def execute(args) -> int:
+def execute(args, say_interrupt: bool = True) -> int:
     """Call the command's function; every failure becomes one `error:` line and an exit code.
-    Warnings (numpy, scipy, torch) are kept back and folded into that line (shown with --debug)."""
+    Warnings (numpy, scipy, torch) are kept back and folded into that line (shown with --debug).
+    Under a supervisor (`main`), an interrupt is left for it to say, with what was written."""
     from .. import progress
     if args.quiet:
         progress.set_enabled(False)
     with warnings.catch_warnings(record=not args.debug) as caught:
         warnings.simplefilter("default")
-        return _call(args, caught if caught is not None else [])
+        return _call(args, caught if caught is not None else [], say_interrupt)
 
 
-def _call(args, caught: list) -> int:
+def _call(args, caught: list, say_interrupt: bool) -> int:
     try:
         plan = getattr(args, "plan", None)
         if plan is not None:  # every output checked before any work
@@ -120,8 +122,9 @@ def _call(args, caught: list) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     except KeyboardInterrupt:
-        print("error: interrupted", file=sys.stderr)
-        return 130
+        if say_interrupt:
+            print("error: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except (OverflowError, FloatingPointError) as exc:  # nearly always data far out of range (1e300)
         if args.debug:
             raise
@@ -152,4 +155,4 @@ def main(argv: list[str] | None = None) -> int:
     if args is None:
         return 2
     from .supervise import run_supervised
-    return run_supervised(args, execute)
+    return run_supervised(args, functools.partial(execute, say_interrupt=False))

@@ -27,7 +27,8 @@ def add_batch_parser(subparsers, common) -> None:
     p.add_argument("--force", action="store_true",
                    help="redo the cases an earlier run completed (their folders are replaced when the new run "
                         "of the case succeeds)")
-    p.set_defaults(func=cmd_batch)
+    # its cases finish one by one and stay, for a re-run to resume: no 'nothing was written'
+    p.set_defaults(func=cmd_batch, keeps_finished_work=True)
 
 
 def cmd_batch(args) -> None:

@@ -6,6 +6,9 @@ import math
 
 from ..errors import FmuBuilderError
 
+EXIT_INTERRUPTED = 130      # as a shell reports a process ended by SIGINT (128 + 2)
+EXIT_TERMINATED = 143       # ... and by SIGTERM (128 + 15)
+
 
 def guide(page: str, section: str | None = None) -> str:
     """The epilog of a command's --help: the documentation page that explains it (paths in the

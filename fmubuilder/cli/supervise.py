@@ -30,6 +30,7 @@ from pathlib import Path
 from ..files import JOURNAL_ENV, remove_created
 from ..fmi import breadcrumb
 from ..fmi.breadcrumb import CALL, HELPER, PID_SLOT, PING_SLOT, REPORT_SLOT, REPORTED
+from .common import EXIT_INTERRUPTED, EXIT_TERMINATED
 
 INTERRUPT_GRACE = 5.0       # seconds the worker gets to stop cleanly after Ctrl-C
 EXIT_HANG = 124             # as timeout(1)
@@ -58,7 +59,7 @@ def run_supervised(args, execute) -> int:
         if pid:
             _send(pid, signal.SIGKILL)
             os.waitpid(pid, 0)
-        code, message, hint = 130, "interrupted", ""
+        code, message, hint = EXIT_INTERRUPTED, "interrupted", ""
     finally:
         _stop_helper()   # a worker that died cannot stop its helper
         if code != 0:
@@ -66,7 +67,7 @@ def run_supervised(args, execute) -> int:
         shutil.rmtree(temp_root, ignore_errors=True)
     if code != 0:
         changed = [str(path) for path, fingerprint in before.items() if _fingerprint(path) != fingerprint]
-        if message:
+        if message and not getattr(args, "keeps_finished_work", False):
             message += "; " + ("written before the failure: " + ", ".join(changed) if changed else "nothing was written")
     if message and hint:
         message += "; " + hint
@@ -88,6 +89,8 @@ def _worker(args, execute, temp_root: Path, journal: Path) -> None:
         signal.signal(signal.SIGINT, _interrupt_once)
         breadcrumb.watch_fmpy()
         code = execute(args)
+    except KeyboardInterrupt:  # before the command started: the supervisor says it
+        code = EXIT_INTERRUPTED
     except SystemExit as exc:
         code = exc.code if isinstance(exc.code, int) else 1
     except BaseException:  # --debug re-raises: show the traceback, then report
@@ -144,7 +147,7 @@ class _Supervisor:
                     return EXIT_HANG, hang, "raise --call-timeout if the model needs longer (0 waits forever)"
                 if self.interrupted_at is not None and time.monotonic() - self.interrupted_at > INTERRUPT_GRACE:
                     self._kill()  # stuck inside the FMU: it cannot see the interrupt
-                    return (143, "terminated", "") if self.terminated else (130, "interrupted", "")
+                    return self._stopped()
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
@@ -187,14 +190,18 @@ class _Supervisor:
         with contextlib.suppress(ChildProcessError):
             os.waitpid(self.pid, 0)
 
+    def _stopped(self) -> tuple[int, str, str]:
+        return (EXIT_TERMINATED, "terminated", "") if self.terminated else (EXIT_INTERRUPTED, "interrupted", "")
+
     def _verdict(self, status: int) -> tuple[int, str, str]:
         reported = CALL[REPORT_SLOT]
-        if self.terminated:     # the worker's own line ("interrupted") when it stopped cleanly
-            return 143, "" if reported >= REPORTED and os.WIFEXITED(status) else "terminated", ""
+        stopped = os.WIFSIGNALED(status) or os.WEXITSTATUS(status) == EXIT_INTERRUPTED
+        if self.interrupted_at is not None and stopped:  # the worker leaves this line to us
+            return self._stopped()
+        if self.terminated:     # it finished or failed (and said so) before it saw the signal
+            return EXIT_TERMINATED, "", ""
         if os.WIFSIGNALED(status):
             sig = os.WTERMSIG(status)
-            if self.interrupted_at is not None:
-                return 130, "interrupted", ""
             return 128 + sig, *breadcrumb.crash_message(f"crashed ({signal.Signals(sig).name})")
         code = os.WEXITSTATUS(status)
         if reported >= REPORTED:
