@@ -302,20 +302,45 @@ def first_order_lag(time: np.ndarray, signal: np.ndarray, tau: float) -> np.ndar
     ``u`` linear between the given points. Repeated time points (before/after an event) are a
     step of the input and leave the output unchanged."""
     signal = np.asarray(signal, dtype=float)
-    if tau <= 0.0:
+    if tau <= 0.0 or signal.size < 2:
         return signal.copy()
     h = np.diff(np.asarray(time, dtype=float))
-    decay = np.exp(-h / tau)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        # Weight of the input change over a step: 1 - tau/h * (1 - exp(-h/tau)); -> 0 for h -> 0.
-        ramp_gain = np.where(h > 1e-12 * tau, 1.0 - tau / h * -np.expm1(-h / tau), 0.0)
-    start_gain = 1.0 - decay
-    out = np.empty_like(signal)
-    y = out[0] = signal[0]
-    u = signal.tolist()
-    for k, (a, b, c) in enumerate(zip(decay.tolist(), start_gain.tolist(), ramp_gain.tolist())):
-        y = a * y + b * u[k] + c * (u[k + 1] - u[k])
-        out[k + 1] = y
+    moving = np.flatnonzero(h > 1e-12 * tau)        # the others are an event's two sides
+    hm, u0, u1 = h[moving], signal[moving], signal[moving + 1]
+    decay = np.exp(-hm / tau)
+    # the exact response over a step to an input linear in it: the start value's share (1 - decay)
+    # and the change's, 1 - tau/h * (1 - decay)
+    forcing = -np.expm1(-hm / tau) * u0 + (1.0 - tau / hm * -np.expm1(-hm / tau)) * (u1 - u0)
+    after = np.concatenate(([signal[0]], linear_recurrence(decay, forcing, signal[0])))
+    steps_before = np.concatenate(([0], np.cumsum(h > 1e-12 * tau)))
+    return after[steps_before]
+
+
+# |log| of the products of decay ratios within one lfilter call: exp(200) is far from overflow
+_RATIO_SPAN = 200.0
+
+
+def linear_recurrence(a: np.ndarray, x: np.ndarray, y0: float) -> np.ndarray:
+    """y_j = a_j y_(j-1) + x_j for j = 0..n-1 from y_(-1) = y0, with a_j > 0, in compiled loops.
+    With a_j = a0 r_j and R_j = r_0 ... r_j, z_j = y_j / R_j follows z_j = a0 z_(j-1) + x_j / R_j,
+    a constant-coefficient filter (scipy's lfilter); R is restarted before it leaves exp(+-200)
+    (grids with cut steps), so every value stays far inside the float range."""
+    from scipy.signal import lfilter
+    a, x = np.asarray(a, dtype=float), np.asarray(x, dtype=float)
+    out = np.empty_like(x)
+    if a.size == 0:
+        return out
+    a0 = float(np.median(a))
+    log_ratio = np.log(a / a0)
+    start, y = 0, float(y0)
+    while start < a.size:
+        span = np.cumsum(log_ratio[start:])
+        beyond = np.flatnonzero(np.abs(span) > _RATIO_SPAN)
+        stop = start + (max(int(beyond[0]), 1) if beyond.size else span.size)
+        products = np.exp(span[:stop - start])
+        z, _ = lfilter([1.0], [1.0, -a0], x[start:stop] / products, zi=[a0 * y])
+        out[start:stop] = z * products
+        start, y = stop, float(out[stop - 1])
     return out
 
 

@@ -14,7 +14,7 @@ import pytest
 from fmpy import simulate_fmu
 
 from fmubuilder.build import example_fmu
-from fmubuilder.data import first_order_lag, sidecar_path, split_uncertainty_columns
+from fmubuilder.data import first_order_lag, linear_recurrence, sidecar_path, split_uncertainty_columns
 from fmubuilder.errors import FmuBuilderError
 from fmubuilder.synth import (
     DEFAULT_NOISE_STD,
@@ -81,6 +81,19 @@ def test_lag_of_a_ramp_is_delayed_by_tau():
     np.testing.assert_allclose(first_order_lag(time, slope * time, tau), expected, atol=1e-12)
     late = time > 30 * tau
     np.testing.assert_allclose(first_order_lag(time, slope * time, tau)[late], slope * (time[late] - tau), atol=1e-9)
+
+
+def test_the_lag_s_recurrence_matches_a_plain_loop_on_a_grid_of_cut_steps():
+    """Steps of very different length (the products of decay ratios leave exp(+-200), so the
+    filter restarts) and repeated points: the recurrence y_j = a_j y_(j-1) + x_j written out."""
+    rng = np.random.default_rng(4)
+    a = np.exp(-rng.choice([0.001, 0.1, 0.1, 0.1, 5.0], size=30000))
+    x = rng.normal(size=a.size)
+    expected, y = np.empty_like(x), 0.7
+    for j in range(a.size):
+        y = a[j] * y + x[j]
+        expected[j] = y
+    np.testing.assert_allclose(linear_recurrence(a, x, 0.7), expected, rtol=1e-11, atol=1e-11)
 
 
 def test_time_stamps_are_strictly_increasing_and_jittered():
