@@ -1,4 +1,6 @@
-"""The training's simulation with its gradient from the compiled core (core/sensitivity.c).
+"""The training's simulations in the compiled core: with the gradient (core/sensitivity.c) where
+it is exact, and without it (`simulate_without_gradient`: starts captured, losses without
+gradient, the warm start's trials) wherever the core runs the model at all.
 
 `simulate_for_loss` is `solve.simulate` for a loss evaluation: where the core's gradient is exact
 it runs each element in C and returns a Trajectory whose records are a torch.autograd.Function of
@@ -57,10 +59,23 @@ def exact_in_core(model: NeuralFMU) -> bool:
             and core.enabled())
 
 
+def runs_in_core(model: NeuralFMU) -> bool:
+    """Whether the core runs this model's simulations without gradient: the network in the loop and
+    the FMU's events as the engine handles them (state events and discrete states included), from
+    element starts the FMU saves; trained FMU parameters and discrete inputs stay with torch."""
+    info = model.info
+    discrete_inputs = any(v.variability == "discrete" or v.api_type != "Real" for v in info.inputs)
+    return (model.topology.ann is not None and not discrete_inputs and not model.config.parameters
+            and can_snapshot(info) and core.enabled())
+
+
 def simulate_for_loss(model: NeuralFMU, duration: float, step_size: float, *, starts, record, solver: str,
                       inputs=None, keep_final_state: bool = False) -> Trajectory:
     """solve.simulate for a loss evaluation: in the core where its gradient is exact, else torch."""
-    usable = (torch.is_grad_enabled() and solver in SOLVERS and model not in _RESETTING and exact_in_core(model)
+    if not torch.is_grad_enabled():
+        return simulate_without_gradient(model, duration, step_size, starts=starts, record=record, solver=solver,
+                                         inputs=inputs, keep_final_state=keep_final_state)
+    usable = (solver in SOLVERS and model not in _RESETTING and exact_in_core(model)
               and all(start.fmu_state is not None for start in starts))
     if usable:
         trajectory = CoreElements(model, duration, step_size, starts, record, solver, inputs).trajectory(
@@ -70,6 +85,65 @@ def simulate_for_loss(model: NeuralFMU, duration: float, step_size: float, *, st
         _RESETTING.add(model)
     return simulate(model, duration, step_size, starts=starts, record=record, solver=solver, inputs=inputs,
                     keep_final_state=keep_final_state)
+
+
+def simulate_without_gradient(model: NeuralFMU, duration: float, step_size: float, *, starts, record,
+                              solver: str, inputs=None, keep_final_state: bool = False, capture=()) -> Trajectory:
+    """solve.simulate without gradient: each element one run in the core where it runs the model
+    (`capture`, for one element: its run split at those grid points, each piece's end saved),
+    else the torch solver. A fresh start is first saved by the torch solver, one step's work."""
+    starts = list(starts)
+    if solver not in SOLVERS or not runs_in_core(model) or (capture and len(starts) != 1):
+        with torch.no_grad():
+            return simulate(model, duration, step_size, starts=starts, record=record, solver=solver, inputs=inputs,
+                            keep_final_state=keep_final_state, capture=capture)
+    with torch.no_grad():
+        starts = [start if start.fmu_state is not None else _saved_fresh(model, start, step_size, solver, inputs)
+                  for start in starts]
+        pieces = _pieces(duration, step_size, capture)
+        runs = []
+        for offset, length in pieces:
+            trajectory = CoreElements(model, length, step_size, starts, record, solver, inputs,
+                                      strict=False).trajectory(keep_final_state or len(pieces) > 1)
+            if trajectory is None:
+                return simulate(model, duration, step_size, starts=starts, record=record, solver=solver,
+                                inputs=inputs, keep_final_state=keep_final_state, capture=capture)
+            runs.append((offset, starts, trajectory))
+            starts = trajectory.final_starts
+    return _joined(runs, step_size, set(capture))
+
+
+def _saved_fresh(model: NeuralFMU, start: ElementStart, step_size: float, solver: str, inputs) -> ElementStart:
+    return simulate(model, step_size, step_size, starts=[start], solver=solver, inputs=inputs,
+                    capture=[0]).captured[0][0]
+
+
+def _pieces(duration: float, step_size: float, capture) -> list[tuple[int, float]]:
+    """(first grid index, duration) of the runs between the captured grid points."""
+    K = max(1, int(math.ceil(duration / step_size - 1e-9)))
+    cuts = sorted({0, *(k for k in capture if 0 < k < K)})
+    ends = [*cuts[1:], K]
+    return [(a, (b - a) * step_size if b < K else duration - a * step_size) for a, b in zip(cuts, ends)]
+
+
+def _joined(runs: list, step_size: float, capture: set) -> Trajectory:
+    """One Trajectory of the pieces of a run split at grid points (see simulate_without_gradient)."""
+    first, last = runs[0][2], runs[-1][2]
+    if len(runs) == 1 and not capture:
+        return first
+    times = np.concatenate([first.times] + [offset * step_size + t.times[1:] for offset, _, t in runs[1:]])
+    times[-1] = runs[-1][0] * step_size + last.times[-1]
+    values = torch.cat([first.values] + [t.values[1:] for _, _, t in runs[1:]])
+    before = torch.cat([t.before for _, _, t in runs]) if first.before is not None else None
+    inner = [(k + offset, b, [(a + offset * step_size, e + offset * step_size, *rows) for a, e, *rows in steps])
+             for offset, _, t in runs for k, b, steps in t.inner]
+    captured = {offset: starts for offset, starts, _ in runs if offset in capture}
+    K = len(times) - 1
+    if K in capture:
+        captured[K] = last.final_starts
+    return Trajectory(times=times, t0=first.t0, names=first.names, values=values, final_states=last.final_states,
+                      final_starts=last.final_starts, captured=captured, before=before, inner=inner,
+                      stats={"core_gradient": True})
 
 
 class CoreElements:

@@ -50,7 +50,7 @@ from ..data import MeasuredData, load_data, sensor_reading
 from ..files import refuse_existing, write_atomically
 from ..progress import Bar
 from ..score import floors_of, validation_score
-from .core_gradient import simulate_for_loss
+from .core_gradient import simulate_for_loss, simulate_without_gradient
 from .io import save_neural_fmu
 from .model import NeuralFMU
 from .sensor import sensor_grid
@@ -464,8 +464,8 @@ class Trainer:
         first = ElementStart(data.start, states=measured_initial_states(model, data))
         recorded = list(dict.fromkeys(model.config.inputs + model.config.channels + list(data.signals)))
         with torch.no_grad(), (model.topology.ann_off() if plain else contextlib.nullcontext()):
-            run = simulate(model, data.stop - data.start, self.step, starts=[first], record=recorded,
-                           solver=self.settings.solver, inputs=self.inputs, capture=grid_index)
+            run = simulate_without_gradient(model, data.stop - data.start, self.step, starts=[first], record=recorded,
+                                            solver=self.settings.solver, inputs=self.inputs, capture=grid_index)
         measured = self._measured_states()
         courses = {s: (data.start + run.times, run.numpy(s)[:, 0]) for s in measured}
         self._captured = [self._with_measured_states(run.captured[k][0], {s: float(run.numpy(s)[k, 0]) for s in measured},
@@ -917,8 +917,9 @@ class Trainer:
 
     def _all_residuals(self) -> dict:
         with torch.no_grad():
-            trajectory = simulate(self.model, self.element_duration, self.step, starts=[e.start for e in self.elements],
-                                  record=self.recorded, solver=self.settings.solver, inputs=self.inputs)
+            trajectory = simulate_without_gradient(self.model, self.element_duration, self.step,
+                                                   starts=[e.start for e in self.elements], record=self.recorded,
+                                                   solver=self.settings.solver, inputs=self.inputs)
             return self._residuals(trajectory, self.elements)
 
     # -- checkpoints --------------------------------------------------------------------------
