@@ -41,7 +41,7 @@ from fmubuilder.examples_zoo import EXAMPLES, cached_data, example_data_sets
 from fmubuilder.fmi import read_model_info
 from fmubuilder.hybridize import hybridize
 from fmubuilder.hybridize.evaluate import Scoring, evaluate, read_data
-from fmubuilder.hybridize import workflow
+from fmubuilder.hybridize import recipe
 from fmubuilder.hybridize.workflow import DEFAULT_BUDGET, VALIDATION_SHARE
 
 DECLARED = {"dc_drive": "dc_drive", "vldm": "vldm"}
@@ -68,19 +68,19 @@ def main() -> None:
     try:
         cases = _cases(args.cases)
         if args.optimizer:
-            workflow.OPTIMIZER = args.optimizer
+            recipe.OPTIMIZER = args.optimizer
         if args.warm_start_target:
-            workflow.WARM_START_TARGET = args.warm_start_target
+            recipe.WARM_START_TARGET = args.warm_start_target
         if args.integral_window is not None:
             if not args.integral_window > 0:
                 raise ValueError(f"--integral-window: give positive seconds, got {args.integral_window}")
-            workflow.INTEGRAL_WINDOW = args.integral_window
+            recipe.INTEGRAL_WINDOW = args.integral_window
         if args.last_layer is not None:
-            workflow.LAST_LAYER_SIMULATIONS_PER_EVALUATION = args.last_layer
+            recipe.LAST_LAYER_SIMULATIONS_PER_EVALUATION = args.last_layer
         if args.elements is not None:
             if args.elements < 1:
                 raise ValueError(f"--elements: give 1 or more, got {args.elements}")
-            workflow.MIN_ELEMENTS = args.elements
+            recipe.MIN_ELEMENTS = args.elements
     except ValueError as exc:
         sys.exit(f"error: {exc}")
     folder = Path(tempfile.mkdtemp(prefix="bench_effects_"))
@@ -97,10 +97,10 @@ def main() -> None:
         seconds = time.perf_counter() - started
         rows += _rows(f"{example} {variant}", truth, report, read_sidecar(test), seconds)
         print(f"done: {example} {variant} ({seconds:.0f} s), {scoring.describe()}", flush=True)
-    optimizer = workflow.OPTIMIZER
+    optimizer = recipe.OPTIMIZER
     print(f"\nTest MSE / noise variance of the measured value (1 = noise floor), {args.budget} loss evaluations "
-          f"({optimizer}, at least {workflow.MIN_ELEMENTS} elements, warm start target {workflow.WARM_START_TARGET}"
-          + (f" over {workflow.INTEGRAL_WINDOW:g} s" if workflow.WARM_START_TARGET == "integral" else "") + "):\n")
+          f"({optimizer}, at least {recipe.MIN_ELEMENTS} elements, warm start target {recipe.WARM_START_TARGET}"
+          + (f" over {recipe.INTEGRAL_WINDOW:g} s" if recipe.WARM_START_TARGET == "integral" else "") + "):\n")
     print("| case | signal | truth FMU | plain FMU | calibrated | fitted term | NeuralFMU | ANN on the term | chosen "
           "| NeuralFMU channels and inputs | seconds |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")

@@ -11,7 +11,7 @@ itself never looks at. Also printed: the loss, its terms per signal (each signal
 divisor, see --loss), the CPU time of the training.
 
 Variants of the training, to compare on equal work: `--elements N` (the training part in N
-elements, hybridize: workflow.MIN_ELEMENTS), `--loss` (`noise`, hybridize's for a run of one
+elements, hybridize: recipe.MIN_ELEMENTS), `--loss` (`noise`, hybridize's for a run of one
 element: the mean over the signals of MSE / noise variance, TrainSettings.loss_scale, the loss and
 its terms printed in noise variances; `relative`: of MSE / the plain FMU's MSE, hybridize's before
 and for runs of several elements; `log`: of log(MSE / the plain FMU's MSE), Trainer.batch_loss
@@ -34,7 +34,7 @@ from fmubuilder.build import example_fmu
 from fmubuilder.data import read_sidecar
 from fmubuilder.examples_zoo import cached_data, example_data_sets
 from fmubuilder.fmi import read_model_info
-from fmubuilder.hybridize import workflow
+from fmubuilder.hybridize import recipe
 from fmubuilder.hybridize.evaluate import read_data
 from fmubuilder.neural import train_neural_fmu
 from fmubuilder.neural.train import Trainer, TrainSettings, Validation
@@ -47,8 +47,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", default="stribeck,coulomb")
     parser.add_argument("--budget", type=int, default=5, help="loss evaluations")
-    parser.add_argument("--elements", type=int, default=workflow.MIN_ELEMENTS)
-    parser.add_argument("--loss", choices=["noise", "relative", "log"], default=workflow.LOSS_SCALE)
+    parser.add_argument("--elements", type=int, default=recipe.MIN_ELEMENTS)
+    parser.add_argument("--loss", choices=["noise", "relative", "log"], default=recipe.LOSS_SCALE)
     parser.add_argument("--validation", action="store_true", help="end at the best validation score")
     args = parser.parse_args()
     if args.loss == "log":
@@ -76,11 +76,11 @@ def run_case(variant: str, args) -> list[list[str]]:
     declared = example_fmu("dc_drive")
     info = read_model_info(declared)
     run, test = read_data(by_role["train"], info), read_data(by_role["test"], info)
-    split = workflow._split_time(run)
-    train = run.window(run.start, split)
+    fit_window, held_out = recipe.held_out_windows(run)
+    train = run.window(*fit_window)
     bench = read_sidecar(by_role["test"])["bench"]
     floor = {s: bench["noise_std"][s] ** 2 / bench["runs"] for s in run.signals}
-    validation = Validation(run, (workflow._next_sample(run, split), run.stop), run.start_values) \
+    validation = Validation(run, held_out, run.start_values) \
         if args.validation else None
     rows = []
 
@@ -105,7 +105,7 @@ def run_case(variant: str, args) -> list[list[str]]:
                               solver="rk4", step_size=STEP, progress=False, on_epoch=on_epoch,
                               validation=validation, loss_signals=LOSS_SIGNALS, warm_start=True,
                               element_length=(train.stop - train.start) / args.elements,
-                              ccpt_window=workflow.COLLOCATION_WINDOW, optimizer="lbfgs",
+                              ccpt_window=recipe.COLLOCATION_WINDOW, optimizer="lbfgs",
                               loss_scale="noise" if args.loss == "noise" else "plain")
     cpu = time.process_time() - cpu
     print(f"{variant}: warm start {result.metrics['warm_start']}; validation {result.metrics['validation']}; "

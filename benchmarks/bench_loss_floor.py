@@ -39,7 +39,7 @@ from fmubuilder.build import example_fmu
 from fmubuilder.data import load_data, read_sidecar, sensor_reading
 from fmubuilder.examples_zoo import cached_data, vldm_data_sets
 from fmubuilder.fmi import read_model_info
-from fmubuilder.hybridize import workflow
+from fmubuilder.hybridize import recipe, workflow
 from fmubuilder.neural import NeuralFMU, TopologyConfig
 from fmubuilder.neural.collocation import forced_channel_run, samples_along
 from fmubuilder.neural.train import data_errors, simulate_over
@@ -120,8 +120,8 @@ def _estimates(declared, truth, info, train, start_values: dict) -> None:
     signals = train.input_signals(info)
     estimates = {}      # the warm start's two: along the forced run and along the plain run
     for force in (True, False):
-        run = forced_channel_run(model, train, STEP, "rk4", workflow.COLLOCATION_WINDOW, signals, lag, force)
-        times, values, fmu, measured, mask = samples_along(run, model, train, workflow.COLLOCATION_WINDOW, lag)
+        run = forced_channel_run(model, train, STEP, "rk4", recipe.COLLOCATION_WINDOW, signals, lag, force)
+        times, values, fmu, measured, mask = samples_along(run, model, train, recipe.COLLOCATION_WINDOW, lag)
         estimates[force] = (times, values, (measured - fmu)[:, 0], mask[:, 0])
     model.close()
     times, forced_values, forced, keep = estimates[True]
@@ -160,9 +160,9 @@ def _leaf_fits(declared, info, runs: dict, split: float, lag: float, input_sets:
         torch.manual_seed(0)
         model = NeuralFMU(declared, TopologyConfig(channels=[CHANNEL], inputs=inputs, kind="residual", hidden=[16, 16]),
                           start_values=start_values)
-        run = forced_channel_run(model, train, STEP, "rk4", workflow.COLLOCATION_WINDOW, train.input_signals(info),
+        run = forced_channel_run(model, train, STEP, "rk4", recipe.COLLOCATION_WINDOW, train.input_signals(info),
                                  lag, force=False)
-        _, values, fmu, measured, mask = samples_along(run, model, train, workflow.COLLOCATION_WINDOW, lag)
+        _, values, fmu, measured, mask = samples_along(run, model, train, recipe.COLLOCATION_WINDOW, lag)
         keep = mask[:, 0]
         x, target = torch.from_numpy(values[keep]), torch.from_numpy((measured - fmu)[keep][:, :1])
         model.topology.initialise_scaling(x.numpy(), target.numpy())

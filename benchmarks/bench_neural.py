@@ -32,7 +32,7 @@ fitted to the true effect.
 
 (cost) What the training's loss evaluation (all elements side by side, forward and backward, as
     `hybridize` trains: RK4 at h = 0.01 s, the residual ANN on der(speed) reading speed, elements as
-    `hybridize` cuts them: at most 100 s, at least workflow.MIN_ELEMENTS; the DC drive's 48 s are one
+    `hybridize` cuts them: at most 100 s, at least recipe.MIN_ELEMENTS; the DC drive's 48 s are one
     element since MIN_ELEMENTS is 1, 7 of 6 s in the cost table of docs/MEASUREMENTS.md, measured before) and a scoring simulation (the plain FMU by the engine,
     RK4 at h = 0.01 s, recorded every step and around events, as `hybridize` scores every model)
     cost on the DC drive (Stribeck data, the 48 s training part) and the VLDM (extra resistance, the
@@ -149,14 +149,14 @@ def extra_resistance_data():
 
 
 def training(evaluations: int, optimizer: str, loss_scale: str, last_layer: int) -> None:
-    from fmubuilder.hybridize import workflow
+    from fmubuilder.hybridize import recipe
     from fmubuilder.neural.train import train_neural_fmu
 
     fmu, (train_csv, test_csv), generated, (whole, train, test), (train_start, test_start), lag = extra_resistance_data()
     span = train.stop - train.start
-    settings = dict(element_length=min(workflow.MAX_ELEMENT_LENGTH, span / workflow.MIN_ELEMENTS),
-                    loss_signals=list(train.names), warm_start=workflow.WARM_START,
-                    ccpt_window=workflow.COLLOCATION_WINDOW, optimizer=optimizer, solver="rk4", step_size=STEP,
+    settings = dict(element_length=min(recipe.MAX_ELEMENT_LENGTH, span / recipe.MIN_ELEMENTS),
+                    loss_signals=list(train.names), warm_start=recipe.WARM_START,
+                    ccpt_window=recipe.COLLOCATION_WINDOW, optimizer=optimizer, solver="rk4", step_size=STEP,
                     loss_scale=loss_scale, last_layer_simulations=last_layer)
     print(f"(b) training on {train_csv.name} [{train.start:g}, {train.stop:g}] s, testing on {test_csv.name} "
           f"({generated} data set(s) generated first): ANN on {', '.join(TARGETS)} reading {', '.join(INPUTS)}, "
@@ -425,7 +425,7 @@ def cost(repeats: int, vldm_span: float) -> None:
     from fmubuilder.data import read_sidecar
     from fmubuilder.examples_zoo import cached_data, example_data_sets
     from fmubuilder.fmi import read_model_info
-    from fmubuilder.hybridize import workflow
+    from fmubuilder.hybridize import recipe, workflow
     from fmubuilder.hybridize.evaluate import Scoring, evaluate, read_data
     from fmubuilder.neural.train import Trainer, TrainSettings
 
@@ -450,8 +450,8 @@ def cost(repeats: int, vldm_span: float) -> None:
             fmpy.simulate_fmu(str(fmu), start_time=data.start, stop_time=data.stop, solver="Euler", step_size=STEP,
                               output_interval=STEP, start_values=start_values, output=list(data.names))
 
-        element_length = min(workflow.MAX_ELEMENT_LENGTH, (whole.stop - whole.start) * (1.0 - workflow.VALIDATION_SHARE)
-                             / workflow.MIN_ELEMENTS)
+        element_length = min(recipe.MAX_ELEMENT_LENGTH, (whole.stop - whole.start) * (1.0 - workflow.VALIDATION_SHARE)
+                             / recipe.MIN_ELEMENTS)
         settings = TrainSettings(element_length=element_length, solver="rk4", step_size=STEP, optimizer="lbfgs",
                                  progress=False, sensor_lag=data.sensor_lag)
         torch.manual_seed(0)
@@ -475,13 +475,13 @@ def cost(repeats: int, vldm_span: float) -> None:
 
 
 def main() -> None:
-    from fmubuilder.hybridize import workflow
+    from fmubuilder.hybridize import recipe
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--part", choices=["a", "b", "floor", "forms", "cost", "all"], default="all")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--evaluations", type=int, default=10, help="the training's budget of loss evaluations")
     parser.add_argument("--optimizer", choices=["lbfgs", "adam"], default="lbfgs")
-    parser.add_argument("--loss-scale", choices=["plain", "noise"], default=workflow.LOSS_SCALE,
+    parser.add_argument("--loss-scale", choices=["plain", "noise"], default=recipe.LOSS_SCALE,
                         help="each signal's MSE in the loss divided by the plain FMU's or by its noise variance "
                              "(default: hybridize's)")
     parser.add_argument("--last-layer", type=int, default=0,

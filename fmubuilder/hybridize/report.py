@@ -284,7 +284,19 @@ def _diagnosis_section(report: dict) -> list[str]:
             lines.append(f"\nThe NeuralFMU trained with {training['loss_evaluations']} of {training['budget']} loss "
                          f"evaluations ({training['optimizer']}, {training['steps']} steps, seed {training['seed']}) "
                          f"on {_code(training['trained_on'])}.{cut}")
+        lines += _repeat_training(training)
     return lines
+
+
+def _repeat_training(training: dict) -> list[str]:
+    """How to train the same network with `fmubuilder train` (its settings: report.json, "training")."""
+    if training.get("command"):
+        return ["", "The same training on its own (its settings: report.json, \"training\"):", "",
+                *_code_block(training["command"])]
+    if training.get("command_not_given"):
+        return [f"\n`fmubuilder train --recipe hybridize` cannot repeat this training: "
+                f"{_text(training['command_not_given'])} (its settings: report.json, \"training\")."]
+    return []
 
 
 def _candidates_section(report: dict) -> list[str]:

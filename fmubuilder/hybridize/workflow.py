@@ -24,16 +24,11 @@ from ..fmi.side_process import SideProcess, can_run_beside, cores
 from ..progress import counted
 from ..progress import set_enabled as set_progress_enabled
 from .evaluate import Scoring, evaluate, read_data, relative_mse, signal_errors
+from .recipe import VALIDATION_SHARE, held_out_windows
 
-# Share of each training run (its end) held out of the fit for validation, when no separate
-# validation run is given.
-VALIDATION_SHARE = 0.2
 # The NeuralFMU training's work: loss evaluations, each a simulation of all training elements with
 # its gradient (an Adam step costs one, an L-BFGS step its line search's, see neural.train.Trainer.fit).
 DEFAULT_BUDGET = 10
-# The optimizer through the solver: "adam" or "lbfgs" (on the DC drive's truths L-BFGS wins on three
-# of five effects: docs/MEASUREMENTS.md, "The DC drive effects table against earlier versions").
-OPTIMIZER = "lbfgs"
 # The NeuralFMU's derivative is searched, not only traced: every derivative the diagnosis cannot rule
 # out (those whose change moves a measured signal, the traced one first) gets its network's warm
 # start (fitted to the collocation estimate of the missing term, no gradient through the solver:
@@ -46,57 +41,8 @@ ROUNDTRIP_SPAN = 60.0
 # ANN inputs when they cannot be chosen on held-out data (hybridize.inputs, which decides how many
 # when it can): the leading traced variable.
 MAX_ANN_INPUTS = 1
-# NeuralFMU training: the data cut into elements of at most MAX_ELEMENT_LENGTH seconds (at least
-# MIN_ELEMENTS of them), all simulated side by side in one batch: one optimizer step per epoch, which
-# lets the training rewind an epoch that made the loss worse (see neural.train.Trainer._keep_best).
-# A shorter run is one element: the loss must see a slow signal's drift (a temperature that
-# integrates a bias of the current over its 25 s time constant), which elements started from the
-# measured states every few seconds hide. On the DC drive's frictions, 5 loss evaluations, the
-# NeuralFMU's worst test signal / noise with 8 elements of 6 s and with one of 48 s: Stribeck
-# 318 / 39.8, Coulomb 306 / 130 (benchmarks/bench_friction_training.py; a loss evaluation costs
-# 4.8 times the CPU time). The VLDM's 881 s keep their elements of 100 s.
-MAX_ELEMENT_LENGTH = 100.0
-MIN_ELEMENTS = 1
-# Each signal's term of the training loss: its MSE over its noise variance ("noise") or over the
-# plain FMU's MSE ("plain"). Over the plain FMU's MSE a signal the plain model nearly fits (the DC
-# drive's power, 50 times its noise) weighs at its floor more than an integrator hundreds of times
-# off (the temperature), and the steps traded the temperature for the current's and the power's
-# noise: on the frictions, 16 loss evaluations, the worst test signal / noise plain -> noise:
-# Stribeck 27.6 -> 11.6, Coulomb 791 -> 45 (bench_friction_training.py). The same on the VLDM's
-# elements, where the energy's share of the plain-scaled loss was 4e-4: its test energy MSE factor
-# x8,980 -> x74,900 (bench_neural.py --part b --loss-scale).
-LOSS_SCALE = "noise"
-# Warm start of the NeuralFMU before its training through the solver: the ANN fitted to the collocation estimate of the
-# effect, kept if it lowers the training loss (neural/warm_start.py). benchmarks/bench_training.py:
-# it halves the held-out error of 8 epochs on the DC drive.
-WARM_START = True
-# Seconds of data per local line of the warm start's collocation (neural/collocation.py): on the DC
-# drive's training data (10 Hz), 0.5 s windows, those across steps left out, estimate the Coulomb
-# friction with an rms error of 7 % of its size; 1 s windows, all kept (before), 130 %.
-COLLOCATION_WINDOW = 0.5
-# The warm start's target (neural/warm_start.py): "pointwise", the local lines' slopes, or
-# "integral", the state's increments over windows of INTEGRAL_WINDOW seconds (pointwise / integral
-# on the DC drive's effects: docs/MEASUREMENTS.md, "Warm starts, optimizers and an ANN on the fitted term").
-WARM_START_TARGET = "pointwise"
-INTEGRAL_WINDOW = 0.5
-# After the training through the solver of a run trained as one element: Levenberg-Marquardt on the
-# ANN's last layer (neural/last_layer.py), this many engine simulations without gradient per loss
-# evaluation of the budget (on the DC drive a loss evaluation costs about 18 of them: 8.1 s against
-# 0.45 s). On the Coulomb friction, budget 5, 100 simulations took the training loss from 16.0 to
-# 10.3 (docs/MEASUREMENTS.md, "The last layer refined through the simulation").
-LAST_LAYER_SIMULATIONS_PER_EVALUATION = 20
-# Not on runs of several elements: on the demo, 40 simulations of the whole 881 s after each ANN
-# candidate's training lowered the validation scores (neural 61.1 -> 43.2, the ANN on the term 68.2
-# -> 30.5, which it then shipped); the test scores moved both ways (4.08 -> 5.62, 6.06 -> 5.01), the
-# shipped hybrid's test energy from 62 to 107 times its noise, and the 80 simulations took about 20
-# minutes (docs/MEASUREMENTS.md, "The last layer refined through the simulation"; bench_neural.py
-# --last-layer).
-# No training through the solver where the warm start leaves every training signal at its noise
-# floor (choice.floor_factor; neural.train.TrainSettings.floor_factor): on every DC drive effect and
-# on the demo the training's steps after such a warm start ended where it left the ANN (no step
-# scored better on the validation data); on the demo they took about 230 s of the second process's 1424
-# (docs/MEASUREMENTS.md, "No training through the solver at the noise floor"). True: train anyway.
-TRAIN_AT_FLOOR = False
+# The NeuralFMU's training recipe (optimizer, elements, loss scale, warm start, last layer, the
+# noise floor rule): recipe.py, which `fmubuilder train --recipe hybridize` reads too.
 # Seconds of the training data on which outputs equal to the corrected derivative are detected.
 ALIAS_SPAN = 60.0
 
@@ -270,9 +216,8 @@ def _assign_roles(info, train_csv, train_start, validation_csv, validation_start
         return Roles(train, [_whole_run(info, validation_csv, validation_start)], test, held_out_of_training=False)
     validation = []
     for part in train:
-        split = _split_time(part.data)
-        validation.append(Part(part.data, part.start_values, (_next_sample(part.data, split), part.data.stop)))
-        part.window = (part.data.start, split)
+        part.window, held_out = held_out_windows(part.data)
+        validation.append(Part(part.data, part.start_values, held_out))
     return Roles(train, validation, test, held_out_of_training=True)
 
 
@@ -291,20 +236,6 @@ def _estimate_noise(roles: Roles, diagnosis) -> str:
         part.data.noise_estimate.update({name: v for name, v in estimates.items() if name not in part.data.std})
     uncertainty = {e.signal: (2.0 / max(e.noise_dof, 1.0)) ** 0.5 for e in diagnosis.errors}
     return ", ".join(f"{name} σ = {v ** 0.5:.3g} (variance ±{uncertainty[name]:.0%})" for name, v in estimates.items())
-
-
-def _split_time(data: MeasuredData) -> float:
-    """The last sample before the held-out late share of a run."""
-    split = data.start + (1.0 - VALIDATION_SHARE) * (data.stop - data.start)
-    index = int(np.searchsorted(data.time, split, side="right")) - 1
-    if index < 1 or index > data.time.size - 3:
-        raise FmuBuilderError(f"{data.source} has too few samples to hold {VALIDATION_SHARE:.0%} of it out for "
-                              "validation; give a separate run with --validation")
-    return float(data.time[index])
-
-
-def _next_sample(data: MeasuredData, t: float) -> float:
-    return float(data.time[int(np.searchsorted(data.time, t, side="right"))])
 
 
 # -- scoring ------------------------------------------------------------------------------------
@@ -695,7 +626,7 @@ def _calibrated_candidate(ctx: _Context, fit, ranked, folder: Path) -> Candidate
                       fit.details(ranked, ctx.roles.train[0].label))
 
 
-def _searched_neural_candidate(ctx: _Context, wirings: list[_Wiring], settings: dict) -> Candidate:
+def _searched_neural_candidate(ctx: _Context, wirings: list[_Wiring], settings) -> Candidate:
     """The NeuralFMU on the derivative the validation data choose: each wiring screened with
     SCREEN_BUDGET loss evaluations (its warm start included), the best validation score trained with
     the full budget. One wiring: trained at once."""
@@ -723,7 +654,7 @@ def _work_folder(ctx: _Context, name: str) -> Path:
     return ctx.work / name.replace(" ", "_")
 
 
-def _train_neural(ctx: _Context, channels: list[str], inputs: list[str], aliases: dict[str, str], settings: dict,
+def _train_neural(ctx: _Context, channels: list[str], inputs: list[str], aliases: dict[str, str], settings,
                   name: str, base_terms: list[dict] = (), channel_inputs: list[list[str]] = (), budget: int | None = None):
     """A NeuralFMU trained on the first training run, checkpointed on the validation data."""
     from ..neural import train_neural_fmu
@@ -742,17 +673,17 @@ def _train_neural(ctx: _Context, channels: list[str], inputs: list[str], aliases
     held_out = ctx.roles.validation[0]
     validation = Validation(held_out.data, held_out.window, held_out.start_values)
     if budget != ctx.budget:      # a screening: its warm start and first steps, no last-layer refinement
-        settings = {**settings, "last_layer_simulations": 0}
+        settings = replace(settings, budget=budget, last_layer_simulations=0)
+    settings = replace(settings, seed=ctx.seed, time_budget=cap, solver=ctx.scoring.solver,
+                       step_size=ctx.scoring.step, progress=ctx.progress, aliases=dict(aliases))
     return train_neural_fmu(ctx.model_fmu, first.samples(), targets=channels, inputs=inputs,
-                            start_values=first.start_values, topology="residual", budget=budget,
+                            start_values=first.start_values, topology="residual",
                             base_terms=base_terms, channel_inputs=channel_inputs, validation=validation,
-                            seed=ctx.seed, time_budget=cap, solver=ctx.scoring.solver,
-                            step_size=ctx.scoring.step, output=folder / "trained.neuralfmu",
-                            progress=ctx.progress, aliases=dict(aliases), **settings)
+                            settings=settings, output=folder / "trained.neuralfmu")
 
 
 def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], aliases: dict[str, str],
-                      settings: dict, name: str = "neural", base_terms: list[dict] = (),
+                      settings, name: str = "neural", base_terms: list[dict] = (),
                       channel_inputs: list[list[str]] = ()) -> Candidate:
     """A trained NeuralFMU exported as a hybrid; with base_terms its ANN adds to that fitted term.
     channel_inputs: per channel the inputs its correction reads (empty: all)."""
@@ -769,17 +700,18 @@ def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], ali
     fmu = export_hybrid(spec, folder / "hybrid.fmu")
     metrics = trained.metrics
     if not base_terms:         # the report's training summary is the plain NeuralFMU's
-        optimizer = {"adam": "Adam", "lbfgs": "L-BFGS"}[settings["optimizer"]]
+        optimizer = {"adam": "Adam", "lbfgs": "L-BFGS"}[settings.optimizer]
         ctx.training = {"budget": ctx.budget, "loss_evaluations": metrics.get("loss_evaluations"),
                         "steps": metrics.get("epochs"), "optimizer": optimizer, "seed": ctx.seed,
                         "time_budget": ctx.time_budget,
                         "cut_short_by_time_budget": bool(metrics.get("cut_short_by_time_budget")),
-                        "at_noise_floor": metrics.get("at_noise_floor"), "trained_on": first.label}
+                        "at_noise_floor": metrics.get("at_noise_floor"), "trained_on": first.label,
+                        **_reproduction(ctx, channels, inputs, aliases, channel_inputs, metrics["settings"])}
     details = {"channel": ", ".join(channels), "channels": channels, "inputs": inputs,
                "channel_inputs": dict(zip(channels, channel_inputs)), "aliases": aliases,
                "steps": metrics.get("epochs"), "loss_evaluations": metrics.get("loss_evaluations"),
                "training_seconds": metrics.get("seconds"),
-               "loss_signals": settings["loss_signals"], "trained_on": first.label,
+               "loss_signals": settings.loss_signals, "trained_on": first.label,
                "input_choice": ctx.input_choice if not base_terms else None,
                "warm_start": metrics.get("warm_start"), "last_layer": metrics.get("last_layer"),
                "at_noise_floor": metrics.get("at_noise_floor"), "validation_checkpoint": metrics.get("validation")}
@@ -789,21 +721,56 @@ def _neural_candidate(ctx: _Context, channels: list[str], inputs: list[str], ali
     return _candidate(ctx, name, description, fmu, folder, details)
 
 
-def _training_settings(data: MeasuredData, diagnosis, budget: int) -> dict:
-    """Element length and loss signals of the NeuralFMU training: the loss is on the signals in
-    which the diagnosis found the effect (all of them if it found it in none alone). The others sit
-    at the noise level and their fit to noise pulls the ANN away from the effect."""
-    from .choice import floor_factor
-    span = float(data.time[-1] - data.time[0])
+def _training_settings(data: MeasuredData, diagnosis, budget: int):
+    """The NeuralFMU training's settings (recipe.py) on `data`: the loss is on the signals in which
+    the diagnosis found the effect (all of them if it found it in none alone). The others sit at the
+    noise level and their fit to noise pulls the ANN away from the effect."""
+    from .recipe import recipe_settings
     showing = [e.signal for e in diagnosis.errors if e.significant]
-    element_length = min(MAX_ELEMENT_LENGTH, span / MIN_ELEMENTS)
-    one_element = element_length >= span
-    return {"element_length": element_length, "loss_signals": showing or None,
-            "loss_scale": LOSS_SCALE,
-            "warm_start": WARM_START, "ccpt_window": COLLOCATION_WINDOW, "warm_start_target": WARM_START_TARGET,
-            "integral_window": INTEGRAL_WINDOW, "optimizer": OPTIMIZER,
-            "last_layer_simulations": LAST_LAYER_SIMULATIONS_PER_EVALUATION * budget if one_element else 0,
-            "floor_factor": floor_factor([data.time]) if LOSS_SCALE == "noise" and not TRAIN_AT_FLOOR else None}
+    return recipe_settings(data.time, showing or None, budget)
+
+
+# The settings a user passes to `fmubuilder train` to repeat a training (the rest: the run's, or the
+# command line's own, such as progress bars).
+RUN_SETTINGS = ("epochs", "checkpoint", "resume", "progress", "threads", "time_budget")
+
+
+def _reproduction(ctx: _Context, channels: list[str], inputs: list[str], aliases: dict[str, str],
+                  channel_inputs: list[list[str]], settings: dict) -> dict:
+    """The NeuralFMU's training settings and the `fmubuilder train` command that trains the same
+    network, or None with why not."""
+    first = ctx.roles.train[0]
+    why_not = _not_repeatable(ctx, first, inputs, channel_inputs)
+    recipe = {name: value for name, value in settings.items() if name not in RUN_SETTINGS}
+    return {"settings": recipe, "command": None if why_not else _train_command(ctx, first, channels, inputs, aliases,
+                                                                                  settings),
+            "command_not_given": why_not}
+
+
+def _not_repeatable(ctx: _Context, first: Part, inputs: list[str], channel_inputs: list[list[str]]) -> str | None:
+    if not ctx.roles.held_out_of_training:
+        return "the validation was a separate run, and the recipe holds out the late share of the training run"
+    if first.data.noise_estimate:
+        return "the noise of signals without a spread column was estimated by the diagnosis"
+    if any(list(names) != list(inputs) for names in channel_inputs):
+        return "the derivatives read different inputs"
+    return None
+
+
+def _train_command(ctx: _Context, first: Part, channels: list[str], inputs: list[str], aliases: dict[str, str],
+                   settings: dict) -> str:
+    """`fmubuilder train --recipe hybridize` with this run's data, wiring, budget and seed."""
+    import shlex
+    words = ["fmubuilder", "train", str(ctx.model_fmu), "--data", str(first.data.path), "--recipe", "hybridize",
+             *(w for c in channels for w in ("--target", c)), "--inputs", ",".join(inputs),
+             "--budget", str(ctx.budget), "--seed", str(ctx.seed)]
+    if settings["loss_signals"]:
+        words += ["--loss", ",".join(settings["loss_signals"])]
+    words += [w for output, channel in aliases.items() for w in ("--alias", f"{output}={channel}")]
+    sidecar = first.data.start_values
+    words += [w for name, value in first.start_values.items() if sidecar.get(name) != value
+              for w in ("--start", f"{name}={value!r}" if isinstance(value, float) else f"{name}={value}")]
+    return " ".join(shlex.quote(w) for w in [*words, "-o", "trained.neuralfmu"])
 
 
 def _roundtrip(chosen: Candidate, test: Part) -> dict:

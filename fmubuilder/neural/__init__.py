@@ -11,7 +11,7 @@ from .._lazy import lazy_exports
 _EXPORTS = {
     "NeuralFMU": "model", "TopologyConfig": "topology", "Topology": "topology",
     "simulate": "solve", "ElementStart": "solve", "Trajectory": "solve",
-    "train_neural_fmu": "train", "TrainSettings": "train", "TrainingResult": "train", "evaluate": "train",
+    "train_neural_fmu": "train", "TrainSettings": "settings", "TrainingResult": "train", "evaluate": "train",
     "save_neural_fmu": "io", "load_neural_fmu": "io", "read_neural_fmu": "io",
     "NeuralFmuSystem": "system", "simulate_hybrid": "system",
 }

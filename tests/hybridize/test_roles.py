@@ -19,7 +19,7 @@ from fmubuilder import synth
 from fmubuilder.build import example_fmu
 from fmubuilder.fmi import read_model_info
 from fmubuilder.fmi.side_process import can_run_beside
-from fmubuilder.hybridize import hybridize, workflow
+from fmubuilder.hybridize import hybridize, recipe
 from fmubuilder.cli.hybridize import add_hybridize_parser
 from fmubuilder.hybridize.workflow import VALIDATION_SHARE, Scores, _assign_roles, _select
 
@@ -144,7 +144,7 @@ def busy_cores():
 def trains_at_floor(monkeypatch):
     """The training through the solver runs even where the warm start leaves the noise floor (these
     data: every signal there), so that its work is what the busy machine must not change."""
-    monkeypatch.setattr(workflow, "TRAIN_AT_FLOOR", True)
+    monkeypatch.setattr(recipe, "TRAIN_AT_FLOOR", True)
 
 
 @pytest.fixture
@@ -164,6 +164,11 @@ def test_the_same_command_gives_the_same_numbers_on_a_busy_machine(files, tmp_pa
     assert all(np.isfinite(m["test_relative_mse"]) for m in busy["models"])   # chosen or not
     markdown = (tmp_path / "busy" / "report" / "report.md").read_text()
     assert "touched once" in markdown and "validation score (chooses)" in markdown
+    # the NeuralFMU's settings and the command that trains it again on its own
+    training = busy["training"]
+    assert training["settings"]["optimizer"] == "lbfgs" and training["settings"]["budget"] == 2
+    assert "--recipe hybridize" in training["command"] and "--budget 2 --seed 0" in training["command"]
+    assert training["command"] in markdown
 
 
 @pytest.mark.skipif(not can_run_beside(), reason="no second process on this platform")

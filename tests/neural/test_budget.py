@@ -1,17 +1,18 @@
 """The training's work counted in loss evaluations (TrainSettings.budget): every optimizer spends
 exactly the budget, counted here by wrapping the loss itself, and L-BFGS set up as hybridize sets
 it up lowers the training loss from where the warm start left it."""
+from dataclasses import replace
 from types import SimpleNamespace
 
 import pytest
 import torch
 
 from fmubuilder.errors import FmuBuilderError
-from fmubuilder.hybridize import workflow
+from fmubuilder.hybridize import recipe, workflow
 from fmubuilder.neural.model import NeuralFMU
 from fmubuilder.neural.topology import TopologyConfig
 from fmubuilder.neural import warm_start
-from fmubuilder.neural.train import Trainer, TrainSettings, train_neural_fmu
+from fmubuilder.neural.train import Trainer, train_neural_fmu
 
 from .conftest import plant_data
 
@@ -69,16 +70,16 @@ def test_lbfgs_as_hybridize_sets_it_up_lowers_the_training_loss(plant_fmu, plant
     """The workflow's training settings (collocation warm start's fits, L-BFGS after its Adam steps),
     RK4 as hybridize trains: the loss over all elements, simulated again without gradient on the
     same element starts, is lower after 6 loss evaluations than after the warm start."""
-    monkeypatch.setattr(workflow, "OPTIMIZER", "lbfgs")
+    monkeypatch.setattr(recipe, "OPTIMIZER", "lbfgs")
     # the warm start's fits alone: its last layer through the simulation would leave the training
     # little to do on this plant (the loss it reaches is within 2 % of the trained one)
     monkeypatch.setattr(warm_start, "_through_simulation", lambda trainer, loss, trials=None: None)
     diagnosis = SimpleNamespace(errors=[SimpleNamespace(signal="w", significant=True)])
     settings = workflow._training_settings(plant_train, diagnosis, budget=6)
-    assert settings["optimizer"] == "lbfgs" and settings["warm_start"]
+    assert settings.optimizer == "lbfgs" and settings.warm_start
     # the training alone: no refinement of the last layer after it
-    settings = TrainSettings(**{**settings, "element_length": 1.0, "last_layer_simulations": 0}, budget=6, solver="rk4", step_size=0.002,
-                             progress=False, sensor_lag=0.0)
+    settings = replace(settings, element_length=1.0, last_layer_simulations=0, budget=6, solver="rk4", step_size=0.002,
+                       progress=False, sensor_lag=0.0)
     config = TopologyConfig(channels=["der(w)"], inputs=["w"], hidden=[8], kind="residual")
     torch.manual_seed(0)
     with NeuralFMU(plant_fmu, config) as model:
