@@ -1,9 +1,10 @@
 """Runs of the declared model, plain or with an added term in one state derivative.
 
 An :class:`AddedTerm` is ``coefficient * basis(w - center)`` added to ``der(x_c)``, where
-``w`` is a state, an FMU variable or the time. :class:`TermSystem` wraps the engine's
-:class:`~fmubuilder.simulation.FmuSystem` and adds the terms inside the closed loop, so a
-controller in the model reacts to them as it would to the real effect.
+``w`` is a state, an FMU variable or the time. :class:`TermSystem`, the engine's
+:class:`~fmubuilder.simulation.FmuSystem` with the terms added inside the closed loop (in the
+compiled core where the terms allow: :class:`CompiledTermSystem`), makes a controller in the model
+react to them as it would to the real effect.
 
 :class:`ModelRunner` simulates over the data window and returns what the sensors would
 have logged: the measured signals filtered by the bench's sensor lag and sampled at the
@@ -20,6 +21,7 @@ import numpy as np
 
 from ..errors import FmuBuilderError
 from ..fmi.instance import Fmu
+from ..simulation.core import BASES as CORE_BASES, SOURCE_STATE, SOURCE_VARIABLE, Correction, WorkLimitReached
 from ..simulation.engine import output_grid, run
 from ..simulation.inputs import input_signals_from
 from ..simulation.results import sample_settled
@@ -83,34 +85,28 @@ class TrialTooSlow(FmuBuilderError):
     model stiff or chattering); the caller abandons or shrinks the term."""
 
 
-class TermSystem:
-    """A HybridSystem: an FmuSystem whose derivatives get the added terms; everything else
-    is the FmuSystem's."""
+class TermSystem(FmuSystem):
+    """An FmuSystem whose derivatives get the added terms, in the Python loop (CompiledTermSystem:
+    in the core). `max_calls` derivative evaluations end a run with TrialTooSlow (the core counts
+    its solver's), `deadline` (a perf_counter() time) in the Python loop only."""
 
-    def __init__(self, base: FmuSystem, terms: Sequence[AddedTerm], deadline: float = math.inf,
-                 max_calls: float = math.inf):
-        self.base = base
+    def __init__(self, fmu: Fmu, terms: Sequence[AddedTerm], start_time: float, deadline: float = math.inf,
+                 max_calls: float = math.inf, **system):
+        super().__init__(fmu, **system)
         self.terms = list(terms)
-        self._start_time = 0.0
+        self._start_time = start_time   # a time term's origin
+        self.work_limit = int(max_calls) if math.isfinite(max_calls) else 0
         self._deadline = deadline     # perf_counter() time after which the run is abandoned (a cap only)
         self._max_calls = max_calls   # derivative evaluations after which the run is abandoned
         self._calls = 0
-        info = base.info
+        info = self.info
         state_index = {v.name: i for i, v in enumerate(info.states)}
         self._readers = []
         for term in self.terms:
             if term.variable == TIME or term.variable in state_index:
                 self._readers.append(state_index.get(term.variable))
             else:
-                getter = base.instance.real_getter([info.variable(term.variable).value_reference])
-                self._readers.append(getter)
-
-    def __getattr__(self, name):  # n_states, outputs, breakpoints, handle_event, ...
-        return getattr(self.base, name)
-
-    def initialize(self, start_time: float, stop_time: float):
-        self._start_time = start_time
-        return self.base.initialize(start_time, stop_time)
+                self._readers.append(self.instance.real_getter([info.variable(term.variable).value_reference]))
 
     def derivatives(self, t: float, x: np.ndarray) -> np.ndarray:
         self._calls += 1
@@ -118,7 +114,7 @@ class TermSystem:
             raise TrialTooSlow(f"a run with the added term {self.terms[0].expression()} exceeded its work limit")
         if self._calls % 256 == 0 and wallclock.perf_counter() > self._deadline:
             raise TrialTooSlow(f"a run with the added term {self.terms[0].expression()} exceeded the time budget")
-        dx = self.base.derivatives(t, x)          # the FMU is now at (t, x)
+        dx = super().derivatives(t, x)          # the FMU is now at (t, x)
         for term, reader in zip(self.terms, self._readers):
             if term.variable == TIME:
                 w = t - self._start_time
@@ -128,6 +124,33 @@ class TermSystem:
                 w = reader()[0]
             dx[term.channel] += term.coefficient * BASES[term.basis](w - term.center)
         return dx
+
+
+class CompiledTermSystem(TermSystem):
+    """A TermSystem whose terms the compiled core adds, as the base term of its correction: terms
+    on one derivative, none in the time but a constant (`compiles`)."""
+
+    @staticmethod
+    def compiles(terms: Sequence[AddedTerm]) -> bool:
+        return (len({term.channel for term in terms}) == 1
+                and all(term.variable != TIME or term.basis == "1" for term in terms))
+
+    def compiled_correction(self) -> Correction:
+        info = self.info
+        state_index = {v.name: i for i, v in enumerate(info.states)}
+        inputs, variables, terms, bias = [], [], [], 0.0
+        for term in self.terms:
+            if term.basis == "1":
+                bias += term.coefficient
+                continue
+            if term.variable in state_index:
+                inputs.append((SOURCE_STATE, state_index[term.variable]))
+            else:
+                inputs.append((SOURCE_VARIABLE, len(variables)))
+                variables.append(info.variable(term.variable).value_reference)
+            terms.append((CORE_BASES.index(term.basis), len(inputs) - 1, term.center, term.coefficient))
+        return Correction(inputs=inputs, variable_vrs=variables, layers=[], channels=[self.terms[0].channel],
+                          gate_fmu=np.ones(1), terms=sorted(terms, key=lambda t: t[0]), term_bias=bias, term_gate=1.0)
 
 
 @dataclass
@@ -181,17 +204,20 @@ class ModelRunner:
         recorded = self.recorded if trajectories else self.measured
         if terms and self.output_aliases:   # the terms' variables, to add them to aliased outputs
             recorded = list(dict.fromkeys([*recorded, *(t.variable for t in terms if t.variable != TIME)]))
-        base = FmuSystem(self.fmu, variables=recorded, start_values=self.start_values, inputs=self.inputs,
-                         tolerance=self.rtol)
-        system = TermSystem(base, terms, started + time_limit, max_calls) if terms else base
+        settings = dict(variables=recorded, start_values=self.start_values, inputs=self.inputs, tolerance=self.rtol)
+        with_terms = CompiledTermSystem if CompiledTermSystem.compiles(terms) else TermSystem
+        system = (with_terms(self.fmu, terms, self.start, started + time_limit, max_calls, **settings) if terms
+                  else FmuSystem(self.fmu, **settings))
         solver = make_solver("dopri5", rtol=self.rtol, atol=1e-9, max_step=(self.stop - self.start) / 50)
         try:
             # A trial term can drive the model far off (overflow, NaN); the trial's score says so.
             with np.errstate(all="ignore"):
                 result = run(system, solver, start_time=self.start, stop_time=self.stop, output_times=self.grid,
                              record_events=self.sensor_lag > 0)
+        except WorkLimitReached:
+            raise TrialTooSlow(f"a run with the added term {terms[0].expression()} exceeded its work limit") from None
         finally:
-            base.close()
+            system.close()
         predicted, sampled = {}, {}
         for name in recorded:
             values = np.asarray(result[name], dtype=float)

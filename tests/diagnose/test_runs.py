@@ -94,3 +94,37 @@ def test_forms_are_written_around_the_start_value():
     assert form_text("temperature", "w", 293.15) == "(temperature - 293.15)"
     assert form_text("x", "w^2", -2.0) == "(x + 2)^2"
     assert AddedTerm(0, "current", "w^2", 0.0, 0.03).expression() == "0.03 * current^2"
+
+
+def test_terms_run_in_the_compiled_core_as_in_the_python_loop(monkeypatch):
+    """A state's form, an FMU variable's form and a constant on one derivative: the core's base
+    term against the Python loop (FMUBUILDER_ENGINE=python), which adds the terms itself."""
+    times = np.linspace(0.0, STOP, 241)
+    terms = [AddedTerm(1, "speed", "w*|w|", 0.0, -WINDAGE), AddedTerm(1, "current", "w^2", 1.0, 0.02),
+             AddedTerm(1, "speed", "1", 0.0, -0.5)]
+    runner = _runner(example_fmu("dc_drive"), times)
+    try:
+        core_run = runner.simulate(terms)
+        monkeypatch.setenv("FMUBUILDER_ENGINE", "python")
+        python_run = runner.simulate(terms)
+    finally:
+        runner.close()
+    assert core_run.derivative_calls == python_run.derivative_calls
+    for name in SIGNALS:
+        np.testing.assert_allclose(core_run.predicted[name], python_run.predicted[name], rtol=1e-9,
+                                   atol=1e-9 * np.max(np.abs(python_run.predicted[name])))
+
+
+@pytest.mark.parametrize("engine", ["core", "python"])
+def test_a_trial_beyond_its_work_limit_is_abandoned(monkeypatch, engine):
+    from fmubuilder.diagnose.runs import TrialTooSlow
+    if engine == "python":
+        monkeypatch.setenv("FMUBUILDER_ENGINE", "python")
+    times = np.linspace(0.0, STOP, 241)
+    runner = _runner(example_fmu("dc_drive"), times)
+    try:
+        calls = runner.simulate([AddedTerm(1, "speed", "w", 0.0, -0.1)]).derivative_calls
+        with pytest.raises(TrialTooSlow, match="work limit"):
+            runner.simulate([AddedTerm(1, "speed", "w", 0.0, -0.1)], max_calls=calls // 2)
+    finally:
+        runner.close()

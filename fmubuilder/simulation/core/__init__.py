@@ -55,7 +55,8 @@ TYPES = {"Real": 0, "Integer": 1, "Boolean": 2}
 SOURCE_STATE, SOURCE_DERIVATIVE, SOURCE_VARIABLE = 0, 1, 2
 ACTIVATIONS = {None: 0, "tanh": 1, "sigmoid": 2, "relu": 3}
 EVENT_KINDS = ("time", "state", "step")
-CORE_FMI_ERROR, CORE_EVENT_STORM, CORE_CHATTERING, CORE_NO_MEMORY, CORE_STEP_UNDERFLOW = 1, 2, 3, 4, 5
+CORE_FMI_ERROR, CORE_EVENT_STORM, CORE_CHATTERING, CORE_NO_MEMORY, CORE_STEP_UNDERFLOW, CORE_WORK_LIMIT = 1, 2, 3, 4, 5, 6
+BASES = ("w", "|w|", "w*|w|", "w^2")      # a base term's forms, in the order of BASIS_*
 
 
 def enabled() -> bool:
@@ -90,6 +91,10 @@ def applies(system, solver) -> bool:
 def _owner(cls, name: str) -> type:
     """The class in cls's method resolution order that defines `name`."""
     return next(klass for klass in cls.__mro__ if name in vars(klass))
+
+
+class WorkLimitReached(FmuBuilderError):
+    """A run stopped at its system's `work_limit` (derivative evaluations)."""
 
 
 @dataclass
@@ -206,6 +211,7 @@ def _plan(ffi, system, solver, start, stop, output_times, x0, next_event, record
     plan.x0, plan.next_event = array(x0), next_event
     plan.needs_completed_step = not info.capabilities.completed_integrator_step_not_needed
     plan.record_events = bool(record_events)
+    plan.max_rhs_evaluations = int(getattr(system, "work_limit", 0) or 0)
     plan.n_outputs, plan.output_times = len(output_times), array(output_times)
 
     correction = system.compiled_correction()
@@ -339,6 +345,9 @@ def _raise(code: int, result, system) -> None:
             "or Zeno behaviour); reduce the step size or fix the model")
     if code == CORE_STEP_UNDERFLOW:
         raise step_size_underflow(t, float(result.error_step))
+    if code == CORE_WORK_LIMIT:
+        raise WorkLimitReached(f"the run needed more than {system.work_limit} derivative evaluations "
+                               f"(stopped at t={t:.6g})")
     raise MemoryError("the compiled simulation core ran out of memory")
 
 

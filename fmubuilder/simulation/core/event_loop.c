@@ -278,6 +278,12 @@ static int dopri5_step(Loop *loop, double t_limit, double *t_reached);
 /* FixedStepSolver.step with Euler._advance or RK4._advance / rk4_step; DOPRI5.step. */
 static int solver_step(Loop *loop, double t_limit, double *t_reached)
 {
+    int64_t limit = loop->plan->max_rhs_evaluations;
+    if (limit > 0 && loop->res->rhs_evaluations > limit) {
+        loop->res->error = CORE_WORK_LIMIT;
+        loop->res->error_time = loop->st;
+        return 1;
+    }
     if (loop->plan->solver == CORE_DOPRI5) {
         return dopri5_step(loop, t_limit, t_reached);
     }

@@ -156,10 +156,11 @@ typedef struct {
     size_t n_input_events;
     const double *input_event_times;
     const CoreCorrection *correction;   /* NULL: the FMU's own derivatives */
+    int64_t max_rhs_evaluations;        /* the run's work: stop with CORE_WORK_LIMIT beyond it (0: none) */
 } CorePlan;
 
 enum { CORE_OK = 0, CORE_FMI_ERROR = 1, CORE_EVENT_STORM = 2, CORE_CHATTERING = 3, CORE_NO_MEMORY = 4,
-       CORE_STEP_UNDERFLOW = 5 };
+       CORE_STEP_UNDERFLOW = 5, CORE_WORK_LIMIT = 6 };
 enum { EVENT_TIME = 0, EVENT_STATE = 1, EVENT_STEP = 2 };
 
 /* What a run gives back; the arrays are the core's (free them with core_free_result). */
