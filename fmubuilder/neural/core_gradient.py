@@ -288,6 +288,22 @@ class _ElementSystem:
         return self._correction
 
 
+def _event_rows(times: np.ndarray, events: np.ndarray) -> np.ndarray | None:
+    """The row before each event: rows at one time (an event's exact time) start with its events'
+    pairs (before, after), one after the other; a grid record there follows them. None if the
+    rows do not hold every event's pair."""
+    starts = np.flatnonzero(np.r_[True, times[1:] != times[:-1]])     # runs of equal times
+    lengths = np.diff(np.r_[starts, times.size])
+    event_times, counts = np.unique(events, return_counts=True)
+    at = np.clip(np.searchsorted(event_times, times[starts]), 0, max(len(event_times) - 1, 0))
+    pairs = np.where(event_times[at] == times[starts], counts[at], 0) if events.size else np.zeros_like(starts)
+    if pairs.sum() != events.size or np.any(2 * pairs > lengths):
+        return None
+    first = np.repeat(starts, pairs)
+    nth = np.arange(events.size) - np.repeat(np.cumsum(pairs) - pairs, pairs)
+    return first + 2 * nth
+
+
 @dataclass
 class _Layout:
     """Where one run's records are among the rows the core recorded: each event gives a row before
@@ -300,31 +316,31 @@ class _Layout:
 
 def _layout(run, t0: float, grid: np.ndarray) -> _Layout | None:
     """The run's _Layout, as the torch solver's Trajectory records it; None if rows are missing."""
-    times, events = run.times, [t for t, _ in run.events]
-    grid_rows, pairs = [], []        # pairs: (event time, row before, row after)
-    i = e = 0
-    while i < len(times):
-        if e < len(events) and times[i] == events[e]:
-            pairs.append((events[e], i, i + 1))
-            i, e = i + 2, e + 1
-        else:
-            grid_rows.append(i)
-            i += 1
+    times, events = np.asarray(run.times, dtype=float), np.array([t for t, _ in run.events], dtype=float)
+    before = _event_rows(times, events)
+    if before is None:
+        return None
+    is_grid = np.ones(times.size, dtype=bool)
+    is_grid[before] = is_grid[before + 1] = False
+    grid_rows = np.flatnonzero(is_grid)
     if len(grid_rows) != len(grid):
         return None
     grid_times = t0 + grid
     tolerance = 1e-9 * max(1.0, float(np.max(np.abs(grid_times))))
-    ends, on_grid, cuts = list(grid_rows[1:]), set(), {}
-    for t, before, after in pairs:
-        k = int(np.argmin(np.abs(grid_times - t)))
-        if abs(grid_times[k] - t) <= tolerance:
-            if k > 0 and k not in on_grid:        # the first event there: the value before them all
-                ends[k - 1] = before
-            on_grid.add(k)
-        else:
-            cuts.setdefault(int(np.searchsorted(grid_times, t)) - 1, []).append((t, before, after))
+    nearest = np.clip(np.searchsorted(grid_times, events), 1, len(grid_times) - 1)
+    nearest -= (events - grid_times[nearest - 1]) < (grid_times[nearest] - events)
+    on_grid = np.abs(grid_times[nearest] - events) <= tolerance
+    ends = grid_rows[1:].copy()
+    # the first event at a grid point: the value before them all ends the interval before it
+    points, first = np.unique(nearest[on_grid], return_index=True)
+    inside = points > 0
+    ends[points[inside] - 1] = before[on_grid][first[inside]]
+    cuts = {}
+    for t, row in zip(events[~on_grid].tolist(), before[~on_grid].tolist()):
+        cuts.setdefault(int(np.searchsorted(grid_times, t)) - 1, []).append((t, row, row + 1))
+    ends = ends.tolist()
     inner = {k: _steps(k, cut, grid_times, grid_rows, ends, t0) for k, cut in cuts.items()}
-    return _Layout(np.array(grid_rows), np.array(ends, dtype=int), inner)
+    return _Layout(grid_rows, np.array(ends, dtype=int), inner)
 
 
 def _steps(k: int, cut: list, grid_times: np.ndarray, grid_rows: list, ends: list, t0: float) -> list:
