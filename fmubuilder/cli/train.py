@@ -21,6 +21,10 @@ class _Given(argparse.Action):
     change the recipe's settings and the others leave them."""
 
     def __call__(self, parser, namespace, value, option_string=None):
+        # argparse's mutually exclusive groups miss an option given at its default value
+        exclusive = {"epochs": "--budget", "budget": "--epochs"}.get(self.dest)
+        if exclusive is not None and exclusive.lstrip("-") in namespace.given:
+            parser.error(f"argument {option_string}: not allowed with argument {exclusive}")
         setattr(namespace, self.dest, value)
         namespace.given = {*namespace.given, self.dest}
 

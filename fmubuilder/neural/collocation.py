@@ -18,6 +18,7 @@ import torch
 
 from ..data import MeasuredData
 from ..simulation.results import equal_along
+from .core_gradient import simulate_without_gradient
 from .model import NeuralFMU
 from .solve import ElementStart, simulate
 
@@ -268,6 +269,9 @@ def _run(model: NeuralFMU, data: MeasuredData, step: float, solver: str, forced:
     first = ElementStart(data.start, states=dict(zip(forced, start)) if forced else None)
     forcing = ([state_names.index(s) for s in forced], values) if forced else None
     with torch.no_grad(), model.topology.ann_off():
+        if forcing is None:     # the plain run: in the compiled core where it runs the model
+            return simulate_without_gradient(model, data.stop - data.start, step, starts=[first], record=record,
+                                             solver=solver, inputs=inputs)
         return simulate(model, data.stop - data.start, step, starts=[first], record=record, solver=solver,
                         inputs=inputs, forcing=forcing)
 

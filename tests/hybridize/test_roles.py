@@ -106,7 +106,7 @@ def test_the_training_budget_is_a_count_of_loss_evaluations_on_the_command_line(
 def test_train_takes_epochs_or_a_budget_not_both(capsys):
     from fmubuilder.cli import build_parser
     train = ["train", "m.fmu", "--data", "d.csv", "--target", "der(v)", "--inputs", "v", "-o", "t.pt"]
-    assert build_parser().parse_args([*train, "--budget", "4"]).epochs is None
+    assert build_parser().parse_args([*train, "--budget", "4"]).budget == 4   # the budget counts, not the epochs
     for work in (["--epochs", "30", "--budget", "4"], ["--budget", "-1"]):
         with pytest.raises(SystemExit) as stopped:
             build_parser().parse_args([*train, *work])
