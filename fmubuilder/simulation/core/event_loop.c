@@ -249,8 +249,8 @@ static int dopri5_restart(Loop *loop, double t, const double *x, int keep_step);
  * too (DOPRI5's proposed step is 0 then). */
 static int solver_restart(Loop *loop, double t, const double *x, int keep_step)
 {
-    if (loop->sens != NULL) {
-        sens_restart(loop, t);
+    if (loop->hooks != NULL) {
+        loop->hooks->restart(loop, t);
     }
     loop->st = loop->st_prev = t;
     memcpy(loop->sx, x, loop->n * sizeof(double));
@@ -325,8 +325,8 @@ static int solver_step(Loop *loop, double t_limit, double *t_reached)
             x_new[i] = x[i] + sixth * (k1[i] + 2.0 * (loop->k2[i] + loop->k3[i]) + loop->k4[i]);
         }
     }
-    if (loop->sens != NULL) {
-        TRY(sens_step(loop, t, h, x));
+    if (loop->hooks != NULL) {
+        TRY(loop->hooks->step(loop, t, h, x));
     }
     memcpy(loop->sx_prev, x, n * sizeof(double));
     memcpy(loop->sx, x_new, n * sizeof(double));
@@ -681,8 +681,8 @@ static int record(Loop *loop, const double *times, size_t count, double t, const
     TRY(grow(loop, &r->row_capacity, r->n_rows + count, (void **)&r->times, sizeof(double), (void **)&r->rows,
              (p->n_columns ? p->n_columns : 1) * sizeof(double)));
     for (size_t k = 0; k < count; ++k) {
-        if (loop->sens != NULL) {
-            TRY(sens_record(loop, t, x, r->n_rows));
+        if (loop->hooks != NULL) {
+            TRY(loop->hooks->record(loop, t, x, r->n_rows));
         }
         r->times[r->n_rows] = times[k];
         memcpy(r->rows + r->n_rows * p->n_columns, loop->row, p->n_columns * sizeof(double));
@@ -952,8 +952,8 @@ static int event(Loop *loop, int kind)
     }
     core_event_info info;
     TRY(event_iteration(loop, &info));
-    if (loop->sens != NULL) {
-        sens_after_event(loop, info.valuesOfContinuousStatesChanged);
+    if (loop->hooks != NULL) {
+        loop->hooks->after_event(loop, info.valuesOfContinuousStatesChanged);
     }
     if (!info.terminateSimulation) {
         FMI(loop, CALL_ENTER_CONTINUOUS_TIME_MODE, f->enter_continuous_time_mode(f->component));
@@ -1077,7 +1077,7 @@ int core_run(const CoreFmu *fmu, const CorePlan *plan, CoreResult *result)
     return loop_run(fmu, plan, result, NULL);
 }
 
-int loop_run(const CoreFmu *fmu, const CorePlan *plan, CoreResult *result, Sensitivity *sens)
+int loop_run(const CoreFmu *fmu, const CorePlan *plan, CoreResult *result, const SensitivityHooks *hooks)
 {
     Loop loop;
     memset(&loop, 0, sizeof(loop));
@@ -1139,8 +1139,9 @@ int loop_run(const CoreFmu *fmu, const CorePlan *plan, CoreResult *result, Sensi
     loop.network_b = take(&pool, width);
     loop.variables = take(&pool, n_variables);
     loop.raw_channel = take(&pool, c ? c->n_channels : 0);
-    loop.sens = sens;
-    loop.layer_outputs = sens != NULL ? sens_layer_outputs(sens) : NULL;
+    loop.hooks = hooks;
+    loop.sens = hooks != NULL ? hooks->sens : NULL;
+    loop.layer_outputs = hooks != NULL ? hooks->layer_outputs : NULL;
     for (size_t j = 0; j < plan->n_columns; ++j) {
         loop.derivative_columns |= plan->column_kind[j] == COLUMN_DERIVATIVE;
     }

@@ -7,6 +7,18 @@
 typedef struct Loop Loop;
 typedef struct Sensitivity Sensitivity;
 
+/* What a run with forward sensitivities (sensitivity.c) adds to the loop, called where the loop
+ * steps, restarts its solver, records a row and leaves an event. The loop knows it only through
+ * this table: sensitivity.c depends on the loop, not the other way round. */
+typedef struct {
+    Sensitivity *sens;
+    double *layer_outputs;          /* where correct() keeps z and each layer's output */
+    int (*step)(Loop *loop, double t, double h, const double *x);
+    void (*restart)(Loop *loop, double t);
+    int (*record)(Loop *loop, double t, const double *x, size_t row);
+    void (*after_event)(Loop *loop, int values_changed);
+} SensitivityHooks;
+
 struct Loop {
     const CoreFmu *fmu;
     const CorePlan *plan;
@@ -41,7 +53,8 @@ struct Loop {
     double held_t, *held_x;
     int held;
     double *raw_channel;            /* the FMU's derivative of each corrected state, as correct() found it */
-    Sensitivity *sens;              /* forward sensitivities (sensitivity.c), or NULL */
+    const SensitivityHooks *hooks;  /* forward sensitivities (sensitivity.c), or NULL */
+    Sensitivity *sens;              /* their state: hooks->sens */
     double *layer_outputs;          /* where correct() keeps z and each layer's output, or NULL */
 };
 
@@ -53,14 +66,7 @@ int loop_fmu_values(Loop *loop, double t, const double *x, double *der, double *
 /* event_loop.c: the recorded computed variables at (t, x), into loop->computed. */
 int loop_computed(Loop *loop, double t, const double *x);
 double loop_activated(int activation, double value);
-/* The loop with forward sensitivities (sens, or NULL: core_run). */
-int loop_run(const CoreFmu *fmu, const CorePlan *plan, CoreResult *result, Sensitivity *sens);
-
-/* sensitivity.c: the hooks the loop calls when loop->sens is set. */
-int sens_step(Loop *loop, double t, double h, const double *x);
-void sens_restart(Loop *loop, double t);
-int sens_record(Loop *loop, double t, const double *x, size_t row);
-void sens_after_event(Loop *loop, int values_changed);
-double *sens_layer_outputs(Sensitivity *sens);
+/* The loop, with forward sensitivities (hooks) or without (NULL: core_run). */
+int loop_run(const CoreFmu *fmu, const CorePlan *plan, CoreResult *result, const SensitivityHooks *hooks);
 
 #endif

@@ -240,7 +240,7 @@ static void axpy_all(size_t count, const double *S, double a, const double *K, d
     }
 }
 
-int sens_step(Loop *loop, double t, double h, const double *x)
+static int sens_step(Loop *loop, double t, double h, const double *x)
 {
     Sensitivity *s = loop->sens;
     if (s->weights == NULL) {
@@ -297,7 +297,7 @@ static const double *sensitivity_at(Sensitivity *s, double t, double *out)
     return out;
 }
 
-void sens_restart(Loop *loop, double t)
+static void sens_restart(Loop *loop, double t)
 {
     Sensitivity *s = loop->sens;
     if (s->weights == NULL) {
@@ -313,12 +313,7 @@ void sens_restart(Loop *loop, double t)
     s->st = s->st_prev = t;
 }
 
-double *sens_layer_outputs(Sensitivity *sens)
-{
-    return sens->weights != NULL ? sens->activations : NULL;
-}
-
-void sens_after_event(Loop *loop, int values_changed)
+static void sens_after_event(Loop *loop, int values_changed)
 {
     loop->sens->lin_valid = 0;      /* the event may have changed the discrete states */
     loop->sens->resets += values_changed != 0;
@@ -352,7 +347,7 @@ static int computed_rows(Loop *loop, Sensitivity *s, double t, const double *x, 
     return 0;
 }
 
-int sens_record(Loop *loop, double t, const double *x, size_t row)
+static int sens_record(Loop *loop, double t, const double *x, size_t row)
 {
     Sensitivity *s = loop->sens;
     const CorePlan *p = loop->plan;
@@ -480,7 +475,9 @@ int core_gradient_run(const CoreFmu *fmu, const CorePlan *plan, const double *we
         s.st = s.st_prev = plan->start;
         memset(gradient, 0, P * sizeof(double));
     }
-    int code = loop_run(fmu, plan, result, &s);
+    SensitivityHooks hooks = {&s, s.weights != NULL ? s.activations : NULL, sens_step, sens_restart, sens_record,
+                              sens_after_event};
+    int code = loop_run(fmu, plan, result, &hooks);
     *resets = s.resets;
     free(memory);
     return code;
