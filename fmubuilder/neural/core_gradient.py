@@ -101,15 +101,15 @@ def simulate_without_gradient(model: NeuralFMU, duration: float, step_size: floa
         starts = [start if start.fmu_state is not None else _saved_fresh(model, start, step_size, solver, inputs)
                   for start in starts]
         pieces = _pieces(duration, step_size, capture)
-        runs = []
+        runs, piece_starts = [], starts
         for offset, length in pieces:
-            trajectory = CoreElements(model, length, step_size, starts, record, solver, inputs,
+            trajectory = CoreElements(model, length, step_size, piece_starts, record, solver, inputs,
                                       strict=False).trajectory(keep_final_state or len(pieces) > 1)
-            if trajectory is None:
+            if trajectory is None:      # rows the core did not record (a run the model ended early)
                 return simulate(model, duration, step_size, starts=starts, record=record, solver=solver,
                                 inputs=inputs, keep_final_state=keep_final_state, capture=capture)
-            runs.append((offset, starts, trajectory))
-            starts = trajectory.final_starts
+            runs.append((offset, piece_starts, trajectory))
+            piece_starts = trajectory.final_starts
     return _joined(runs, step_size, set(capture))
 
 
