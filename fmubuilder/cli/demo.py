@@ -15,7 +15,7 @@ def add_demo_parser(subparsers, common) -> None:
                     "the truth FMUs and measured data sets) into the output folder, then run `fmubuilder "
                     "hybridize` on the extra-resistance data: diagnose the missing effect, fit a term and train "
                     "a NeuralFMU, choose on the held-out validation part, score the test cycle once, export, "
-                    "validate the round trip and write the report. Progress shows on stderr; about 13 minutes "
+                    "validate the round trip and write the report. Progress shows on stderr; about 10 minutes "
                     "on two cores, longer on the first run (the example FMUs are built and their data "
                     "simulated once, then cached).")
     p.add_argument("--output", "-o", default="fmubuilder-demo", help="output folder (default: ./fmubuilder-demo)")
