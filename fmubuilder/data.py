@@ -305,14 +305,16 @@ def first_order_lag(time: np.ndarray, signal: np.ndarray, tau: float) -> np.ndar
     if tau <= 0.0 or signal.size < 2:
         return signal.copy()
     h = np.diff(np.asarray(time, dtype=float))
-    moving = np.flatnonzero(h > 1e-12 * tau)        # the others are an event's two sides
+    moves = h > 1e-12 * tau                          # the others are an event's two sides
+    moving = np.flatnonzero(moves)
     hm, u0, u1 = h[moving], signal[moving], signal[moving + 1]
     decay = np.exp(-hm / tau)
     # the exact response over a step to an input linear in it: the start value's share (1 - decay)
     # and the change's, 1 - tau/h * (1 - decay)
-    forcing = -np.expm1(-hm / tau) * u0 + (1.0 - tau / hm * -np.expm1(-hm / tau)) * (u1 - u0)
+    share = -np.expm1(-hm / tau)
+    forcing = share * u0 + (1.0 - tau / hm * share) * (u1 - u0)
     after = np.concatenate(([signal[0]], linear_recurrence(decay, forcing, signal[0])))
-    steps_before = np.concatenate(([0], np.cumsum(h > 1e-12 * tau)))
+    steps_before = np.concatenate(([0], np.cumsum(moves)))
     return after[steps_before]
 
 

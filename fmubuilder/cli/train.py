@@ -18,13 +18,16 @@ RECIPES = ("hybridize",)
 
 class _Given(argparse.Action):
     """Stores a training option and notes that it was given: with --recipe, the options given
-    change the recipe's settings and the others leave them."""
+    change the recipe's settings and the others leave them. `excludes`: the option that may not
+    be given with it (argparse's exclusive groups miss an option given at its default value)."""
+
+    def __init__(self, *args, excludes: str | None = None, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.excludes = excludes
 
     def __call__(self, parser, namespace, value, option_string=None):
-        # argparse's mutually exclusive groups miss an option given at its default value
-        exclusive = {"epochs": "--budget", "budget": "--epochs"}.get(self.dest)
-        if exclusive is not None and exclusive.lstrip("-") in namespace.given:
-            parser.error(f"argument {option_string}: not allowed with argument {exclusive}")
+        if self.excludes is not None and self.excludes.lstrip("-").replace("-", "_") in namespace.given:
+            parser.error(f"argument {option_string}: not allowed with argument {self.excludes}")
         setattr(namespace, self.dest, value)
         namespace.given = {*namespace.given, self.dest}
 
@@ -77,13 +80,10 @@ def _add_training_options(p: argparse.ArgumentParser) -> None:
     def option(*flags, dest, **kwargs):
         p.add_argument(*flags, dest=dest, action=_Given, default=getattr(DEFAULT, dest), **kwargs)
 
-    work = p.add_mutually_exclusive_group()
-    work.add_argument("--epochs", dest="epochs", action=_Given, default=DEFAULT.epochs, type=whole_number(0),
-                      help=f"default {DEFAULT.epochs}")
-    work.add_argument("--budget", dest="budget", action=_Given, default=DEFAULT.budget, type=loss_evaluations,
-                      metavar="N", help="train for N loss evaluations (each a simulation of a batch with its "
-                                        "gradient) instead of epochs (with --recipe hybridize: default "
-                                        f"{DEFAULT_BUDGET}, hybridize's)")
+    option("--epochs", dest="epochs", excludes="--budget", type=whole_number(0), help=f"default {DEFAULT.epochs}")
+    option("--budget", dest="budget", excludes="--epochs", type=loss_evaluations, metavar="N",
+           help="train for N loss evaluations (each a simulation of a batch with its gradient) instead of "
+                f"epochs (with --recipe hybridize: default {DEFAULT_BUDGET}, hybridize's)")
     option("--optimizer", dest="optimizer", choices=["adam", "lbfgs"],
            help="adam: one step per batch; lbfgs: one step over all elements per epoch, its line search "
                 f"up to 10 loss evaluations (default {DEFAULT.optimizer})")

@@ -100,7 +100,7 @@ class TermSystem(FmuSystem):
         self._max_calls = max_calls   # derivative evaluations after which the run is abandoned
         self._calls = 0
         info = self.info
-        state_index = {v.name: i for i, v in enumerate(info.states)}
+        self._state_index = state_index = {v.name: i for i, v in enumerate(info.states)}
         self._readers = []
         for term in self.terms:
             if term.variable == TIME or term.variable in state_index:
@@ -136,8 +136,7 @@ class CompiledTermSystem(TermSystem):
                 and all(term.variable != TIME or term.basis == "1" for term in terms))
 
     def compiled_correction(self) -> Correction:
-        info = self.info
-        state_index = {v.name: i for i, v in enumerate(info.states)}
+        info, state_index = self.info, self._state_index
         inputs, variables, terms, bias = [], [], [], 0.0
         for term in self.terms:
             if term.basis == "1":

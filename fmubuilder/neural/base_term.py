@@ -13,9 +13,9 @@ import torch
 from torch import nn
 
 from ..errors import FmuBuilderError
+from ..simulation.core import BASES   # the compiled core's forms, in its order (terms_by_basis)
 
 DTYPE = torch.float64
-BASES = ("w", "|w|", "w*|w|", "w^2")
 
 
 def term_inputs(terms: list[dict]) -> list[str]:

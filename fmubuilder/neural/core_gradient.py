@@ -50,13 +50,10 @@ _RESETTING: "weakref.WeakSet[NeuralFMU]" = weakref.WeakSet()
 def exact_in_core(model: NeuralFMU) -> bool:
     """Whether the core's gradient is the exact gradient of this model's runs, from its
     modelDescription and topology (see the module docstring)."""
-    info, topology = model.info, model.topology
+    info = model.info
     internal_discrete = any(v.variability == "discrete" and v.causality in ("local", "output")
                             for v in info.variables.values())
-    discrete_inputs = any(v.variability == "discrete" or v.api_type != "Real" for v in info.inputs)
-    return (topology.ann is not None and info.n_event_indicators == 0 and not internal_discrete
-            and not discrete_inputs and not model.config.parameters and can_snapshot(info)
-            and core.enabled())
+    return runs_in_core(model) and info.n_event_indicators == 0 and not internal_discrete
 
 
 def runs_in_core(model: NeuralFMU) -> bool:
